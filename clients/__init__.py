@@ -1,0 +1,1 @@
+"""Thin clients that drive environments through the service."""

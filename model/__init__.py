@@ -1,0 +1,1 @@
+"""Goal-Masked Transformer: data, network, training, checkpoints, batched inference and evaluation."""

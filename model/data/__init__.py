@@ -1,0 +1,1 @@
+"""Offline datasets: behaviour agents, collection, Minari I/O, statistics and goal relabelling."""

@@ -1,0 +1,231 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class Observation(_message.Message):
+    __slots__ = ("values", "tensor")
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    TENSOR_FIELD_NUMBER: _ClassVar[int]
+    values: FloatVector
+    tensor: Tensor
+    def __init__(self, values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+
+class FloatVector(_message.Message):
+    __slots__ = ("values",)
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Tensor(_message.Message):
+    __slots__ = ("data", "shape", "dtype")
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    data: bytes
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    dtype: str
+    def __init__(self, data: _Optional[bytes] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[str] = ...) -> None: ...
+
+class GoalSelector(_message.Message):
+    __slots__ = ("id", "name", "target")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    id: int
+    name: str
+    target: float
+    def __init__(self, id: _Optional[int] = ..., name: _Optional[str] = ..., target: _Optional[float] = ...) -> None: ...
+
+class Space(_message.Message):
+    __slots__ = ("type", "shape", "low", "high", "n", "dtype")
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    LOW_FIELD_NUMBER: _ClassVar[int]
+    HIGH_FIELD_NUMBER: _ClassVar[int]
+    N_FIELD_NUMBER: _ClassVar[int]
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    type: str
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    low: _containers.RepeatedScalarFieldContainer[float]
+    high: _containers.RepeatedScalarFieldContainer[float]
+    n: int
+    dtype: str
+    def __init__(self, type: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., low: _Optional[_Iterable[float]] = ..., high: _Optional[_Iterable[float]] = ..., n: _Optional[int] = ..., dtype: _Optional[str] = ...) -> None: ...
+
+class Goal(_message.Message):
+    __slots__ = ("id", "name", "mean", "std", "min", "max", "count")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    MEAN_FIELD_NUMBER: _ClassVar[int]
+    STD_FIELD_NUMBER: _ClassVar[int]
+    MIN_FIELD_NUMBER: _ClassVar[int]
+    MAX_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    id: int
+    name: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    count: int
+    def __init__(self, id: _Optional[int] = ..., name: _Optional[str] = ..., mean: _Optional[float] = ..., std: _Optional[float] = ..., min: _Optional[float] = ..., max: _Optional[float] = ..., count: _Optional[int] = ...) -> None: ...
+
+class ModelInfo(_message.Message):
+    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    ENV_ID_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_SPACE_FIELD_NUMBER: _ClassVar[int]
+    ACTION_SPACE_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_LENGTH_FIELD_NUMBER: _ClassVar[int]
+    STATISTIC_FIELD_NUMBER: _ClassVar[int]
+    GOALS_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    env_id: str
+    observation_space: Space
+    action_space: Space
+    context_length: int
+    statistic: str
+    goals: _containers.RepeatedCompositeFieldContainer[Goal]
+    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ...) -> None: ...
+
+class SessionInfo(_message.Message):
+    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    GOAL_NAME_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_SIZE_FIELD_NUMBER: _ClassVar[int]
+    BLEND_REMAINING_FIELD_NUMBER: _ClassVar[int]
+    IDLE_TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
+    ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    model: str
+    goal: int
+    goal_name: str
+    step: int
+    context_size: int
+    blend_remaining: int
+    idle_timeout_s: float
+    action_mode: str
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ...) -> None: ...
+
+class ListModelsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ListModelsResponse(_message.Message):
+    __slots__ = ("models",)
+    MODELS_FIELD_NUMBER: _ClassVar[int]
+    models: _containers.RepeatedCompositeFieldContainer[ModelInfo]
+    def __init__(self, models: _Optional[_Iterable[_Union[ModelInfo, _Mapping]]] = ...) -> None: ...
+
+class GetModelRequest(_message.Message):
+    __slots__ = ("name",)
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    def __init__(self, name: _Optional[str] = ...) -> None: ...
+
+class CreateSessionRequest(_message.Message):
+    __slots__ = ("model", "goal", "seed", "action_mode")
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
+    model: str
+    goal: GoalSelector
+    seed: int
+    action_mode: str
+    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ...) -> None: ...
+
+class GetSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class ActRequest(_message.Message):
+    __slots__ = ("session_id", "values", "tensor")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    TENSOR_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    values: FloatVector
+    tensor: Tensor
+    def __init__(self, session_id: _Optional[str] = ..., values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+
+class ActResponse(_message.Message):
+    __slots__ = ("action", "discrete_action", "is_discrete", "step", "goal", "session_id")
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    DISCRETE_ACTION_FIELD_NUMBER: _ClassVar[int]
+    IS_DISCRETE_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    action: _containers.RepeatedScalarFieldContainer[float]
+    discrete_action: int
+    is_discrete: bool
+    step: int
+    goal: int
+    session_id: str
+    def __init__(self, action: _Optional[_Iterable[float]] = ..., discrete_action: _Optional[int] = ..., is_discrete: _Optional[bool] = ..., step: _Optional[int] = ..., goal: _Optional[int] = ..., session_id: _Optional[str] = ...) -> None: ...
+
+class SetGoalRequest(_message.Message):
+    __slots__ = ("session_id", "goal", "blend_steps")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    BLEND_STEPS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    goal: GoalSelector
+    blend_steps: int
+    def __init__(self, session_id: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., blend_steps: _Optional[int] = ...) -> None: ...
+
+class ResetSessionRequest(_message.Message):
+    __slots__ = ("session_id", "goal")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    goal: GoalSelector
+    def __init__(self, session_id: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ...) -> None: ...
+
+class CloseSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class CloseSessionResponse(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class ControlRequest(_message.Message):
+    __slots__ = ("act", "set_goal")
+    ACT_FIELD_NUMBER: _ClassVar[int]
+    SET_GOAL_FIELD_NUMBER: _ClassVar[int]
+    act: ActRequest
+    set_goal: SetGoalRequest
+    def __init__(self, act: _Optional[_Union[ActRequest, _Mapping]] = ..., set_goal: _Optional[_Union[SetGoalRequest, _Mapping]] = ...) -> None: ...
+
+class ControlError(_message.Message):
+    __slots__ = ("code", "message")
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    code: str
+    message: str
+    def __init__(self, code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+
+class ControlResponse(_message.Message):
+    __slots__ = ("act", "session", "error")
+    ACT_FIELD_NUMBER: _ClassVar[int]
+    SESSION_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    act: ActResponse
+    session: SessionInfo
+    error: ControlError
+    def __init__(self, act: _Optional[_Union[ActResponse, _Mapping]] = ..., session: _Optional[_Union[SessionInfo, _Mapping]] = ..., error: _Optional[_Union[ControlError, _Mapping]] = ...) -> None: ...

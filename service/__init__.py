@@ -1,0 +1,1 @@
+"""The controllable-policy service: transport-agnostic core plus REST and gRPC adapters."""

@@ -1,0 +1,39 @@
+"""The `gmt` console command: one entry point for data, training, evaluation, serving and clients.
+
+Sub-command groups live beside the code they drive and are registered here. Heavy imports (torch, gymnasium)
+happen inside commands so that `gmt --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="gmt",
+    help="Train Goal-Masked Transformers on offline trajectories and serve them as controllable policies.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+@app.callback()
+def _root() -> None:
+    """Train Goal-Masked Transformers on offline trajectories and serve them as controllable policies."""
+
+
+@app.command()
+def version() -> None:
+    """Print the versions of gmt and its main dependencies."""
+    from importlib.metadata import version as v
+
+    for pkg in ("gmt-service", "torch", "gymnasium", "mujoco", "fastapi", "grpcio"):
+        typer.echo(f"{pkg} {v(pkg)}")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()
