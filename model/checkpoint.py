@@ -1,0 +1,190 @@
+"""Checkpoint directories: `model.safetensors` (weights) + `gmt.json` (everything else). Never pickle."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from model.config import GMTConfig
+from model.gmt import GMT
+from model.tokens import ActionCodec, ObsNormalizer
+
+FORMAT = "gmt-checkpoint"
+FORMAT_VERSION = 1
+WEIGHTS = "model.safetensors"
+META = "gmt.json"
+PICKLE_SUFFIXES = {".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin"}
+
+
+class CheckpointError(Exception):
+    """A checkpoint is missing, malformed, or in a refused format."""
+
+
+@dataclass
+class Goal:
+    """One goal of the goal table (a k-means cluster of the per-trajectory statistic)."""
+
+    id: int
+    name: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    count: int
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: the network plus everything needed to serve it.
+
+    Attributes:
+        name: Model name (the directory name by default).
+        model: The network, in eval mode.
+        env_id: Gymnasium environment id.
+        observation_space: `model.spaces.space_to_dict` of the observation space.
+        action_space: Same for the action space.
+        obs_norm: State normalisation from the training dataset.
+        action_codec: Action scaling to and from [-1, 1].
+        statistic: Name of the per-trajectory statistic the goals cluster.
+        goals: Goal table, goal 0 = lowest statistic.
+        meta: The whole gmt.json (training config, dataset fingerprint, code revision, ...).
+    """
+
+    name: str
+    model: GMT
+    env_id: str
+    observation_space: dict
+    action_space: dict
+    obs_norm: ObsNormalizer
+    action_codec: ActionCodec
+    statistic: str
+    goals: list[Goal]
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def config(self) -> GMTConfig:
+        """The network's config."""
+        return self.model.cfg
+
+
+def code_revision() -> str:
+    """The git commit of this code (with '+dirty' for uncommitted changes), or 'unknown'."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        return rev + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def save_checkpoint(ckpt: Checkpoint, directory: str | Path, extra_meta: dict | None = None) -> Path:
+    """Write `model.safetensors` and `gmt.json` into `directory` (created if needed)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in ckpt.model.state_dict().items()}
+    save_file(tensors, str(d / WEIGHTS))
+    meta = {
+        **ckpt.meta,
+        **(extra_meta or {}),
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "name": ckpt.name,
+        "model": ckpt.config.to_dict(),
+        "env": {
+            "env_id": ckpt.env_id,
+            "observation_space": ckpt.observation_space,
+            "action_space": ckpt.action_space,
+        },
+        "normalization": {"observation": ckpt.obs_norm.to_dict(), "action": ckpt.action_codec.to_dict()},
+        "statistic": ckpt.statistic,
+        "goals": [g.to_dict() for g in ckpt.goals],
+    }
+    (d / META).write_text(json.dumps(meta, indent=2, allow_nan=False) + "\n")
+    return d
+
+
+def _refuse_pickle(path: Path) -> None:
+    if path.suffix in PICKLE_SUFFIXES:
+        raise CheckpointError(
+            f"refusing to load {path}: pickle-based formats are not accepted; "
+            f"a checkpoint is a directory with {WEIGHTS} and {META}"
+        )
+    with path.open("rb") as f:
+        head = f.read(2)
+    if len(head) == 2 and head[0] == 0x80 and head[1] <= 5:
+        raise CheckpointError(f"refusing to load {path}: it is a pickle stream, not safetensors")
+
+
+def load_checkpoint(directory: str | Path, name: str | None = None) -> Checkpoint:
+    """Load a checkpoint directory; only safetensors and JSON are ever read.
+
+    Raises:
+        CheckpointError: the directory, weights or metadata are missing or malformed, or a pickle is given.
+    """
+    d = Path(directory)
+    if d.is_file():
+        _refuse_pickle(d)
+        raise CheckpointError(f"{d} is a file; a checkpoint is a directory with {WEIGHTS} and {META}")
+    weights, meta_path = d / WEIGHTS, d / META
+    for p in (weights, meta_path):
+        if not p.is_file():
+            raise CheckpointError(f"checkpoint {d} has no {p.name}")
+    _refuse_pickle(weights)
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{meta_path} is not valid JSON: {e}") from e
+    if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{meta_path}: expected format {FORMAT} v{FORMAT_VERSION}, "
+            f"got {meta.get('format')} v{meta.get('format_version')}"
+        )
+    cfg = GMTConfig.from_dict(meta["model"])
+    model = GMT(cfg)
+    try:
+        state = load_file(str(weights))
+    except Exception as e:  # safetensors raises its own error types
+        raise CheckpointError(f"{weights} is not a readable safetensors file: {e}") from e
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{weights} does not match the config: missing {missing}, unexpected {unexpected}"
+        )
+    model.eval()
+    env = meta["env"]
+    return Checkpoint(
+        name=name or meta.get("name") or d.name,
+        model=model,
+        env_id=env["env_id"],
+        observation_space=env["observation_space"],
+        action_space=env["action_space"],
+        obs_norm=ObsNormalizer.from_dict(meta["normalization"]["observation"]),
+        action_codec=ActionCodec.from_dict(meta["normalization"]["action"]),
+        statistic=meta["statistic"],
+        goals=[Goal(**g) for g in meta["goals"]],
+        meta=meta,
+    )
+
+
+def state_dicts_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether two modules hold bit-identical parameters and buffers."""
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)

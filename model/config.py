@@ -1,0 +1,123 @@
+"""Typed configuration of the GMT network and of its training run."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+MaskingMode = Literal["token", "trajectory", "none"]
+
+
+@dataclass(frozen=True)
+class GMTConfig:
+    """Shape of one Goal-Masked Transformer; everything the network needs and nothing else.
+
+    Attributes:
+        obs_shape: Shape of one observation: (D,) for vectors, (C, H, W) for images (uint8 frames).
+        act_dim: Action dimension for continuous actions, number of actions for discrete ones.
+        discrete_actions: True for a Discrete action space (cross-entropy), False for Box (MSE, tanh head).
+        n_goals: Number of goal labels; the embedding table has one more row, the learned [mask] token.
+        context_length: K, the number of (goal, state, action) timesteps the model sees.
+        n_layer: Number of transformer blocks.
+        n_head: Attention heads per block.
+        n_embd: Width of every token embedding.
+        max_timestep: Size of the timestep embedding table; later timesteps are clamped to the last row.
+        dropout: Dropout probability (0 by default: it costs a third of a CPU step for little gain here).
+    """
+
+    obs_shape: tuple[int, ...]
+    act_dim: int
+    discrete_actions: bool
+    n_goals: int
+    context_length: int = 20
+    n_layer: int = 3
+    n_head: int = 1
+    n_embd: int = 128
+    max_timestep: int = 1024
+    dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "obs_shape", tuple(int(s) for s in self.obs_shape))
+        if len(self.obs_shape) not in (1, 3):
+            raise ValueError(f"obs_shape must be (D,) or (C, H, W), got {self.obs_shape}")
+        if self.act_dim < 1 or self.n_goals < 1 or self.context_length < 1:
+            raise ValueError("act_dim, n_goals and context_length must be positive")
+        if self.n_embd % self.n_head != 0:
+            raise ValueError(f"n_embd={self.n_embd} is not divisible by n_head={self.n_head}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def is_image(self) -> bool:
+        """Whether observations are images embedded by the CNN."""
+        return len(self.obs_shape) == 3
+
+    @property
+    def mask_token(self) -> int:
+        """Index of the learned [mask] row of the goal embedding table."""
+        return self.n_goals
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        d = asdict(self)
+        d["obs_shape"] = list(self.obs_shape)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GMTConfig:
+        """Inverse of `to_dict`."""
+        return cls(**{**d, "obs_shape": tuple(d["obs_shape"])})
+
+
+@dataclass
+class TrainConfig:
+    """One training run.
+
+    Attributes:
+        steps: Optimiser steps.
+        batch_size: Windows per batch.
+        lr: Peak learning rate of AdamW.
+        weight_decay: AdamW weight decay (not applied to embeddings, norms and biases).
+        warmup_steps: Linear warmup steps before the cosine decay.
+        min_lr_ratio: Final learning rate as a fraction of `lr`.
+        grad_clip: Gradient-norm clip.
+        masking: Goal masking mode: token (paper default), trajectory or none.
+        mask_prob: Probability p of masking a goal token (or a window's goals in trajectory mode).
+        alpha: Weight of the next-goal loss.
+        seed: Seed of weights, window sampling and masks.
+        threads: torch intra-op threads (0 = leave torch's default).
+        log_every: Steps between TensorBoard scalars and progress-bar updates.
+        save_every: Steps between resumable checkpoints.
+        statistic: Per-trajectory statistic the goals cluster.
+        k: Number of goals; None picks k by silhouette score.
+        bf16: Run matrix products under bfloat16 autocast (AMX on this CPU).
+    """
+
+    steps: int = 20000
+    batch_size: int = 64
+    lr: float = 6e-4
+    weight_decay: float = 1e-4
+    warmup_steps: int = 1000
+    min_lr_ratio: float = 0.1
+    grad_clip: float = 0.25
+    masking: MaskingMode = "token"
+    mask_prob: float = 0.5
+    alpha: float = 1.0
+    seed: int = 0
+    threads: int = 0
+    log_every: int = 100
+    save_every: int = 2000
+    statistic: str = "mean_x_velocity"
+    k: int | None = None
+    bf16: bool = False
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.masking not in ("token", "trajectory", "none"):
+            raise ValueError(f"masking must be token, trajectory or none, got {self.masking!r}")
+        if not 0.0 <= self.mask_prob <= 1.0:
+            raise ValueError(f"mask_prob must be in [0, 1], got {self.mask_prob}")
+        if self.steps < 1 or self.batch_size < 1:
+            raise ValueError("steps and batch_size must be positive")
+        if self.warmup_steps < 0 or self.lr <= 0:
+            raise ValueError("warmup_steps must be >= 0 and lr > 0")

@@ -1,0 +1,85 @@
+"""Tiny random-weight checkpoints for tests, demos and benchmarks (built in milliseconds, no data needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from model.checkpoint import Checkpoint, Goal, save_checkpoint
+from model.config import GMTConfig
+from model.gmt import GMT
+from model.spaces import space_to_dict
+from model.tokens import ActionCodec, ObsNormalizer
+
+GOAL_NAMES = ("low", "medium", "high")
+
+
+def tiny_checkpoint(
+    directory: str | Path | None = None,
+    env_id: str = "HalfCheetah-v5",
+    n_goals: int = 3,
+    context_length: int = 5,
+    seed: int = 0,
+    name: str = "tiny-gmt",
+) -> Checkpoint:
+    """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
+
+    The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded.
+    """
+    env = gym.make(env_id)
+    obs_space, act_space = env.observation_space, env.action_space
+    env.close()
+    discrete = isinstance(act_space, gym.spaces.Discrete)
+    obs_shape = obs_space.shape if len(obs_space.shape) != 2 else (1, *obs_space.shape)
+    cfg = GMTConfig(
+        obs_shape=obs_shape,
+        act_dim=int(act_space.n) if discrete else int(np.prod(act_space.shape)),
+        discrete_actions=discrete,
+        n_goals=n_goals,
+        context_length=context_length,
+        n_layer=2,
+        n_head=2,
+        n_embd=32,
+    )
+    torch.manual_seed(seed)
+    model = GMT(cfg).eval()
+    if obs_space.dtype == np.uint8:
+        norm = ObsNormalizer()
+    else:
+        rng = np.random.default_rng(seed)
+        norm = ObsNormalizer(rng.normal(size=obs_shape).astype(np.float32), np.ones(obs_shape, np.float32))
+    codec = (
+        ActionCodec()
+        if discrete
+        else ActionCodec(act_space.low.astype(np.float32), act_space.high.astype(np.float32))
+    )
+    goals = [
+        Goal(
+            id=i,
+            name=GOAL_NAMES[i] if n_goals == 3 else f"goal-{i}",
+            mean=float(i),
+            std=0.1,
+            min=i - 0.3,
+            max=i + 0.3,
+            count=10,
+        )
+        for i in range(n_goals)
+    ]
+    ckpt = Checkpoint(
+        name=name,
+        model=model,
+        env_id=env_id,
+        observation_space=space_to_dict(obs_space),
+        action_space=space_to_dict(act_space),
+        obs_norm=norm,
+        action_codec=codec,
+        statistic="mean_x_velocity",
+        goals=goals,
+        meta={"note": "random weights for tests"},
+    )
+    if directory is not None:
+        save_checkpoint(ckpt, directory)
+    return ckpt
