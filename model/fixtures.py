@@ -83,3 +83,41 @@ def tiny_checkpoint(
     if directory is not None:
         save_checkpoint(ckpt, directory)
     return ckpt
+
+
+class _Episode:
+    def __init__(self, observations: np.ndarray, actions: np.ndarray) -> None:
+        self.observations, self.actions = observations, actions
+
+
+class SyntheticDataset:
+    """A tiny dataset with the attributes training reads (`OfflineDataset`'s duck type).
+
+    HalfCheetah-v5 spaces; episode i has goal i % n_goals and acts as a = tanh(0.5 s[:6] + goal - 1), so the
+    action depends on both the state and the goal.
+    """
+
+    def __init__(self, n_episodes: int = 12, length: int = 40, n_goals: int = 3, seed: int = 0) -> None:
+        env = gym.make("HalfCheetah-v5")
+        self.observation_space, self.action_space = env.observation_space, env.action_space
+        env.close()
+        rng = np.random.default_rng(seed)
+        self.env_id, self.dataset_id, self.fingerprint = "HalfCheetah-v5", "synthetic", f"synthetic-{seed}"
+        self.labels = [i % n_goals for i in range(n_episodes)]
+        self.episodes = []
+        for g in self.labels:
+            obs = rng.normal(size=(length, 17)).astype(np.float32)
+            act = np.tanh(0.5 * obs[:, :6] + (g - 1.0)).astype(np.float32)
+            self.episodes.append(_Episode(obs, act))
+        self.goals = [
+            Goal(
+                id=i,
+                name=GOAL_NAMES[i] if n_goals == 3 else f"goal-{i}",
+                mean=float(i),
+                std=0.0,
+                min=float(i),
+                max=float(i),
+                count=self.labels.count(i),
+            )
+            for i in range(n_goals)
+        ]

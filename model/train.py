@@ -1,0 +1,217 @@
+"""Training loop: seeded, resumable, CPU-efficient; writes a checkpoint directory (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
+from model.config import GMTConfig, TrainConfig
+from model.gmt import GMT
+from model.losses import gmt_loss
+from model.masking import mask_goals
+from model.spaces import space_to_dict
+from model.tokens import ActionCodec, ObsNormalizer, WindowSampler
+
+RESUME_DIR = "_resume"
+
+
+def model_config_for(dataset, n_goals: int, **overrides) -> GMTConfig:
+    """A GMTConfig matching a dataset's spaces; `overrides` set context_length, n_layer, ... ."""
+    import gymnasium as gym
+
+    obs_shape = dataset.observation_space.shape
+    if len(obs_shape) == 2:  # grayscale frames [H, W] -> one channel
+        obs_shape = (1, *obs_shape)
+    act = dataset.action_space
+    discrete = isinstance(act, gym.spaces.Discrete)
+    return GMTConfig(
+        obs_shape=obs_shape,
+        act_dim=int(act.n) if discrete else int(np.prod(act.shape)),
+        discrete_actions=discrete,
+        n_goals=n_goals,
+        **overrides,
+    )
+
+
+def build_sampler(
+    dataset, labels: list[int], cfg: GMTConfig
+) -> tuple[WindowSampler, ObsNormalizer, ActionCodec]:
+    """Normalise a dataset's episodes and wrap them in a window sampler."""
+    import gymnasium as gym
+
+    obs = [ep.observations.reshape(len(ep.observations), *cfg.obs_shape) for ep in dataset.episodes]
+    norm = ObsNormalizer.fit(np.concatenate(obs))
+    act = dataset.action_space
+    codec = (
+        ActionCodec()
+        if isinstance(act, gym.spaces.Discrete)
+        else ActionCodec(act.low.astype(np.float32), act.high.astype(np.float32))
+    )
+    states = [norm(o) for o in obs]
+    actions = [codec.encode(ep.actions) for ep in dataset.episodes]
+    return WindowSampler(states, actions, labels, cfg.context_length), norm, codec
+
+
+def lr_at(step: int, tc: TrainConfig) -> float:
+    """Linear warmup then cosine decay to `min_lr_ratio * lr`."""
+    if step < tc.warmup_steps:
+        return tc.lr * (step + 1) / tc.warmup_steps
+    progress = min((step - tc.warmup_steps) / max(tc.steps - tc.warmup_steps, 1), 1.0)
+    return tc.lr * (tc.min_lr_ratio + (1 - tc.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def make_optimizer(model: GMT, tc: TrainConfig) -> torch.optim.AdamW:
+    """AdamW with weight decay on matrices only."""
+    decay = [p for n, p in model.named_parameters() if p.dim() >= 2 and "emb" not in n]
+    no_decay = [p for n, p in model.named_parameters() if not (p.dim() >= 2 and "emb" not in n)]
+    groups = [{"params": decay, "weight_decay": tc.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=tc.lr, betas=(0.9, 0.95), fused=True)
+
+
+def _save_resume(d: Path, step: int, model: GMT, opt: torch.optim.Optimizer, gen: torch.Generator) -> None:
+    d.mkdir(parents=True, exist_ok=True)
+    tensors = {f"model.{k}": v.detach().clone().contiguous() for k, v in model.state_dict().items()}
+    opt_state = opt.state_dict()
+    for pid, st in opt_state["state"].items():
+        for k, v in st.items():
+            tensors[f"opt.{pid}.{k}"] = v.detach().clone().contiguous().reshape(v.shape)
+    tensors["rng"] = gen.get_state()
+    save_file(tensors, str(d / "state.safetensors"))
+    (d / "state.json").write_text(json.dumps({"step": step, "param_groups": opt_state["param_groups"]}))
+
+
+def _load_resume(d: Path, model: GMT, opt: torch.optim.Optimizer, gen: torch.Generator) -> int:
+    tensors = load_file(str(d / "state.safetensors"))
+    meta = json.loads((d / "state.json").read_text())
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    state: dict[int, dict] = {}
+    for k, v in tensors.items():
+        if k.startswith("opt."):
+            _, pid, name = k.split(".", 2)
+            state.setdefault(int(pid), {})[name] = v
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    gen.set_state(tensors["rng"])
+    return int(meta["step"])
+
+
+def train(
+    dataset,
+    labels: list[int],
+    goals: list[Goal],
+    out_dir: str | Path,
+    tc: TrainConfig,
+    model_overrides: dict | None = None,
+    name: str | None = None,
+    extra_meta: dict | None = None,
+    resume: bool = True,
+    progress: bool = True,
+) -> Checkpoint:
+    """Train a GMT on a relabelled dataset and write its checkpoint directory.
+
+    Args:
+        dataset: An `OfflineDataset` (model.data.minari_io).
+        labels: Goal label per episode.
+        goals: Goal table.
+        out_dir: Checkpoint directory (created); `_resume/` inside holds the resumable state.
+        tc: Training configuration.
+        model_overrides: GMTConfig fields to override (context_length, n_layer, ...).
+        name: Model name (defaults to the directory name).
+        extra_meta: More fields for gmt.json (relabelling details, commands).
+        resume: Continue from `out_dir/_resume` when it exists.
+        progress: Show a progress bar.
+    """
+    out = Path(out_dir)
+    if tc.threads:
+        torch.set_num_threads(tc.threads)
+    torch.manual_seed(tc.seed)
+    cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
+    sampler, norm, codec = build_sampler(dataset, labels, cfg)
+    model = GMT(cfg)
+    opt = make_optimizer(model, tc)
+    gen = torch.Generator().manual_seed(tc.seed)
+    start = 0
+    resume_dir = out / RESUME_DIR
+    if resume and (resume_dir / "state.json").exists():
+        start = _load_resume(resume_dir, model, opt, gen)
+    writer = _summary_writer(out / "tb")
+    model.train()
+    t0, last = time.time(), {}
+    bar = tqdm(range(start, tc.steps), initial=start, total=tc.steps, disable=not progress, desc="train")
+    for step in bar:
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, tc)
+        w = sampler.sample(tc.batch_size, gen)
+        goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=tc.bf16):
+            pred, goal_logits = model(goals_in, w.states, w.actions, w.timesteps, w.valid)
+        parts = gmt_loss(pred, goal_logits, w.actions, w.goals, w.valid, cfg.discrete_actions, tc.alpha)
+        opt.zero_grad(set_to_none=True)
+        parts.total.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
+        opt.step()
+        last = {
+            "loss": parts.total.item(),
+            "action_loss": parts.action,
+            "goal_loss": parts.goal,
+            "goal_accuracy": parts.goal_accuracy,
+            "grad_norm": float(gnorm),
+            "lr": lr_at(step, tc),
+        }
+        if step % tc.log_every == 0 or step == tc.steps - 1:
+            bar.set_postfix(loss=f"{last['loss']:.4f}", act=f"{parts.action:.4f}", goal=f"{parts.goal:.3f}")
+            if writer is not None:
+                for k, v in last.items():
+                    writer.add_scalar(f"train/{k}", v, step)
+        if (step + 1) % tc.save_every == 0 and step + 1 < tc.steps:
+            _save_resume(resume_dir, step + 1, model, opt, gen)
+    if writer is not None:
+        writer.close()
+    model.eval()
+    elapsed = time.time() - t0
+    meta = {
+        **(extra_meta or {}),
+        "training": {
+            **asdict(replace(tc)),
+            "final": last,
+            "wall_time_s": round(elapsed, 1),
+            "steps_per_s": round((tc.steps - start) / max(elapsed, 1e-9), 2),
+        },
+        "dataset": {
+            "id": dataset.dataset_id,
+            "fingerprint": dataset.fingerprint,
+            "episodes": len(dataset.episodes),
+            "transitions": int(sampler.n),
+        },
+        "code_revision": code_revision(),
+    }
+    ckpt = Checkpoint(
+        name=name or out.name,
+        model=model,
+        env_id=dataset.env_id,
+        observation_space=space_to_dict(dataset.observation_space),
+        action_space=space_to_dict(dataset.action_space),
+        obs_norm=norm,
+        action_codec=codec,
+        statistic=tc.statistic,
+        goals=goals,
+        meta=meta,
+    )
+    save_checkpoint(ckpt, out)
+    return ckpt
+
+
+def _summary_writer(path: Path):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:  # tensorboard is in the optional `train` extra
+        return None
+    return SummaryWriter(str(path))

@@ -1,0 +1,105 @@
+"""Training lowers the loss, is deterministic and resumable; checkpoints round-trip exactly; pickle is refused."""
+
+import json
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import CheckpointError, load_checkpoint, state_dicts_equal
+from model.config import TrainConfig
+from model.fixtures import SyntheticDataset
+from model.losses import gmt_loss
+from model.train import build_sampler, model_config_for, train
+
+SMALL = {"context_length": 4, "n_layer": 1, "n_head": 1, "n_embd": 32}
+
+
+def _tc(**kw):
+    base = dict(steps=60, batch_size=16, lr=3e-3, warmup_steps=5, log_every=10, save_every=1000, seed=0)
+    return TrainConfig(**{**base, **kw})
+
+
+def _eval_loss(ckpt, ds):
+    sampler, _, _ = build_sampler(ds, ds.labels, ckpt.config)
+    w = sampler.windows(torch.arange(0, sampler.n, 7))
+    with torch.inference_mode():
+        pred, gl = ckpt.model(*w.model_inputs())
+    return gmt_loss(pred, gl, w.actions, w.goals, w.valid, False).total.item()
+
+
+def test_short_training_lowers_the_loss(tmp_path):
+    ds = SyntheticDataset()
+    cfg = model_config_for(ds, 3, **SMALL)
+    from model.gmt import GMT
+
+    torch.manual_seed(0)
+    untrained = type("C", (), {"model": GMT(cfg).eval(), "config": cfg})()
+    before = _eval_loss(untrained, ds)
+    ckpt = train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=150), SMALL, progress=False)
+    after = _eval_loss(ckpt, ds)
+    assert after < 0.6 * before, (before, after)
+
+
+def test_training_is_deterministic_under_a_seed(tmp_path):
+    ds = SyntheticDataset()
+    a = train(ds, ds.labels, ds.goals, tmp_path / "a", _tc(steps=20), SMALL, progress=False)
+    b = train(ds, ds.labels, ds.goals, tmp_path / "b", _tc(steps=20), SMALL, progress=False)
+    c = train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=20, seed=1), SMALL, progress=False)
+    assert state_dicts_equal(a.model, b.model)
+    assert not state_dicts_equal(a.model, c.model)
+
+
+def test_resume_continues_exactly(tmp_path):
+    ds = SyntheticDataset()
+    full = train(ds, ds.labels, ds.goals, tmp_path / "full", _tc(steps=30), SMALL, progress=False)
+    # Interrupted run: stop at 20 (resume state saved at step 20), then resume to 30.
+    train(ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False)
+    assert (tmp_path / "part/_resume/state.json").exists()
+    resumed = train(
+        ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False
+    )
+    assert state_dicts_equal(full.model, resumed.model)
+
+
+def test_checkpoint_round_trip_is_exact(tmp_path):
+    ds = SyntheticDataset()
+    ckpt = train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=5), SMALL, progress=False)
+    loaded = load_checkpoint(tmp_path / "c")
+    assert state_dicts_equal(ckpt.model, loaded.model)
+    assert loaded.config == ckpt.config and loaded.goals == ckpt.goals and loaded.env_id == "HalfCheetah-v5"
+    assert np.array_equal(loaded.obs_norm.mean, ckpt.obs_norm.mean)
+    meta = json.loads((tmp_path / "c/gmt.json").read_text())
+    for key in (
+        "format_version",
+        "model",
+        "env",
+        "normalization",
+        "statistic",
+        "goals",
+        "training",
+        "dataset",
+        "code_revision",
+    ):
+        assert key in meta
+    obs = np.random.default_rng(0).normal(size=(3, 17)).astype(np.float32)
+    assert np.array_equal(ckpt.obs_norm(obs), loaded.obs_norm(obs))
+
+
+def test_loading_refuses_pickle(tmp_path):
+    ds = SyntheticDataset()
+    train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=2), SMALL, progress=False)
+    pkl = tmp_path / "model.pt"
+    pkl.write_bytes(pickle.dumps({"weights": [1, 2, 3]}))
+    with pytest.raises(CheckpointError, match="pickle"):
+        load_checkpoint(pkl)
+    # A pickle disguised as the weights file is refused before anything is deserialised.
+    (tmp_path / "c/model.safetensors").write_bytes(pickle.dumps({"weights": [1, 2, 3]}))
+    with pytest.raises(CheckpointError, match="pickle"):
+        load_checkpoint(tmp_path / "c")
+
+
+def test_missing_files_give_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="has no model.safetensors"):
+        load_checkpoint(tmp_path)
