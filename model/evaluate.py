@@ -1,0 +1,261 @@
+"""Goal-switching evaluation (DESIGN.md section 5, paper section 3.1 and A.2.3).
+
+All episodes of every condition step in lockstep through the batched `PolicyEngine`, which is also what the
+server uses. Conditions: hold every goal; every ordered switch pair at mid-episode; cycling through the goals
+every N steps. An episode succeeds when it never terminates early and every measured segment's mean statistic
+lies within tolerance of its goal's dataset mean.
+
+JSON schema (`EvalResult.to_dict`):
+    checkpoint, env_id, statistic, seeds (list), episode_steps, wall_time_s,
+    goals: [{id, name, mean, std, min, max, count, tolerance}],
+    conditions: [{
+        name ("hold 0", "switch 0->2", "every 200"), kind ("hold" | "switch" | "multi_switch"),
+        schedule: [[step, goal], ...],
+        episodes, successes, terminated_early,
+        segments: [{goal, start, end, target, tolerance, achieved_mean, achieved_std, within (count)}],
+    }]
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from model.checkpoint import Checkpoint, Goal
+from model.engine import PolicyEngine
+
+SWITCH_AT = 500
+MULTI_SWITCH_EVERY = (300, 200, 100)
+
+
+def tolerance(goal: Goal, goals: list[Goal]) -> float:
+    """max(10% of |goal mean|, 5% of the span of goal means)."""
+    means = [g.mean for g in goals]
+    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)))
+
+
+@dataclass
+class Condition:
+    """One evaluation condition: a goal schedule and the segments it is judged on.
+
+    Attributes:
+        name: Human-readable name.
+        kind: hold, switch or multi_switch.
+        schedule: (step, goal) pairs; the goal applies from that step on.
+        segments: (goal, start, end) measured step ranges, end exclusive.
+    """
+
+    name: str
+    kind: str
+    schedule: list[tuple[int, int]]
+    segments: list[tuple[int, int, int]]
+
+    def goal_at(self, step: int) -> int:
+        """The scheduled goal at `step`."""
+        g = self.schedule[0][1]
+        for s, goal in self.schedule:
+            if s <= step:
+                g = goal
+        return g
+
+
+def protocol(
+    n_goals: int, steps: int = 1000, multi_every: tuple[int, ...] = MULTI_SWITCH_EVERY
+) -> list[Condition]:
+    """The conditions of DESIGN.md section 5 for `n_goals` goals and `steps`-step episodes."""
+    conds = [Condition(f"hold {g}", "hold", [(0, g)], [(g, 100, steps)]) for g in range(n_goals)]
+    half = steps // 2
+    for a in range(n_goals):
+        for b in range(n_goals):
+            if a != b:
+                conds.append(
+                    Condition(
+                        f"switch {a}->{b}",
+                        "switch",
+                        [(0, a), (half, b)],
+                        [(a, 100, half), (b, half + 100, steps)],
+                    )
+                )
+    for n in multi_every:
+        sched = [(s, (s // n) % n_goals) for s in range(0, steps, n)]
+        segs = [(g, s + n // 4, min(s + n, steps)) for s, g in sched]
+        conds.append(Condition(f"every {n}", "multi_switch", sched, segs))
+    return conds
+
+
+@dataclass
+class ConditionResult:
+    """Outcome of one condition over all seeds."""
+
+    condition: Condition
+    signal: np.ndarray  # [E, steps] per-step statistic signal (NaN after an early termination)
+    terminated: np.ndarray  # [E] bool
+    segment_means: np.ndarray  # [E, S]
+    success: np.ndarray  # [E] bool
+    segments: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (without the per-step signal)."""
+        c = self.condition
+        return {
+            "name": c.name,
+            "kind": c.kind,
+            "schedule": [list(x) for x in c.schedule],
+            "episodes": int(len(self.success)),
+            "successes": int(self.success.sum()),
+            "terminated_early": int(self.terminated.sum()),
+            "segments": self.segments,
+        }
+
+
+@dataclass
+class EvalResult:
+    """All conditions of one evaluation run."""
+
+    checkpoint: str
+    env_id: str
+    statistic: str
+    seeds: list[int]
+    episode_steps: int
+    goals: list[Goal]
+    results: list[ConditionResult]
+    wall_time_s: float
+
+    def to_dict(self) -> dict:
+        """The documented JSON form."""
+        return {
+            "checkpoint": self.checkpoint,
+            "env_id": self.env_id,
+            "statistic": self.statistic,
+            "seeds": self.seeds,
+            "episode_steps": self.episode_steps,
+            "wall_time_s": round(self.wall_time_s, 1),
+            "goals": [{**g.to_dict(), "tolerance": tolerance(g, self.goals)} for g in self.goals],
+            "conditions": [r.to_dict() for r in self.results],
+        }
+
+    def markdown(self) -> str:
+        """A Markdown table: one row per condition."""
+        n = len(self.seeds)
+        lines = [
+            f"Evaluation of `{self.checkpoint}` on {self.env_id} ({self.statistic}), {n} seeds, "
+            f"{self.episode_steps} steps",
+            "",
+            "| condition | success | segments: goal target ± tol -> achieved mean (std) |",
+            "| --- | --- | --- |",
+        ]
+        for r in self.results:
+            segs = "; ".join(
+                f"{s['goal']}: {s['target']:.2f}±{s['tolerance']:.2f} -> {s['achieved_mean']:.2f} ({s['achieved_std']:.2f})"
+                for s in r.segments
+            )
+            lines.append(f"| {r.condition.name} | {int(r.success.sum())}/{n} | {segs} |")
+        return "\n".join(lines)
+
+
+def _signal(statistic: str, reward: float, info: dict) -> float:
+    from model.data.statistics import signal_from_step
+
+    return float(signal_from_step(statistic, reward, info))
+
+
+def evaluate(
+    ckpt: Checkpoint,
+    seeds: int | list[int] = 15,
+    steps: int = 1000,
+    conditions: list[Condition] | None = None,
+    progress: bool = True,
+) -> EvalResult:
+    """Run every condition for every seed, all episodes in lockstep through one engine.
+
+    Args:
+        ckpt: The checkpoint to evaluate.
+        seeds: Number of seeds (0..n-1) or an explicit list.
+        steps: Episode length (the environment's own time limit is raised to it).
+        conditions: Defaults to `protocol(n_goals, steps)`.
+        progress: Show a progress bar.
+    """
+    import gymnasium as gym
+
+    from model.data.statistics import get_statistic
+
+    get_statistic(ckpt.statistic)  # fail early on an unknown statistic
+    seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
+    conds = conditions or protocol(len(ckpt.goals), steps)
+    engine = PolicyEngine(ckpt)
+    runs = [(c, s) for c in conds for s in seed_list]
+    envs = [gym.make(ckpt.env_id, max_episode_steps=steps) for _ in runs]
+    t0 = time.time()
+    obs = [env.reset(seed=s)[0] for env, (_, s) in zip(envs, runs, strict=True)]
+    ctxs = [engine.new_context(c.goal_at(0), seed=s) for c, s in runs]
+    signal = np.full((len(runs), steps), np.nan)
+    terminated = np.zeros(len(runs), dtype=bool)
+    alive = np.ones(len(runs), dtype=bool)
+    for t in tqdm(range(steps), disable=not progress, desc="eval"):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        for i in idx:
+            g = runs[i][0].goal_at(t)
+            if g != ctxs[i].goal:
+                engine.set_goal(ctxs[i], g)
+        actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
+        for i, a in zip(idx, actions, strict=True):
+            o, r, term, trunc, info = envs[i].step(a)
+            obs[i] = o
+            signal[i, t] = _signal(ckpt.statistic, r, info)
+            if term:
+                terminated[i], alive[i] = True, False
+            elif trunc and t < steps - 1:
+                alive[i] = False
+    for env in envs:
+        env.close()
+    results = []
+    for ci, c in enumerate(conds):
+        rows = slice(ci * len(seed_list), (ci + 1) * len(seed_list))
+        sig, term = signal[rows], terminated[rows]
+        seg_means = (
+            np.stack(
+                [
+                    np.nanmean(sig[:, a:b], axis=1) if b > a else np.full(len(sig), np.nan)
+                    for _, a, b in c.segments
+                ],
+                axis=1,
+            )
+            if c.segments
+            else np.zeros((len(sig), 0))
+        )
+        ok = ~term
+        seg_info = []
+        for si, (g, a, b) in enumerate(c.segments):
+            goal = ckpt.goals[g]
+            tol = tolerance(goal, ckpt.goals)
+            within = np.abs(seg_means[:, si] - goal.mean) <= tol
+            within &= ~np.isnan(seg_means[:, si])
+            ok &= within
+            seg_info.append(
+                {
+                    "goal": g,
+                    "start": a,
+                    "end": b,
+                    "target": goal.mean,
+                    "tolerance": tol,
+                    "achieved_mean": float(np.nanmean(seg_means[:, si])),
+                    "achieved_std": float(np.nanstd(seg_means[:, si])),
+                    "within": int(within.sum()),
+                }
+            )
+        results.append(ConditionResult(c, sig, term, seg_means, ok, seg_info))
+    return EvalResult(
+        checkpoint=ckpt.name,
+        env_id=ckpt.env_id,
+        statistic=ckpt.statistic,
+        seeds=seed_list,
+        episode_steps=steps,
+        goals=ckpt.goals,
+        results=results,
+        wall_time_s=time.time() - t0,
+    )
