@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import typer
 
+from model.data.cli import app as data_app
+
 app = typer.Typer(
     name="gmt",
     help="Train Goal-Masked Transformers on offline trajectories and serve them as controllable policies.",
     no_args_is_help=True,
     add_completion=False,
 )
+app.add_typer(data_app, name="data")
 
 
 @app.callback()

@@ -1,0 +1,152 @@
+"""Behaviour policies used to collect offline data: an exported MLP (safetensors + JSON) and a random policy.
+
+A behaviour snapshot is the deterministic mean network of a PPO actor plus its state-independent log-std and
+the observation normalisation it was trained with. Loading needs only torch and safetensors.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
+BEHAVIOUR_DIR = Path(__file__).resolve().parents[2] / "behaviour"
+
+
+def env_slug(env_id: str) -> str:
+    """Lower-case environment name without its version, e.g. HalfCheetah-v5 -> halfcheetah."""
+    return env_id.split("/")[-1].rsplit("-v", 1)[0].lower()
+
+
+@dataclass
+class BehaviourMeta:
+    """Everything besides the weights that a snapshot needs (the JSON sidecar).
+
+    Attributes:
+        env_id: Gymnasium id the policy was trained on.
+        level: Skill-level name, e.g. "medium".
+        hidden_sizes: Widths of the hidden layers of the mean network.
+        activation: "relu" or "tanh".
+        obs_mean: VecNormalize running mean of the observations.
+        obs_var: VecNormalize running variance of the observations.
+        obs_clip: Normalised observations are clipped to [-obs_clip, obs_clip].
+        obs_epsilon: Added to the variance before the square root.
+        mean_speed: Measured mean of the per-episode mean x-velocity (stochastic policy).
+        std_speed: Standard deviation of the per-episode mean x-velocity.
+        train_step: Environment steps of training when the snapshot was taken.
+        extra: Free-form measurements (episodes used, mean return, mean length).
+    """
+
+    env_id: str
+    level: str
+    hidden_sizes: list[int]
+    activation: str
+    obs_mean: list[float]
+    obs_var: list[float]
+    obs_clip: float = 10.0
+    obs_epsilon: float = 1e-8
+    mean_speed: float | None = None
+    std_speed: float | None = None
+    train_step: int | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class BehaviourPolicy(nn.Module):
+    """Gaussian MLP policy: normalise obs, mean network, fixed log-std, actions clipped to the space bounds."""
+
+    def __init__(self, meta: BehaviourMeta, obs_dim: int, act_dim: int, low: np.ndarray, high: np.ndarray):
+        super().__init__()
+        self.meta = meta
+        sizes = [obs_dim, *meta.hidden_sizes, act_dim]
+        layers: list[nn.Module] = []
+        for i in range(len(sizes) - 1):
+            layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+            if i < len(sizes) - 2:
+                layers.append(ACTIVATIONS[meta.activation]())
+        self.mean_net = nn.Sequential(*layers)
+        self.log_std = nn.Parameter(torch.zeros(act_dim))
+        self.register_buffer("obs_mean", torch.as_tensor(meta.obs_mean, dtype=torch.float64))
+        self.register_buffer("obs_var", torch.as_tensor(meta.obs_var, dtype=torch.float64))
+        self.low = np.asarray(low, dtype=np.float32)
+        self.high = np.asarray(high, dtype=np.float32)
+
+    def normalise(self, obs: np.ndarray) -> torch.Tensor:
+        """VecNormalize's observation transform, computed in float64 then cast to float32."""
+        x = torch.as_tensor(np.asarray(obs), dtype=torch.float64)
+        x = (x - self.obs_mean) / torch.sqrt(self.obs_var + self.meta.obs_epsilon)
+        return x.clamp(-self.meta.obs_clip, self.meta.obs_clip).float()
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Action for one observation (or a batch): the mean if `rng` is None, else a Gaussian sample.
+
+        Args:
+            obs: Raw observation(s) of shape [obs_dim] or [B, obs_dim].
+            rng: Source of the Gaussian noise; None for the deterministic mean action.
+
+        Returns:
+            float32 action(s) clipped to the action-space bounds.
+        """
+        mean = self.mean_net(self.normalise(obs)).numpy()
+        if rng is not None:
+            std = self.log_std.exp().numpy()
+            mean = mean + std * rng.standard_normal(mean.shape)
+        return np.clip(mean, self.low, self.high).astype(np.float32)
+
+
+def save_behaviour(path: str | Path, state: dict[str, torch.Tensor], meta: BehaviourMeta) -> None:
+    """Write `<path>.safetensors` (mean network + log_std) and `<path>.json` (the metadata)."""
+    path = Path(path).with_suffix("")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.detach().float().contiguous() for k, v in state.items()}, f"{path}.safetensors")
+    Path(f"{path}.json").write_text(json.dumps(asdict(meta), indent=1) + "\n")
+
+
+def load_behaviour(path: str | Path, action_space) -> BehaviourPolicy:
+    """Load a snapshot written by `save_behaviour`.
+
+    Args:
+        path: The `.safetensors` file (or the same path without suffix).
+        action_space: The environment's Box action space (its bounds clip the actions).
+    """
+    path = Path(path).with_suffix("")
+    meta = BehaviourMeta(**json.loads(Path(f"{path}.json").read_text()))
+    state = load_file(f"{path}.safetensors")
+    policy = BehaviourPolicy(
+        meta, len(meta.obs_mean), action_space.shape[0], action_space.low, action_space.high
+    )
+    missing, unexpected = policy.load_state_dict(state, strict=False)
+    missing = [k for k in missing if k not in ("obs_mean", "obs_var")]
+    if missing or unexpected:
+        raise ValueError(f"{path}.safetensors: missing {missing}, unexpected {unexpected}")
+    return policy.eval()
+
+
+def list_snapshots(env_id: str, behaviour_dir: str | Path | None = None) -> list[Path]:
+    """The snapshot files of one environment, slowest measured speed first."""
+    folder = Path(behaviour_dir or BEHAVIOUR_DIR) / env_slug(env_id)
+    files = sorted(folder.glob("*.safetensors"))
+    if not files:
+        raise FileNotFoundError(f"no behaviour snapshots in {folder}; train them with `gmt data behaviour`")
+    speeds = [json.loads(f.with_suffix(".json").read_text()).get("mean_speed") or 0.0 for f in files]
+    return [f for _, f in sorted(zip(speeds, files, strict=True))]
+
+
+class RandomPolicy:
+    """Uniform-random actions over a Box space, drawn from the given generator."""
+
+    def __init__(self, action_space):
+        self.low = np.asarray(action_space.low, dtype=np.float32)
+        self.high = np.asarray(action_space.high, dtype=np.float32)
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """A uniform sample (the midpoint of the box when `rng` is None)."""
+        if rng is None:
+            return (self.low + self.high) / 2
+        return rng.uniform(self.low, self.high).astype(np.float32)

@@ -1,0 +1,165 @@
+"""`gmt data ...`: train behaviour agents, collect, describe and relabel offline datasets.
+
+Heavy imports (torch, gymnasium, sklearn, matplotlib) stay inside the commands so `gmt --help` is fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+app = typer.Typer(help="Offline datasets: behaviour agents, collection, statistics and goal relabelling.")
+
+
+def _parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
+    if not targets:
+        return None
+    out: dict[str, float | str] = {}
+    for item in targets:
+        name, _, value = item.partition("=")
+        if not value:
+            raise typer.BadParameter(f"expected LEVEL=SPEED or LEVEL=max, got {item!r}")
+        out[name] = value if value == "max" else float(value)
+    return out
+
+
+@app.command()
+def behaviour(
+    env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
+    timesteps: int = typer.Option(1_000_000, help="PPO environment steps."),
+    eval_every: int = typer.Option(20_000, help="Steps between snapshot speed measurements."),
+    eval_episodes: int = typer.Option(3, help="Stochastic episodes per measurement."),
+    final_episodes: int = typer.Option(10, help="Episodes to re-measure each chosen snapshot."),
+    target: list[str] = typer.Option(None, help="LEVEL=SPEED (m/s) or LEVEL=max; repeat. Default per env."),
+    seed: int = typer.Option(0, help="Seed of PPO and of the measurements."),
+    out_dir: Path = typer.Option(None, help="Where snapshots go (default behaviour/<env>/)."),
+    select_only: bool = typer.Option(False, help="Skip training; choose levels from the kept measurements."),
+) -> None:
+    """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
+    import json
+
+    from model.data.train_behaviour import BehaviourTrainConfig, select_levels, train
+
+    cfg = BehaviourTrainConfig(
+        env_id=env,
+        total_timesteps=timesteps,
+        eval_every=eval_every,
+        eval_episodes=eval_episodes,
+        final_episodes=final_episodes,
+        targets=_parse_targets(target),
+        seed=seed,
+        out_dir=out_dir,
+    )
+    if select_only:
+        select_levels(cfg, json.loads((cfg.work_dir / "records.json").read_text()))
+    else:
+        train(cfg)
+
+
+@app.command()
+def collect(
+    env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
+    episodes_per_level: int = typer.Option(
+        None, help="Episodes per snapshot and for random (default per env)."
+    ),
+    seed: int = typer.Option(0, help="Root seed of resets and action noise."),
+    out_id: str = typer.Option(None, help="Dataset id (default gmt/<env>/mixed-v0)."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+    behaviour_dir: Path = typer.Option(
+        None, help="Folder with <env>/<level>.safetensors (default behaviour/)."
+    ),
+    max_steps: int = typer.Option(None, help="Cap episode length (for quick checks)."),
+    no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
+) -> None:
+    """Roll out every behaviour snapshot and a random policy into a Minari dataset."""
+    from model.data.collect import CollectConfig, collect
+
+    cfg = CollectConfig(
+        env_id=env,
+        episodes_per_level=episodes_per_level,
+        seed=seed,
+        dataset_id=out_id,
+        data_dir=data_dir,
+        behaviour_dir=behaviour_dir,
+        max_steps=max_steps,
+        include_random=not no_random,
+    )
+    res = collect(cfg)
+    typer.echo(f"wrote {res.dataset_id} to {res.path}")
+    typer.echo(f"{res.episodes} episodes, {res.transitions} transitions in {res.seconds:.1f} s")
+    for name, lv in res.levels.items():
+        speed = (
+            ""
+            if lv["mean_speed"] is None
+            else f"  mean x-velocity {lv['mean_speed']:.3f} +- {lv['std_speed']:.3f}"
+        )
+        typer.echo(f"  {name:<8} {lv['episodes']} episodes{speed}")
+
+
+def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):
+    from model.data.minari_io import load_dataset
+    from model.data.relabel import relabel
+    from model.data.statistics import MissingInfoError, per_trajectory
+
+    ds = load_dataset(dataset, data_dir)
+    try:
+        values = per_trajectory(statistic, ds)
+    except (MissingInfoError, KeyError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    return ds, relabel(values, statistic=statistic, k=k, seed=seed)
+
+
+@app.command()
+def describe(
+    dataset: str = typer.Argument(..., help="Dataset id or path."),
+    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
+    seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+    plot: Path = typer.Option(None, help="Save a histogram of the statistic coloured by goal here."),
+) -> None:
+    """Print size, silhouette scores, chosen k and the goal table of a dataset."""
+    from model.data.relabel import separation
+
+    ds, table = _relabel(dataset, statistic, k, seed, data_dir)
+    typer.echo(f"{ds.dataset_id} ({ds.env_id}): {len(ds.episodes)} episodes, {ds.n_transitions} transitions")
+    typer.echo(f"fingerprint {ds.fingerprint}\n")
+    typer.echo(table.format())
+    seps = separation(table)
+    if seps:
+        pairs = ", ".join(f"{i}-{i + 1}: {s:.1f}" for i, s in enumerate(seps))
+        typer.echo(f"\nneighbour separation (mean gap / larger std): {pairs}")
+    if plot:
+        from model.data.plots import plot_goals
+
+        plot_goals(table, plot, title=f"{ds.dataset_id}: {statistic}")
+        typer.echo(f"saved {plot}")
+
+
+@app.command()
+def relabel(
+    dataset: str = typer.Argument(..., help="Dataset id or path."),
+    out: Path = typer.Option(..., help="Where to write the goal table (JSON)."),
+    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
+    seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Cluster trajectories into goals and write the goal table and per-episode labels as JSON."""
+    _, table = _relabel(dataset, statistic, k, seed, data_dir)
+    table.save(out)
+    typer.echo(table.format())
+    typer.echo(f"\nwrote {out}")
+
+
+@app.command()
+def statistics() -> None:
+    """List the registered per-trajectory statistics."""
+    from model.data.statistics import get_statistic, list_statistics
+
+    for name in list_statistics():
+        s = get_statistic(name)
+        needs = f" (needs info {sorted(s.requires)})" if s.requires else ""
+        typer.echo(f"{name:<18} {s.description}{needs}")

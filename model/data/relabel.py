@@ -1,0 +1,202 @@
+"""Unsupervised goals: k-means over a 1-D per-trajectory statistic, k chosen by silhouette score (paper 2.1).
+
+For every k in a range, k-means is fitted and scored by silhouette; the scores are min-max normalised to
+[0, 1]; the candidates are the k scoring at least `threshold` (0.85), and one is drawn with probability
+proportional to its normalised score (seeded) unless k is given. Goal 0 has the lowest mean statistic.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+GOAL_NAMES = {
+    1: ["all"],
+    2: ["low", "high"],
+    3: ["low", "medium", "high"],
+    4: ["lowest", "low", "high", "highest"],
+    5: ["lowest", "low", "medium", "high", "highest"],
+}
+
+
+def goal_names(k: int) -> list[str]:
+    """Goal names by rank of mean statistic (goal-<id> beyond five goals)."""
+    return GOAL_NAMES.get(k, [f"goal-{i}" for i in range(k)])
+
+
+@dataclass
+class Goal:
+    """One goal: a cluster of trajectories and the spread of their statistic."""
+
+    id: int
+    name: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    count: int
+
+
+@dataclass
+class GoalTable:
+    """Result of relabelling a dataset.
+
+    Attributes:
+        statistic: Name of the per-trajectory statistic clustered.
+        k: Number of goals chosen.
+        silhouette: Silhouette score per k tried.
+        normalised: Min-max normalised silhouette score per k.
+        candidates: The k with normalised score >= threshold.
+        k_given: Whether k was fixed by the caller rather than sampled.
+        seed: Seed of k-means and of the sampling of k.
+        labels: Goal id of every episode, in dataset order.
+        values: The statistic of every episode, in dataset order.
+        goals: Per-goal summary, ordered by id (ascending mean).
+    """
+
+    statistic: str
+    k: int
+    silhouette: dict[int, float]
+    normalised: dict[int, float]
+    candidates: list[int]
+    k_given: bool
+    seed: int
+    labels: np.ndarray
+    values: np.ndarray
+    goals: list[Goal]
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict (inverse of `from_dict`)."""
+        d = asdict(self)
+        d["labels"] = [int(x) for x in self.labels]
+        d["values"] = [float(x) for x in self.values]
+        d["silhouette"] = {str(k): v for k, v in self.silhouette.items()}
+        d["normalised"] = {str(k): v for k, v in self.normalised.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GoalTable:
+        """Rebuild a table from `to_dict` output."""
+        return cls(
+            statistic=d["statistic"],
+            k=int(d["k"]),
+            silhouette={int(k): float(v) for k, v in d["silhouette"].items()},
+            normalised={int(k): float(v) for k, v in d["normalised"].items()},
+            candidates=[int(k) for k in d["candidates"]],
+            k_given=bool(d["k_given"]),
+            seed=int(d["seed"]),
+            labels=np.asarray(d["labels"], dtype=np.int64),
+            values=np.asarray(d["values"], dtype=np.float64),
+            goals=[Goal(**g) for g in d["goals"]],
+        )
+
+    def save(self, path: str | Path) -> None:
+        """Write the table as JSON."""
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> GoalTable:
+        """Read a table written by `save`."""
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+    def format(self) -> str:
+        """The silhouette scores, the chosen k and the per-goal table as text."""
+        lines = ["k  silhouette  normalised  candidate"]
+        for k, s in self.silhouette.items():
+            lines.append(
+                f"{k:<2d} {s:10.4f}  {self.normalised[k]:10.3f}  {'yes' if k in self.candidates else ''}"
+            )
+        how = "given" if self.k_given else f"sampled from candidates {self.candidates}, seed {self.seed}"
+        lines += ["", f"chosen k = {self.k} ({how}); statistic: {self.statistic}", ""]
+        lines.append(f"{'id':>2}  {'name':<8} {'count':>5} {'mean':>9} {'std':>8} {'min':>9} {'max':>9}")
+        for g in self.goals:
+            lines.append(
+                f"{g.id:>2}  {g.name:<8} {g.count:>5d} {g.mean:9.3f} {g.std:8.3f} {g.min:9.3f} {g.max:9.3f}"
+            )
+        return "\n".join(lines)
+
+
+def silhouette_scores(
+    values: np.ndarray, ks: list[int], seed: int
+) -> tuple[dict[int, float], dict[int, np.ndarray]]:
+    """Fit k-means for every k and score it; returns (score per k, labels per k) for the k that fit."""
+    from sklearn.cluster import KMeans
+    from sklearn.metrics import silhouette_score
+
+    x = np.asarray(values, dtype=np.float64).reshape(-1, 1)
+    n_distinct = len(np.unique(x))
+    scores, labels = {}, {}
+    for k in ks:
+        if k >= n_distinct:  # silhouette needs 2 <= k <= n_distinct - 1
+            continue
+        lab = KMeans(n_clusters=k, n_init=10, random_state=seed).fit_predict(x)
+        scores[k] = float(silhouette_score(x, lab))
+        labels[k] = lab
+    return scores, labels
+
+
+def relabel(
+    values: np.ndarray | list[float],
+    statistic: str = "",
+    k: int | None = None,
+    k_range: tuple[int, int] = (2, 8),
+    seed: int = 0,
+    threshold: float = 0.85,
+) -> GoalTable:
+    """Cluster per-trajectory statistic values into goals.
+
+    Args:
+        values: The statistic of each trajectory, shape [N].
+        statistic: Name recorded in the table.
+        k: Fix the number of goals (it is still scored); None samples it from the candidates.
+        k_range: Inclusive range of k to score.
+        seed: Seed of k-means and of the sampling of k.
+        threshold: Minimum normalised silhouette score of a candidate.
+
+    Returns:
+        The goal table; goal ids are ordered by ascending mean value.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    ks = sorted(set(range(k_range[0], k_range[1] + 1)) | ({k} if k else set()))
+    scores, labels_by_k = silhouette_scores(values, ks, seed)
+    if not scores:
+        raise ValueError(
+            f"cannot cluster {len(values)} trajectories with {len(np.unique(values))} distinct values"
+        )
+    lo, hi = min(scores.values()), max(scores.values())
+    normalised = {kk: (s - lo) / (hi - lo) if hi > lo else 1.0 for kk, s in scores.items()}
+    candidates = [kk for kk, s in normalised.items() if s >= threshold]
+    if k is None:
+        weights = np.asarray([normalised[kk] for kk in candidates])
+        chosen = int(np.random.default_rng(seed).choice(candidates, p=weights / weights.sum()))
+    elif k not in labels_by_k:
+        raise ValueError(f"k={k} needs more than {k} distinct statistic values")
+    else:
+        chosen = k
+    raw = labels_by_k[chosen]
+    order = np.argsort([values[raw == c].mean() for c in range(chosen)])
+    labels = np.empty_like(raw, dtype=np.int64)
+    for new, old in enumerate(order):
+        labels[raw == old] = new
+    names = goal_names(chosen)
+    goals = []
+    for g in range(chosen):
+        v = values[labels == g]
+        goals.append(
+            Goal(g, names[g], float(v.mean()), float(v.std()), float(v.min()), float(v.max()), len(v))
+        )
+    return GoalTable(
+        statistic, chosen, scores, normalised, candidates, k is not None, seed, labels, values, goals
+    )
+
+
+def separation(table: GoalTable) -> list[float]:
+    """For each pair of neighbouring goals, |mean difference| / the larger of their two stds."""
+    out = []
+    for a, b in zip(table.goals, table.goals[1:], strict=False):
+        spread = max(a.std, b.std)
+        out.append(float("inf") if spread == 0 else (b.mean - a.mean) / spread)
+    return out

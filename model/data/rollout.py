@@ -1,0 +1,76 @@
+"""Run one episode of a policy in a Gymnasium environment and keep everything a dataset needs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+class Policy(Protocol):
+    """Anything with `act(obs, rng) -> action` (rng None means deterministic)."""
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray: ...
+
+
+@dataclass
+class Rollout:
+    """One episode as stepped: T actions, T + 1 observations, per-step scalar infos of length T."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminated: bool
+    truncated: bool
+    infos: dict[str, np.ndarray]
+    reset_info: dict
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def scalar_items(info: dict) -> dict[str, float]:
+    """The numeric scalar entries of an info dict (what statistics can use)."""
+    return {
+        k: float(v) for k, v in info.items() if np.ndim(v) == 0 and isinstance(v, (int, float, np.number))
+    }
+
+
+def rollout(
+    env, policy: Policy, seed: int, rng: np.random.Generator | None, max_steps: int | None = None
+) -> Rollout:
+    """Step `policy` in `env` from `env.reset(seed=seed)` until the episode ends or `max_steps` is reached.
+
+    Args:
+        env: A Gymnasium environment (its own TimeLimit still applies).
+        policy: Chooses actions; `rng` is passed on for stochastic policies.
+        seed: Reset seed of the episode.
+        rng: Source of action noise (None for deterministic actions).
+        max_steps: Optional extra cap; reaching it marks the episode truncated.
+
+    Returns:
+        The episode's arrays. Info keys are those present, as numeric scalars, at every step.
+    """
+    obs, reset_info = env.reset(seed=seed)
+    observations, actions, rewards, infos = [obs], [], [], []
+    terminated = truncated = False
+    while not (terminated or truncated):
+        action = policy.act(obs, rng)
+        obs, reward, terminated, truncated, info = env.step(action)
+        observations.append(obs)
+        actions.append(action)
+        rewards.append(reward)
+        infos.append(scalar_items(info))
+        if max_steps is not None and len(actions) >= max_steps:
+            truncated = truncated or not terminated
+    keys = set.intersection(*(set(i) for i in infos)) if infos else set()
+    return Rollout(
+        observations=np.asarray(observations),
+        actions=np.asarray(actions),
+        rewards=np.asarray(rewards, dtype=np.float32),
+        terminated=bool(terminated),
+        truncated=bool(truncated),
+        infos={k: np.asarray([i[k] for i in infos], dtype=np.float64) for k in sorted(keys)},
+        reset_info=reset_info,
+    )

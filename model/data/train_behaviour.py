@@ -1,0 +1,274 @@
+"""Train PPO behaviour agents (Stable-Baselines3) and export snapshots at several measured speeds.
+
+During training the current actor is exported every `eval_every` steps and rolled out with its stochastic
+policy; its per-episode mean x-velocity is recorded. Afterwards, for every target speed the snapshot closest
+to it with the most consistent speed is chosen, re-measured on more episodes, and written to
+`behaviour/<env>/<level>.safetensors` plus its JSON sidecar. Needs the optional `train` extra.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from model.data.behaviour import BEHAVIOUR_DIR, BehaviourMeta, BehaviourPolicy, env_slug, save_behaviour
+from model.data.rollout import rollout
+
+FASTEST = "max"
+
+
+@dataclass
+class PPOPreset:
+    """PPO hyperparameters (rl-zoo style) for one environment."""
+
+    n_steps: int = 512
+    batch_size: int = 64
+    n_epochs: int = 10
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    hidden_sizes: list[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "relu"
+    log_std_init: float = -2.0
+    ortho_init: bool = False
+
+
+PRESETS: dict[str, PPOPreset] = {
+    # rl-zoo's tuned HalfCheetah settings.
+    "halfcheetah": PPOPreset(
+        n_steps=512, batch_size=64, n_epochs=20, learning_rate=2.0633e-05, gamma=0.98, gae_lambda=0.92,
+        clip_range=0.1, ent_coef=0.000401762, vf_coef=0.58096, max_grad_norm=0.8,
+    ),
+    "hopper": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
+    "walker2d": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
+    "ant": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
+}  # fmt: skip
+
+# Target mean x-velocities (m/s) per level; "max" keeps the fastest consistent snapshot.
+DEFAULT_TARGETS: dict[str, dict[str, float | str]] = {
+    "halfcheetah": {"slow": 1.0, "medium": 2.75, "fast": FASTEST},
+    "hopper": {"slow": 1.0, "fast": FASTEST},
+    "walker2d": {"slow": 1.0, "fast": FASTEST},
+    "ant": {"slow": 0.5, "fast": FASTEST},
+}
+
+
+@dataclass
+class BehaviourTrainConfig:
+    """One behaviour-training run.
+
+    Attributes:
+        env_id: Gymnasium environment id.
+        total_timesteps: PPO environment steps.
+        eval_every: Steps between snapshot measurements.
+        dense_steps: During the first `dense_steps`, measure four times as often (skill changes fast early).
+        eval_episodes: Stochastic episodes per measurement.
+        final_episodes: Episodes used to re-measure the chosen snapshots.
+        candidates: Snapshots per level that get re-measured.
+        targets: Level name -> target mean x-velocity, or "max".
+        seed: Seed of PPO, of its environment and of the measurements.
+        out_dir: Where the chosen snapshots go (behaviour/<env>/).
+        work_dir: Where every measured snapshot is kept during training.
+        preset: PPO hyperparameters.
+    """
+
+    env_id: str
+    total_timesteps: int = 1_000_000
+    eval_every: int = 20_000
+    dense_steps: int = 200_000
+    eval_episodes: int = 3
+    final_episodes: int = 10
+    candidates: int = 3
+    targets: dict[str, float | str] | None = None
+    seed: int = 0
+    out_dir: Path | None = None
+    work_dir: Path | None = None
+    preset: PPOPreset | None = None
+
+    def __post_init__(self) -> None:
+        slug = env_slug(self.env_id)
+        self.targets = self.targets or DEFAULT_TARGETS.get(slug, {"slow": 1.0, "fast": FASTEST})
+        self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
+        self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug)
+        self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+
+
+def export_actor(model, vec_normalize, env_id: str, level: str, hidden_sizes: list[int], activation: str):
+    """The SB3 PPO actor as (state dict, meta): mean network, log-std, observation normalisation."""
+    policy = model.policy
+    linears = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)]
+    linears.append(policy.action_net)
+    state = {}
+    for i, lin in enumerate(linears):
+        state[f"mean_net.{2 * i}.weight"] = lin.weight.detach().cpu().clone()
+        state[f"mean_net.{2 * i}.bias"] = lin.bias.detach().cpu().clone()
+    state["log_std"] = policy.log_std.detach().cpu().clone()
+    rms = vec_normalize.obs_rms
+    meta = BehaviourMeta(
+        env_id=env_id,
+        level=level,
+        hidden_sizes=list(hidden_sizes),
+        activation=activation,
+        obs_mean=[float(x) for x in rms.mean],
+        obs_var=[float(x) for x in rms.var],
+        obs_clip=float(vec_normalize.clip_obs),
+        obs_epsilon=float(vec_normalize.epsilon),
+    )
+    return state, meta
+
+
+def as_policy(state: dict, meta: BehaviourMeta, action_space) -> BehaviourPolicy:
+    """Build the torch-only behaviour policy from an exported state dict."""
+    policy = BehaviourPolicy(
+        meta, len(meta.obs_mean), action_space.shape[0], action_space.low, action_space.high
+    )
+    policy.load_state_dict(state, strict=False)
+    return policy.eval()
+
+
+def measure(env, policy, episodes: int, seed: int) -> dict:
+    """Roll out `episodes` stochastic episodes; per-episode mean x-velocity, length and return."""
+    rng = np.random.default_rng(seed)
+    speeds, lengths, returns = [], [], []
+    for i in range(episodes):
+        ep = rollout(env, policy, seed=seed + i, rng=rng)
+        speeds.append(float(ep.infos["x_velocity"].mean()))
+        lengths.append(len(ep))
+        returns.append(float(ep.rewards.sum()))
+    return {
+        "mean_speed": float(np.mean(speeds)),
+        "std_speed": float(np.std(speeds)),
+        "speeds": speeds,
+        "mean_length": float(np.mean(lengths)),
+        "min_length": int(np.min(lengths)),
+        "mean_return": float(np.mean(returns)),
+    }
+
+
+def level_score(record: dict, target: float | str, max_len: int) -> float:
+    """Lower is better: distance to the target plus the speed spread; early falls are heavily penalised."""
+    fell = record["min_length"] < max_len
+    if target == FASTEST:
+        return -(record["mean_speed"] - 2.0 * record["std_speed"]) + 100.0 * fell
+    return abs(record["mean_speed"] - float(target)) + 2.0 * record["std_speed"] + 100.0 * fell
+
+
+def train(cfg: BehaviourTrainConfig) -> list[dict]:
+    """Train PPO, measure snapshots as it goes, then choose and export one snapshot per level.
+
+    Returns:
+        The chosen levels, each with its name, target, training step and measured speeds.
+    """
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)
+    p = cfg.preset
+    cfg.work_dir.mkdir(parents=True, exist_ok=True)
+    venv = VecNormalize(DummyVecEnv([lambda: Monitor(gym.make(cfg.env_id))]), gamma=p.gamma)
+    venv.seed(cfg.seed)
+    eval_env = gym.make(cfg.env_id)
+    act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
+    model = PPO(
+        "MlpPolicy",
+        venv,
+        n_steps=p.n_steps,
+        batch_size=p.batch_size,
+        n_epochs=p.n_epochs,
+        learning_rate=p.learning_rate,
+        gamma=p.gamma,
+        gae_lambda=p.gae_lambda,
+        clip_range=p.clip_range,
+        ent_coef=p.ent_coef,
+        vf_coef=p.vf_coef,
+        max_grad_norm=p.max_grad_norm,
+        policy_kwargs=dict(
+            log_std_init=p.log_std_init,
+            ortho_init=p.ortho_init,
+            activation_fn=act,
+            net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
+        ),
+        seed=cfg.seed,
+        device="cpu",
+        verbose=0,
+    )
+    records: list[dict] = []
+    start = time.time()
+
+    class Snapshotter(BaseCallback):
+        def _on_step(self) -> bool:
+            every = cfg.eval_every // 4 if self.num_timesteps <= cfg.dense_steps else cfg.eval_every
+            if self.num_timesteps % every == 0:
+                state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
+                rec = measure(
+                    eval_env, as_policy(state, meta, eval_env.action_space), cfg.eval_episodes, 10_000
+                )
+                rec["step"] = self.num_timesteps
+                save_behaviour(cfg.work_dir / f"step_{self.num_timesteps:08d}", state, meta)
+                records.append(rec)
+                (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
+                fps = self.num_timesteps / (time.time() - start)
+                print(
+                    f"step {rec['step']:>8d}  speed {rec['mean_speed']:6.2f} +- {rec['std_speed']:.2f}  "
+                    f"len {rec['mean_length']:6.1f}  return {rec['mean_return']:8.1f}  {fps:6.0f} steps/s",
+                    flush=True,
+                )
+            return True
+
+    model.learn(total_timesteps=cfg.total_timesteps, callback=Snapshotter())
+    return select_levels(cfg, records)
+
+
+def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
+    """Choose one measured snapshot per target level, re-measure the best candidates, export the winners.
+
+    Args:
+        cfg: The training configuration (targets, work and output folders, episodes).
+        records: Coarse measurements, one per snapshot in `cfg.work_dir`.
+    """
+    from model.data.behaviour import load_behaviour
+
+    torch.set_num_threads(1)
+    env = gym.make(cfg.env_id)
+    max_len = env.spec.max_episode_steps or 1000
+    fine: dict[int, dict] = {}
+    chosen = []
+    for level, target in cfg.targets.items():
+        ranked = sorted(records, key=lambda r: level_score(r, target, max_len))[: cfg.candidates]
+        for rec in ranked:
+            if rec["step"] not in fine:
+                path = cfg.work_dir / f"step_{rec['step']:08d}"
+                policy = load_behaviour(path, env.action_space)
+                fine[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
+        best = min((fine[r["step"]] for r in ranked), key=lambda r: level_score(r, target, max_len))
+        policy = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
+        meta = policy.meta
+        meta.level = level
+        meta.mean_speed, meta.std_speed, meta.train_step = best["mean_speed"], best["std_speed"], best["step"]
+        meta.extra = {
+            "target_speed": target,
+            "episodes": cfg.final_episodes,
+            "mean_return": best["mean_return"],
+            "mean_length": best["mean_length"],
+        }
+        state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
+        save_behaviour(cfg.out_dir / level, state, meta)
+        chosen.append({"level": level, "target": target, **best})
+        print(
+            f"{level:>8s} (target {target}): step {best['step']}, speed {best['mean_speed']:.3f} "
+            f"+- {best['std_speed']:.3f}, length {best['mean_length']:.0f}",
+            flush=True,
+        )
+    return chosen
