@@ -40,18 +40,20 @@ def train_command(
     from model.checkpoint import Goal
     from model.config import TrainConfig
     from model.data.minari_io import load_dataset
-    from model.data.relabel import RelabelResult, relabel_dataset
+    from model.data.relabel import GoalTable, relabel
+    from model.data.statistics import per_trajectory
     from model.train import train
 
     ds = load_dataset(dataset)
     if labels is not None:
-        rel = RelabelResult.from_dict(json.loads(labels.read_text()))
+        rel = GoalTable.load(labels)
+        if len(rel.labels) != len(ds.episodes):
+            raise typer.BadParameter(
+                f"{labels} labels {len(rel.labels)} episodes, the dataset has {len(ds.episodes)}"
+            )
     else:
-        rel = relabel_dataset(ds, statistic=statistic, k=k, seed=seed)
-    goals = [
-        Goal(**{f: g[f] for f in ("id", "name", "mean", "std", "min", "max", "count")})
-        for g in rel.to_dict()["goals"]
-    ]
+        rel = relabel(per_trajectory(statistic, ds), statistic=statistic, k=k, seed=seed)
+    goals = [Goal(**g.__dict__) for g in rel.goals]
     typer.echo(
         f"{len(ds.episodes)} episodes, k = {len(goals)} goals: "
         + ", ".join(f"{g.name}={g.mean:.2f}" for g in goals)

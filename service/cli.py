@@ -33,6 +33,19 @@ def version() -> None:
         typer.echo(f"{pkg} {v(pkg)}")
 
 
+def _register() -> None:
+    """Attach the command groups that live beside their code."""
+    from model.cli import eval_command, train_command
+    from model.data.cli import app as data_app
+
+    app.add_typer(data_app, name="data")
+    app.command("train")(train_command)
+    app.command("eval")(eval_command)
+
+
+_register()
+
+
 def main() -> None:
     """Console-script entry point."""
     app()
