@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import subprocess
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
 
 from model.config import GMTConfig
+from model.data.relabel import Goal
 from model.gmt import GMT
 from model.tokens import ActionCodec, ObsNormalizer
 
@@ -23,23 +24,6 @@ PICKLE_SUFFIXES = {".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin"}
 
 class CheckpointError(Exception):
     """A checkpoint is missing, malformed, or in a refused format."""
-
-
-@dataclass
-class Goal:
-    """One goal of the goal table (a k-means cluster of the per-trajectory statistic)."""
-
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
-
-    def to_dict(self) -> dict:
-        """JSON-ready dict."""
-        return dict(self.__dict__)
 
 
 @dataclass
@@ -115,7 +99,7 @@ def save_checkpoint(ckpt: Checkpoint, directory: str | Path, extra_meta: dict | 
         },
         "normalization": {"observation": ckpt.obs_norm.to_dict(), "action": ckpt.action_codec.to_dict()},
         "statistic": ckpt.statistic,
-        "goals": [g.to_dict() for g in ckpt.goals],
+        "goals": [asdict(g) for g in ckpt.goals],
     }
     (d / META).write_text(json.dumps(meta, indent=2, allow_nan=False) + "\n")
     return d

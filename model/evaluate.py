@@ -19,7 +19,7 @@ JSON schema (`EvalResult.to_dict`):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from tqdm import tqdm
@@ -133,7 +133,7 @@ class EvalResult:
             "seeds": self.seeds,
             "episode_steps": self.episode_steps,
             "wall_time_s": round(self.wall_time_s, 1),
-            "goals": [{**g.to_dict(), "tolerance": tolerance(g, self.goals)} for g in self.goals],
+            "goals": [{**asdict(g), "tolerance": tolerance(g, self.goals)} for g in self.goals],
             "conditions": [r.to_dict() for r in self.results],
         }
 
