@@ -265,7 +265,7 @@ def write_dataset(
             )
         )
     with minari_root(root), warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*(code_permalink|author_email).*")
+        warnings.filterwarnings("ignore", category=UserWarning, module="minari")  # optional metadata nags
         ds = minari.create_dataset_from_buffers(
             dataset_id=dataset_id,
             buffer=buffers,

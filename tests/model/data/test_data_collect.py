@@ -1,0 +1,91 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from model.data.collect import CollectConfig, collect
+from model.data.minari_io import load_dataset
+from model.data.statistics import per_trajectory
+
+ENV = "HalfCheetah-v5"
+
+
+def fake_snapshot(folder, level: str, speed: float, seed: int) -> None:
+    """A random-weight snapshot in the exported format."""
+    torch.manual_seed(seed)
+    meta = BehaviourMeta(ENV, level, [8], "tanh", [0.0] * 17, [1.0] * 17, mean_speed=speed)
+    state = {
+        "mean_net.0.weight": 0.1 * torch.randn(8, 17),
+        "mean_net.0.bias": 0.1 * torch.randn(8),
+        "mean_net.2.weight": 0.1 * torch.randn(6, 8),
+        "mean_net.2.bias": 0.1 * torch.randn(6),
+        "log_std": torch.full((6,), -1.0),
+    }
+    save_behaviour(folder / "halfcheetah" / level, state, meta)
+
+
+def test_collects_valid_reproducible_dataset(tmp_path):
+    beh = tmp_path / "behaviour"
+    fake_snapshot(beh, "fast", 2.0, 0)
+    fake_snapshot(beh, "slow", 1.0, 1)
+    cfg = CollectConfig(
+        ENV, episodes_per_level=2, seed=3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=12
+    )
+    res = collect(cfg, progress=False)
+    assert res.dataset_id == "gmt/halfcheetah/mixed-v0"
+    assert list(res.levels) == ["random", "slow", "fast"]
+    ds = load_dataset(res.dataset_id, tmp_path / "d")
+    assert ds.env_id == ENV and len(ds.episodes) == 6 and ds.n_transitions == 72
+    for ep in ds.episodes:
+        assert ep.observations.shape == (12, 17) and ep.actions.shape == (12, 6)
+        assert ep.truncated and not ep.terminated
+        assert np.all(np.abs(ep.actions) <= 1.0)
+        assert ep.infos["x_velocity"].shape == (12,)
+    assert np.isfinite(per_trajectory("mean_x_velocity", ds)).all()
+    # Each episode records its reset seed and policy; resetting with that seed gives its first observation.
+    meta = _episode_attrs(tmp_path / "d", 2)
+    assert meta["policy"] == "slow"
+    obs, _ = gym.make(ENV).reset(seed=int(meta["reset_seed"]))
+    np.testing.assert_array_equal(obs, ds.episodes[2].observations[0])
+    again = collect(CollectConfig(ENV, 2, 3, "gmt/other-v0", tmp_path / "d", beh, 12), progress=False)
+    assert load_dataset(again.dataset_id, tmp_path / "d").fingerprint == ds.fingerprint
+    other = collect(CollectConfig(ENV, 2, 4, "gmt/other2-v0", tmp_path / "d", beh, 12), progress=False)
+    assert load_dataset(other.dataset_id, tmp_path / "d").fingerprint != ds.fingerprint
+
+
+def _episode_attrs(root, i: int) -> dict:
+    import h5py
+
+    with h5py.File(root / "gmt/halfcheetah/mixed-v0/data/main_data.hdf5", "r") as f:
+        return dict(f[f"episode_{i}"].attrs)
+
+
+def test_exported_policy_matches_sb3():
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from model.data.train_behaviour import as_policy, export_actor
+
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make(ENV)]))
+    model = PPO("MlpPolicy", venv, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu",
+                policy_kwargs=dict(net_arch=dict(pi=[16, 16], vf=[16])))  # fmt: skip
+    model.learn(128)  # moves the observation statistics away from 0/1
+    state, meta = export_actor(model, venv, ENV, "x", [16, 16], "tanh")
+    policy = as_policy(state, meta, venv.action_space)
+    raw = np.random.default_rng(0).normal(size=(5, 17)) * 3
+    expected, _ = model.predict(venv.normalize_obs(raw), deterministic=True)
+    np.testing.assert_allclose(policy.act(raw), expected, atol=1e-5)
+    np.testing.assert_allclose(policy.log_std.detach().numpy(), model.policy.log_std.detach().numpy())
+
+
+def test_saved_snapshot_round_trip(tmp_path):
+    fake_snapshot(tmp_path, "mid", 1.5, 0)
+    space = gym.make(ENV).action_space
+    pol = load_behaviour(tmp_path / "halfcheetah" / "mid.safetensors", space)
+    assert pol.meta.mean_speed == 1.5
+    obs = np.ones(17)
+    a1 = pol.act(obs, np.random.default_rng(0))
+    assert not np.array_equal(a1, pol.act(obs))  # stochastic vs mean
+    np.testing.assert_array_equal(a1, pol.act(obs, np.random.default_rng(0)))
