@@ -65,21 +65,21 @@ class Condition:
 def protocol(
     n_goals: int, steps: int = 1000, multi_every: tuple[int, ...] = MULTI_SWITCH_EVERY
 ) -> list[Condition]:
-    """The conditions of DESIGN.md section 5 for `n_goals` goals and `steps`-step episodes."""
-    conds = [Condition(f"hold {g}", "hold", [(0, g)], [(g, 100, steps)]) for g in range(n_goals)]
-    half = steps // 2
+    """The conditions of DESIGN.md section 5 for `n_goals` goals and `steps`-step episodes.
+
+    Settle-in times scale with the episode: for 1000 steps, holds are measured over [100, 1000), switches at
+    500 over [100, 500) and [600, 1000), and cycles of N steps after their first N/4 steps.
+    """
+    settle, half = steps // 10, steps // 2
+    conds = [Condition(f"hold {g}", "hold", [(0, g)], [(g, settle, steps)]) for g in range(n_goals)]
     for a in range(n_goals):
         for b in range(n_goals):
             if a != b:
-                conds.append(
-                    Condition(
-                        f"switch {a}->{b}",
-                        "switch",
-                        [(0, a), (half, b)],
-                        [(a, 100, half), (b, half + 100, steps)],
-                    )
-                )
+                segs = [(a, settle, half), (b, half + settle, steps)]
+                conds.append(Condition(f"switch {a}->{b}", "switch", [(0, a), (half, b)], segs))
     for n in multi_every:
+        if n >= steps:
+            continue
         sched = [(s, (s // n) % n_goals) for s in range(0, steps, n)]
         segs = [(g, s + n // 4, min(s + n, steps)) for s, g in sched]
         conds.append(Condition(f"every {n}", "multi_switch", sched, segs))
