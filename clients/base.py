@@ -1,0 +1,260 @@
+"""The one client interface both transports implement, the values it returns, and the Session handle.
+
+`PolicyClient` is what the runner and users code against; `clients.rest.RestClient` and
+`clients.grpc.GrpcClient` implement it. Only failures to connect are retried (the request never reached the
+server, so a retry cannot apply anything twice); every answer from the server, error or not, is final.
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import numpy as np
+
+from clients.errors import ConnectionFailed
+
+T = TypeVar("T")
+
+DEFAULT_TIMEOUT_S = 10.0
+DEFAULT_RETRIES = 3
+DEFAULT_BACKOFF_S = 0.2
+
+
+@dataclass(frozen=True)
+class GoalInfo:
+    """One row of a model's goal table (statistic of the goal's cluster of training trajectories)."""
+
+    id: int
+    name: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    count: int
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """A served model: its environment, spaces (as `model.spaces.space_to_dict` dicts) and goals."""
+
+    name: str
+    env_id: str
+    observation_space: dict
+    action_space: dict
+    context_length: int
+    statistic: str
+    goals: list[GoalInfo] = field(default_factory=list)
+
+    def goal(self, id_or_name: int | str) -> GoalInfo:
+        """The goal with this id or name.
+
+        Raises:
+            KeyError: no such goal.
+        """
+        for g in self.goals:
+            if g.id == id_or_name or g.name == id_or_name:
+                return g
+        raise KeyError(
+            f"model {self.name!r} has no goal {id_or_name!r}; goals: {[g.name for g in self.goals]}"
+        )
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """A session's state as the server reports it."""
+
+    session_id: str
+    model: str
+    goal: int
+    goal_name: str = ""
+    step: int = 0
+    context_size: int = 0
+    blend_remaining: int = 0
+    idle_timeout_s: float = 0.0
+    action_mode: str = ""
+
+
+@dataclass(frozen=True)
+class ActResult:
+    """The answer to one observation.
+
+    Attributes:
+        action: Float32 array for continuous actions, int for discrete ones.
+        step: Timestep of the observation just answered (0 for the first of an episode).
+        goal: The goal the session pursued for this action (changes made by anyone show up here).
+    """
+
+    action: np.ndarray | int
+    step: int
+    goal: int
+
+
+def goal_selector(goal: int | str | None = None, target: float | None = None) -> tuple[str, Any] | None:
+    """("id", int), ("name", str), ("target", float), or None when neither is given.
+
+    Raises:
+        ValueError: both given, or a goal that is neither int nor str.
+    """
+    if goal is not None and target is not None:
+        raise ValueError("give either a goal (id or name) or a target value, not both")
+    if target is not None:
+        return "target", float(target)
+    if goal is None:
+        return None
+    if isinstance(goal, bool) or not isinstance(goal, int | np.integer | str):
+        raise ValueError(f"goal must be an id (int) or a name (str), got {goal!r}")
+    return ("name", goal) if isinstance(goal, str) else ("id", int(goal))
+
+
+def as_observation(obs: Any) -> np.ndarray:
+    """The observation as a NumPy array; floats become float32 (what the model and gRPC use), images stay."""
+    x = np.asarray(obs)
+    return x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x
+
+
+def with_retries(
+    call: Callable[[], T],
+    is_connection_error: Callable[[BaseException], bool],
+    retries: int,
+    backoff_s: float,
+    where: str,
+) -> T:
+    """Run `call`, retrying up to `retries` times (exponential backoff) when it fails to connect.
+
+    Raises:
+        ConnectionFailed: every attempt failed to connect.
+    """
+    for attempt in range(retries + 1):
+        try:
+            return call()
+        except Exception as e:
+            if not is_connection_error(e):
+                raise
+            if attempt == retries:
+                raise ConnectionFailed(
+                    f"could not connect to {where} after {attempt + 1} attempt(s): {e}"
+                ) from e
+            time.sleep(backoff_s * 2**attempt)
+    raise AssertionError("unreachable")
+
+
+class Session:
+    """A handle on one server session; a context manager that closes the session on exit.
+
+    Attributes:
+        info: The session's state as of its creation or last set_goal / reset.
+    """
+
+    def __init__(self, client: PolicyClient, info: SessionInfo) -> None:
+        self._client = client
+        self.info = info
+        self.closed = False
+
+    @property
+    def id(self) -> str:
+        """The session id."""
+        return self.info.session_id
+
+    def act(self, observation: Any) -> ActResult:
+        """Send one observation; get the action, the step and the goal it was chosen for."""
+        return self._client.act(self.id, observation)
+
+    def set_goal(
+        self, goal: int | str | None = None, *, target: float | None = None, blend_steps: int = 0
+    ) -> SessionInfo:
+        """Change the goal (id, name, or nearest to `target`) from the next step on, optionally blended."""
+        self.info = self._client.set_goal(self.id, goal, target=target, blend_steps=blend_steps)
+        return self.info
+
+    def reset(self, goal: int | str | None = None, *, target: float | None = None) -> SessionInfo:
+        """Start a new episode, keeping the goal unless one is given."""
+        self.info = self._client.reset(self.id, goal, target=target)
+        return self.info
+
+    def refresh(self) -> SessionInfo:
+        """Fetch the session's current state from the server."""
+        self.info = self._client.get_session(self.id)
+        return self.info
+
+    def close(self) -> None:
+        """Close the session on the server (once)."""
+        if not self.closed:
+            self.closed = True
+            self._client.close_session(self.id)
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            self.close()
+        except Exception:
+            if exc_type is None:
+                raise  # closing failed on its own: say so; otherwise keep the original error
+
+
+class PolicyClient(abc.ABC):
+    """The controllable-policy service, whichever transport carries it. Use as a context manager."""
+
+    @abc.abstractmethod
+    def list_models(self) -> list[ModelInfo]:
+        """Every model the server serves."""
+
+    @abc.abstractmethod
+    def get_model(self, name: str) -> ModelInfo:
+        """One model's spec: spaces, goal table, context length."""
+
+    @abc.abstractmethod
+    def create_session(
+        self,
+        model: str | None = None,
+        goal: int | str | None = None,
+        *,
+        target: float | None = None,
+        seed: int | None = None,
+        action_mode: str | None = None,
+    ) -> Session:
+        """Open a session on `model` (None: the server's only model) pursuing a goal (id, name or target)."""
+
+    @abc.abstractmethod
+    def get_session(self, session_id: str) -> SessionInfo:
+        """A session's current state."""
+
+    @abc.abstractmethod
+    def act(self, session_id: str, observation: Any) -> ActResult:
+        """One step: observation in, action out."""
+
+    @abc.abstractmethod
+    def set_goal(
+        self,
+        session_id: str,
+        goal: int | str | None = None,
+        *,
+        target: float | None = None,
+        blend_steps: int = 0,
+    ) -> SessionInfo:
+        """Change a session's goal from its next step on."""
+
+    @abc.abstractmethod
+    def reset(
+        self, session_id: str, goal: int | str | None = None, *, target: float | None = None
+    ) -> SessionInfo:
+        """Start a new episode in a session (keeping its goal unless one is given)."""
+
+    @abc.abstractmethod
+    def close_session(self, session_id: str) -> None:
+        """Close a session."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the connection."""
+
+    def __enter__(self) -> PolicyClient:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
