@@ -42,6 +42,10 @@ def _register() -> None:
     app.command("train")(train_command)
     app.command("eval")(eval_command)
 
+    from service.serve_cli import serve_command
+
+    app.command("serve")(serve_command)
+
 
 _register()
 

@@ -93,7 +93,7 @@ class ModelInfo(_message.Message):
     def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode")
+    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
@@ -103,6 +103,9 @@ class SessionInfo(_message.Message):
     BLEND_REMAINING_FIELD_NUMBER: _ClassVar[int]
     IDLE_TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_GOALS_FIELD_NUMBER: _ClassVar[int]
+    EXPIRES_IN_S_FIELD_NUMBER: _ClassVar[int]
+    BLEND_FROM_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     model: str
     goal: int
@@ -112,7 +115,10 @@ class SessionInfo(_message.Message):
     blend_remaining: int
     idle_timeout_s: float
     action_mode: str
-    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ...) -> None: ...
+    context_goals: _containers.RepeatedScalarFieldContainer[int]
+    expires_in_s: float
+    blend_from: int
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ..., context_goals: _Optional[_Iterable[int]] = ..., expires_in_s: _Optional[float] = ..., blend_from: _Optional[int] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()
@@ -205,12 +211,14 @@ class CloseSessionResponse(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class ControlRequest(_message.Message):
-    __slots__ = ("act", "set_goal")
+    __slots__ = ("act", "set_goal", "reset")
     ACT_FIELD_NUMBER: _ClassVar[int]
     SET_GOAL_FIELD_NUMBER: _ClassVar[int]
+    RESET_FIELD_NUMBER: _ClassVar[int]
     act: ActRequest
     set_goal: SetGoalRequest
-    def __init__(self, act: _Optional[_Union[ActRequest, _Mapping]] = ..., set_goal: _Optional[_Union[SetGoalRequest, _Mapping]] = ...) -> None: ...
+    reset: ResetSessionRequest
+    def __init__(self, act: _Optional[_Union[ActRequest, _Mapping]] = ..., set_goal: _Optional[_Union[SetGoalRequest, _Mapping]] = ..., reset: _Optional[_Union[ResetSessionRequest, _Mapping]] = ...) -> None: ...
 
 class ControlError(_message.Message):
     __slots__ = ("code", "message")

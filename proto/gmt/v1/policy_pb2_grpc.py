@@ -133,7 +133,7 @@ class PolicyServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Control(self, request_iterator, context):
-        """Ordered act / set_goal commands for one session; errors come back in-band and keep the stream open.
+        """Ordered act / set_goal / reset commands for one session; errors come back in-band and keep the stream open.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -1,0 +1,140 @@
+"""Cross-session micro-batching: concurrent `act` calls on one model share one forward pass.
+
+A batch closes when it holds `max_batch` requests, when every session that could send one already has
+(`expected()`; a session has at most one request in flight), or `max_wait_s` after its first request arrived.
+The forward runs in a worker thread so that the event loop keeps serving.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import time
+from collections.abc import Callable
+from concurrent.futures import Executor
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.engine import Context, PolicyEngine
+
+
+@dataclass
+class _Item:
+    ctx: Context
+    obs: np.ndarray
+    future: asyncio.Future
+
+
+class MicroBatcher:
+    """Collects (context, observation) pairs for one engine and answers them in batches.
+
+    Args:
+        engine: The model's engine.
+        executor: Runs `engine.act` off the event loop.
+        max_batch: Most requests in one forward pass.
+        max_wait_s: Longest time the first request of a batch waits for others.
+        expected: Number of sessions that could have a request queued (waiting stops when all have).
+        observe: Called with (batch size, forward seconds) after every forward pass.
+    """
+
+    def __init__(
+        self,
+        engine: PolicyEngine,
+        executor: Executor,
+        max_batch: int,
+        max_wait_s: float,
+        expected: Callable[[], int] | None = None,
+        observe: Callable[[int, float], None] | None = None,
+    ) -> None:
+        self.engine = engine
+        self.executor = executor
+        self.max_batch = max_batch
+        self.max_wait_s = max_wait_s
+        self.expected = expected or (lambda: max_batch)
+        self.observe = observe
+        self._pending: collections.deque[_Item] = collections.deque()
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task | None = None
+        self._running: list[_Item] = []
+
+    def start(self) -> None:
+        """Start the batching task on the running loop."""
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="micro-batcher")
+
+    async def close(self) -> None:
+        """Stop batching; queued requests are cancelled."""
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        for item in [*self._pending, *self._running]:
+            item.future.cancel()
+        self._pending.clear()
+
+    async def act(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
+        """The action for one validated observation; `ctx` is advanced by the engine.
+
+        Cancelling the caller before the batch runs drops the request; after, the result is discarded.
+        """
+        if self._task is None or self._task.done():
+            raise RuntimeError("batcher is not running")
+        fut = asyncio.get_running_loop().create_future()
+        self._pending.append(_Item(ctx, obs, fut))
+        self._wake.set()
+        return await fut
+
+    def _live(self) -> int:
+        while self._pending and self._pending[0].future.done():
+            self._pending.popleft()
+        return sum(1 for it in self._pending if not it.future.done())
+
+    async def _gather(self) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.max_wait_s
+        while True:
+            n = self._live()
+            if n == 0 or n >= self.max_batch or n >= self.expected():
+                return
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                return
+            self._wake.clear()
+            try:
+                async with asyncio.timeout(remaining):
+                    await self._wake.wait()
+            except TimeoutError:
+                return
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            if not self._live():
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            await self._gather()
+            batch: list[_Item] = []
+            while self._pending and len(batch) < self.max_batch:
+                item = self._pending.popleft()
+                if not item.future.done():
+                    batch.append(item)
+            if not batch:
+                continue
+            t0 = time.perf_counter()
+            self._running = batch
+            try:
+                actions = await loop.run_in_executor(
+                    self.executor, self.engine.act, [it.ctx for it in batch], [it.obs for it in batch]
+                )
+            except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
+                for it in batch:
+                    if not it.future.done():
+                        it.future.set_exception(e)
+                continue
+            finally:
+                self._running = []
+            if self.observe is not None:
+                self.observe(len(batch), time.perf_counter() - t0)
+            for it, a in zip(batch, actions, strict=True):
+                if not it.future.done():
+                    it.future.set_result(a)

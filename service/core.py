@@ -1,0 +1,421 @@
+"""The transport-agnostic service: models, sessions, goals and batched actions. Both adapters call this."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+import uuid
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.checkpoint import Goal
+from model.engine import ACTION_MODES, InvalidObservation
+from service.batcher import MicroBatcher
+from service.errors import FailedPrecondition, InvalidArgument, NotFound, ServiceError, Unavailable
+from service.metrics import Metrics
+from service.observations import to_array
+from service.registry import LoadedModel, ModelRegistry
+from service.sessions import Clock, MemorySessionStore, Session, SessionStore, clone_context
+from service.settings import Settings
+
+log = logging.getLogger("gmt.core")
+
+MAX_BLEND_STEPS = 100_000
+GoalRef = int | str | None
+
+
+@dataclass(frozen=True)
+class ModelView:
+    """What clients learn about a model."""
+
+    name: str
+    env_id: str
+    observation_space: dict
+    action_space: dict
+    context_length: int
+    statistic: str
+    goals: list[Goal]
+    discrete_actions: bool
+    action_modes: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class SessionView:
+    """What clients learn about a session.
+
+    Attributes:
+        goal: The goal the session pursues (the target of a running blend).
+        blend_from: The goal being faded out (equal to `goal` when no blend runs).
+        context_goals: Goal token of each step in the context, oldest first.
+        expires_in_s: Seconds left before the idle timeout ends the session.
+    """
+
+    session_id: str
+    model: str
+    goal: int
+    goal_name: str
+    step: int
+    context_size: int
+    blend_remaining: int
+    blend_from: int
+    action_mode: str
+    idle_timeout_s: float
+    expires_in_s: float
+    context_goals: list[int]
+
+
+@dataclass(frozen=True)
+class ActResult:
+    """One action: `action` for Box spaces, `discrete_action` for Discrete ones; `step` is the observation's."""
+
+    session_id: str
+    action: list[float] | None
+    discrete_action: int | None
+    step: int
+    goal: int
+
+
+class Core:
+    """Loads models, keeps sessions and answers requests; knows nothing of HTTP or gRPC.
+
+    Args:
+        settings: Server settings.
+        registry: Models to serve (default: loaded from `settings.checkpoints` by `start`).
+        store: Session store (default: Redis if `settings.redis_url`, else memory).
+        clock: Wall-clock seconds used for idle timeouts (injectable for tests).
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        registry: ModelRegistry | None = None,
+        store: SessionStore | None = None,
+        clock: Clock = time.time,
+    ) -> None:
+        self.settings = settings
+        self.registry = registry
+        self.store = store
+        self.clock = clock
+        self.metrics = Metrics()
+        self.started = False
+        self.closing = False
+        self._batchers: dict[str, MicroBatcher] = {}
+        self._executor: ThreadPoolExecutor | None = None
+        self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
+        self._sweeper: asyncio.Task | None = None
+
+    # ----- lifecycle ----------------------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Load models (in a thread), open the session store and start the batchers and the idle sweeper."""
+        import torch
+
+        s = self.settings
+        torch.set_num_threads(s.inference_threads)
+        if self.registry is None:
+            missing = [str(p) for p in s.checkpoints if not p.exists()]
+            if missing:
+                log.warning("checkpoint path does not exist", extra={"paths": missing})
+            self.registry = await asyncio.to_thread(ModelRegistry.load, list(s.checkpoints))
+        if not self.registry.models:
+            log.warning(
+                "no model loaded: no checkpoint directory (one with gmt.json) under the checkpoint paths; "
+                "serving anyway, /readyz and gRPC health answer not ready",
+                extra={"checkpoints": [str(p) for p in s.checkpoints]},
+            )
+        if self.store is None:
+            if s.redis_url:
+                from service.redis_store import RedisSessionStore
+
+                self.store = RedisSessionStore(s.redis_url, s.idle_timeout_s, s.max_sessions, self.clock)
+                await self.store.ping()
+            else:
+                self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
+        self._executor = ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
+        for name, m in self.registry.models.items():
+            b = MicroBatcher(
+                m.engine,
+                self._executor,
+                max_batch=s.max_batch,
+                max_wait_s=s.batch_wait_ms / 1000.0,
+                expected=lambda n=name: self.store.local_count(n),
+                observe=lambda size, sec, n=name: self.metrics.observe_batch(n, size, sec),
+            )
+            b.start()
+            self._batchers[name] = b
+        self.metrics.models_loaded.set(len(self.registry.models))
+        self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever(), name="session-sweeper")
+        self.started = True
+
+    async def close(self) -> None:
+        """Stop batching and sweeping and release the store (sessions in memory are dropped)."""
+        self.closing = True
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+            await asyncio.gather(self._sweeper, return_exceptions=True)
+        for b in self._batchers.values():
+            await b.close()
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+        if self.store is not None:
+            await self.store.close()
+
+    @property
+    def ready(self) -> bool:
+        """Whether at least one model is loaded and the server is not shutting down."""
+        return self.started and not self.closing and bool(self.registry and self.registry.models)
+
+    def readiness(self) -> dict:
+        """Readiness and why: loaded models, load errors, closing flag."""
+        reg = self.registry or ModelRegistry()
+        reason = None
+        if self.closing:
+            reason = "shutting down"
+        elif not self.started:
+            reason = "starting"
+        elif not reg.models:
+            reason = "no model loaded"
+        return {"ready": reason is None, "reason": reason, "models": sorted(reg.models), "errors": reg.errors}
+
+    async def _sweep_forever(self) -> None:
+        period = min(max(self.settings.idle_timeout_s / 2, 0.05), 30.0)
+        while True:
+            await asyncio.sleep(period)
+            try:
+                await self.sweep()
+            except ServiceError as e:
+                log.warning("session sweep failed", extra={"error": e.message})
+
+    async def sweep(self) -> int:
+        """Remove idle sessions now; returns how many expired."""
+        gone = await self.store.sweep()
+        for s in gone:
+            log.info("session expired", extra={"session_id": s.id, "model": s.model})
+        self.metrics.sessions_expired.inc(len(gone))
+        self.metrics.live_sessions.set(await self.store.count())
+        return len(gone)
+
+    # ----- models -------------------------------------------------------------------------------------------
+    def _view_model(self, m: LoadedModel) -> ModelView:
+        c = m.checkpoint
+        return ModelView(
+            name=m.name,
+            env_id=c.env_id,
+            observation_space=c.observation_space,
+            action_space=c.action_space,
+            context_length=c.config.context_length,
+            statistic=c.statistic,
+            goals=list(c.goals),
+            discrete_actions=c.config.discrete_actions,
+            action_modes=ACTION_MODES if c.config.discrete_actions else ("argmax",),
+        )
+
+    def list_models(self) -> list[ModelView]:
+        """Every loaded model, by name."""
+        return [self._view_model(self.registry.models[n]) for n in sorted(self.registry.models)]
+
+    def get_model(self, name: str) -> ModelView:
+        """One model. Raises NotFound."""
+        return self._view_model(self.registry.get(name))
+
+    # ----- goals --------------------------------------------------------------------------------------------
+    @staticmethod
+    def resolve_goal(m: LoadedModel, goal: GoalRef, target: float | None) -> int:
+        """A goal id from an id, a name, or the nearest goal mean to a target statistic value.
+
+        Raises:
+            InvalidArgument: none or both given, unknown id or name, non-finite target.
+        """
+        goals = m.checkpoint.goals
+        names = ", ".join(f"{g.id}={g.name}" for g in goals)
+        if goal is not None and target is not None:
+            raise InvalidArgument("give either goal (an id or a name) or target, not both")
+        if target is not None:
+            if isinstance(target, bool) or not isinstance(target, int | float) or not math.isfinite(target):
+                raise InvalidArgument(f"target must be a finite number, got {target!r}")
+            return min(goals, key=lambda g: (abs(g.mean - target), g.id)).id
+        if isinstance(goal, bool):
+            raise InvalidArgument(f"goal must be an id or a name, got {goal!r}")
+        if isinstance(goal, int | np.integer):
+            if any(g.id == goal for g in goals):
+                return int(goal)
+            raise InvalidArgument(f"goal {goal} is not a goal id of model {m.name!r}; goals are {names}")
+        if isinstance(goal, str):
+            for g in goals:
+                if g.name == goal:
+                    return g.id
+            raise InvalidArgument(f"unknown goal name {goal!r} for model {m.name!r}; goals are {names}")
+        raise InvalidArgument("give a goal (an id or a name) or a target statistic value")
+
+    # ----- sessions -----------------------------------------------------------------------------------------
+    def _lock(self, sid: str) -> asyncio.Lock:
+        lock = self._locks.get(sid)
+        if lock is None:
+            lock = self._locks[sid] = asyncio.Lock()
+        return lock
+
+    def _check_serving(self) -> None:
+        if self.closing or not self.started:
+            raise Unavailable("server is shutting down" if self.closing else "server is starting")
+
+    def _model_of(self, s: Session) -> LoadedModel:
+        try:
+            return self.registry.get(s.model)
+        except NotFound:
+            raise FailedPrecondition(
+                f"session {s.id!r} runs model {s.model!r}, which this server does not serve"
+            ) from None
+
+    def _view_session(self, s: Session) -> SessionView:
+        ctx = s.ctx
+        m = self.registry.models.get(s.model)
+        names = {g.id: g.name for g in m.checkpoint.goals} if m else {}
+        return SessionView(
+            session_id=s.id,
+            model=s.model,
+            goal=int(ctx.goal),
+            goal_name=names.get(int(ctx.goal), ""),
+            step=int(ctx.step),
+            context_size=ctx.size,
+            blend_remaining=ctx.blend_remaining,
+            blend_from=int(ctx.blend_from),
+            action_mode=ctx.action_mode,
+            idle_timeout_s=self.settings.idle_timeout_s,
+            expires_in_s=max(self.settings.idle_timeout_s - (self.clock() - s.last_used), 0.0),
+            context_goals=[] if ctx.goals is None else [int(g) for g in ctx.goals],
+        )
+
+    async def create_session(
+        self,
+        model: str | None = None,
+        goal: GoalRef = None,
+        target: float | None = None,
+        seed: int | None = None,
+        action_mode: str | None = None,
+    ) -> SessionView:
+        """A new session on `model` (optional when one model is loaded) pursuing the given goal.
+
+        Raises:
+            InvalidArgument: bad goal, target, seed or action mode.
+            NotFound: unknown model.
+            ResourceExhausted: the maximum number of live sessions is reached.
+        """
+        self._check_serving()
+        m = self.registry.resolve(model)
+        g = self.resolve_goal(m, goal, target)
+        mode = action_mode or "argmax"
+        if mode not in ACTION_MODES:
+            raise InvalidArgument(f"action_mode must be one of {', '.join(ACTION_MODES)}, got {mode!r}")
+        if mode != "argmax" and not m.checkpoint.config.discrete_actions:
+            raise InvalidArgument(
+                f"action_mode {mode!r} applies to discrete actions; model {m.name!r} is continuous"
+            )
+        if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
+            raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
+        now = self.clock()
+        s = Session(uuid.uuid4().hex, m.name, m.engine.new_context(g, mode, seed), now, now)
+        await self.store.create(s)
+        self.metrics.sessions_created.labels(m.name).inc()
+        self.metrics.live_sessions.set(await self.store.count())
+        log.info("session created", extra={"session_id": s.id, "model": m.name, "goal": g})
+        return self._view_session(s)
+
+    async def get_session(self, sid: str) -> SessionView:
+        """Inspect a session (does not count as use for the idle timeout). Raises NotFound / SessionExpired."""
+        async with self._lock(sid):
+            return self._view_session(await self.store.get(sid))
+
+    def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
+        """The raw observation as an array the engine accepts.
+
+        Raises:
+            InvalidArgument: wrong size, non-numeric, NaN/Inf, out of range.
+        """
+        x = to_array(observation)
+        try:
+            m.engine.prepare_observation(x)
+        except InvalidObservation as e:
+            raise InvalidArgument(str(e)) from None
+        if m.checkpoint.observation_space.get("dtype") == "uint8" and x.dtype != np.uint8:
+            if not np.all((x >= 0) & (x <= 255) & (x == np.round(x))):
+                raise InvalidArgument("image observation values must be integers in 0..255")
+        return x
+
+    async def act(self, sid: str, observation: object) -> ActResult:
+        """Append the observation to the session's context and answer the action (batched with others).
+
+        Raises:
+            InvalidArgument: bad observation (the session is unchanged).
+            NotFound / SessionExpired: no such session.
+        """
+        self._check_serving()
+        async with self._lock(sid):
+            s = await self.store.get(sid)
+            m = self._model_of(s)
+            x = self.validate_observation(m, observation)
+            work = clone_context(s.ctx)
+            step, goal = work.step, work.goal
+            action = await self._batchers[m.name].act(work, x)
+            s.ctx, s.last_used = work, self.clock()
+            await self.store.save(s)
+        if m.checkpoint.config.discrete_actions:
+            return ActResult(sid, None, int(action), step, goal)
+        return ActResult(sid, np.asarray(action, dtype=np.float32).tolist(), None, step, goal)
+
+    async def set_goal(
+        self, sid: str, goal: GoalRef = None, target: float | None = None, blend_steps: int = 0
+    ) -> SessionView:
+        """Condition the session's next steps on a new goal, optionally fading it in over `blend_steps` steps.
+
+        Raises:
+            InvalidArgument: bad goal, target or blend_steps.
+            NotFound / SessionExpired: no such session.
+        """
+        self._check_serving()
+        if (
+            isinstance(blend_steps, bool)
+            or not isinstance(blend_steps, int)
+            or not 0 <= blend_steps <= MAX_BLEND_STEPS
+        ):
+            raise InvalidArgument(
+                f"blend_steps must be an integer in 0..{MAX_BLEND_STEPS}, got {blend_steps!r}"
+            )
+        async with self._lock(sid):
+            s = await self.store.get(sid)
+            m = self._model_of(s)
+            g = self.resolve_goal(m, goal, target)
+            work = clone_context(s.ctx)
+            m.engine.set_goal(work, g, blend_steps)
+            s.ctx, s.last_used = work, self.clock()
+            await self.store.save(s)
+            log.info("goal set", extra={"session_id": sid, "goal": g, "blend_steps": blend_steps})
+            return self._view_session(s)
+
+    async def reset(self, sid: str, goal: GoalRef = None, target: float | None = None) -> SessionView:
+        """Start a new episode in the session, keeping its goal unless one is given.
+
+        Raises:
+            InvalidArgument: bad goal or target.
+            NotFound / SessionExpired: no such session.
+        """
+        self._check_serving()
+        async with self._lock(sid):
+            s = await self.store.get(sid)
+            m = self._model_of(s)
+            g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
+            work = clone_context(s.ctx)
+            m.engine.reset(work, g)
+            s.ctx, s.last_used = work, self.clock()
+            await self.store.save(s)
+            return self._view_session(s)
+
+    async def close_session(self, sid: str) -> None:
+        """Forget the session. Raises NotFound / SessionExpired."""
+        async with self._lock(sid):
+            await self.store.delete(sid)
+        self.metrics.live_sessions.set(await self.store.count())
+        log.info("session closed", extra={"session_id": sid})

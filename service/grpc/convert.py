@@ -1,0 +1,102 @@
+"""Protobuf messages to core arguments and core results to protobuf messages."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+
+import numpy as np
+from gmt.v1 import policy_pb2 as pb
+
+from service.core import ActResult, GoalRef, ModelView, SessionView
+from service.errors import InvalidArgument
+from service.observations import decode_tensor
+
+
+def space(d: dict) -> pb.Space:
+    """A space dict (model.spaces) as a message; null (infinite) bounds become +-inf."""
+
+    def bounds(values: list | None, inf: float) -> list[float]:
+        return [inf if v is None else float(v) for v in (values or [])]
+
+    return pb.Space(
+        type=d["type"],
+        shape=d.get("shape", []),
+        low=bounds(d.get("low"), -math.inf),
+        high=bounds(d.get("high"), math.inf),
+        n=d.get("n", 0),
+        dtype=d.get("dtype", ""),
+    )
+
+
+def model_info(v: ModelView) -> pb.ModelInfo:
+    """A model view as ModelInfo."""
+    return pb.ModelInfo(
+        name=v.name,
+        env_id=v.env_id,
+        observation_space=space(v.observation_space),
+        action_space=space(v.action_space),
+        context_length=v.context_length,
+        statistic=v.statistic,
+        goals=[pb.Goal(**asdict(g)) for g in v.goals],
+    )
+
+
+def session_info(v: SessionView) -> pb.SessionInfo:
+    """A session view as SessionInfo."""
+    return pb.SessionInfo(
+        session_id=v.session_id,
+        model=v.model,
+        goal=v.goal,
+        goal_name=v.goal_name,
+        step=v.step,
+        context_size=v.context_size,
+        blend_remaining=v.blend_remaining,
+        idle_timeout_s=v.idle_timeout_s,
+        action_mode=v.action_mode,
+        context_goals=v.context_goals,
+        expires_in_s=v.expires_in_s,
+        blend_from=v.blend_from,
+    )
+
+
+def act_response(r: ActResult) -> pb.ActResponse:
+    """An act result as ActResponse."""
+    if r.action is None:
+        return pb.ActResponse(
+            discrete_action=r.discrete_action,
+            is_discrete=True,
+            step=r.step,
+            goal=r.goal,
+            session_id=r.session_id,
+        )
+    return pb.ActResponse(action=r.action, step=r.step, goal=r.goal, session_id=r.session_id)
+
+
+def goal(sel: pb.GoalSelector | None) -> tuple[GoalRef, float | None]:
+    """(goal id or name, target) of a GoalSelector; (None, None) when unset."""
+    if sel is None:
+        return None, None
+    kind = sel.WhichOneof("kind")
+    if kind == "id":
+        return sel.id, None
+    if kind == "name":
+        return sel.name, None
+    if kind == "target":
+        return None, sel.target
+    return None, None
+
+
+def observation(req: pb.ActRequest) -> np.ndarray:
+    """The observation of an ActRequest as an array.
+
+    Raises:
+        InvalidArgument: no observation, or a tensor whose bytes do not match its dtype and shape.
+    """
+    kind = req.WhichOneof("observation")
+    if kind == "values":
+        return np.asarray(req.values.values, dtype=np.float32)
+    if kind == "tensor":
+        t = req.tensor
+        return decode_tensor(t.data, t.dtype, t.shape)
+    raise InvalidArgument("observation is required: set values or tensor")

@@ -1,0 +1,104 @@
+"""The grpc.aio server: PolicyService, standard health checking, server reflection, optional bearer auth."""
+
+from __future__ import annotations
+
+import secrets
+
+import grpc
+from gmt.v1 import policy_pb2, policy_pb2_grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from service.core import Core
+from service.errors import Unauthenticated
+from service.grpc.servicer import PolicyServicer
+
+POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
+OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
+
+
+class BearerAuth(grpc.aio.ServerInterceptor):
+    """Requires `authorization: Bearer <token>` metadata on every call except health and reflection."""
+
+    def __init__(self, token: str) -> None:
+        self._token = token.encode()
+
+    def _ok(self, details: grpc.HandlerCallDetails) -> bool:
+        if details.method.startswith(OPEN_PREFIXES):
+            return True
+        for key, value in details.invocation_metadata or ():
+            if key == "authorization":
+                v = value.decode() if isinstance(value, bytes) else value
+                scheme, _, cred = v.partition(" ")
+                return scheme.lower() == "bearer" and secrets.compare_digest(
+                    cred.strip().encode(), self._token
+                )
+        return False
+
+    async def intercept_service(self, continuation, handler_call_details):
+        handler = await continuation(handler_call_details)
+        if handler is None or self._ok(handler_call_details):
+            return handler
+        has_auth = any(k == "authorization" for k, _ in handler_call_details.invocation_metadata or ())
+        err = Unauthenticated(
+            "invalid bearer token"
+            if has_auth
+            else "missing bearer token: send metadata 'authorization: Bearer <token>'"
+        )
+
+        async def deny(request_or_iterator, context):
+            await context.abort(grpc.StatusCode[err.grpc_code], err.message)
+
+        kind = (handler.request_streaming, handler.response_streaming)
+        make = {
+            (False, False): grpc.unary_unary_rpc_method_handler,
+            (False, True): grpc.unary_stream_rpc_method_handler,
+            (True, False): grpc.stream_unary_rpc_method_handler,
+            (True, True): grpc.stream_stream_rpc_method_handler,
+        }[kind]
+        return make(deny, handler.request_deserializer, handler.response_serializer)
+
+
+class GrpcServer:
+    """The gRPC side of a server process.
+
+    Args:
+        core: The started core.
+        host: Interface to bind.
+        port: Port (0 = any free port; the bound one is in `port` after `start`).
+    """
+
+    def __init__(self, core: Core, host: str, port: int) -> None:
+        s = core.settings
+        self.core = core
+        interceptors = [BearerAuth(s.token)] if s.token else []
+        limit = s.max_request_bytes
+        self.server = grpc.aio.server(
+            interceptors=interceptors,
+            options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", 4 * limit)],
+        )
+        policy_pb2_grpc.add_PolicyServiceServicer_to_server(PolicyServicer(core), self.server)
+        self.health = health.aio.HealthServicer()
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
+        names = (POLICY_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME)
+        reflection.enable_server_reflection(names, self.server)
+        address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        self.port = self.server.add_insecure_port(address)
+        if not self.port:
+            raise OSError(f"gRPC could not bind {address}")
+
+    async def start(self) -> None:
+        """Start serving and publish readiness through the health service."""
+        await self.server.start()
+        status = (
+            health_pb2.HealthCheckResponse.SERVING
+            if self.core.ready
+            else health_pb2.HealthCheckResponse.NOT_SERVING
+        )
+        for name in ("", POLICY_SERVICE):
+            await self.health.set(name, status)
+
+    async def stop(self, grace: float) -> None:
+        """Report NOT_SERVING, refuse new calls and give in-flight ones `grace` seconds."""
+        await self.health.enter_graceful_shutdown()
+        await self.server.stop(grace)

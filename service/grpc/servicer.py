@@ -1,0 +1,139 @@
+"""gmt.v1.PolicyService: convert messages, call the core, map errors to status codes (or in-band errors)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import TypeVar
+
+import grpc
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
+
+from service.core import Core
+from service.errors import DeadlineExceeded, InvalidArgument, ServiceError
+from service.grpc import convert
+
+T = TypeVar("T")
+
+
+async def within_deadline(context: grpc.aio.ServicerContext, work: Awaitable[T]) -> T:
+    """Await `work`, giving up with DeadlineExceeded when the caller's deadline passes."""
+    remaining = context.time_remaining()
+    if remaining is None:
+        return await work
+    try:
+        async with asyncio.timeout(max(remaining, 0.0)):
+            return await work
+    except TimeoutError:
+        raise DeadlineExceeded(f"deadline exceeded after {remaining:.3f} s") from None
+
+
+class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
+    """The PolicyService over one core."""
+
+    def __init__(self, core: Core) -> None:
+        self.core = core
+
+    async def _unary(
+        self, method: str, context: grpc.aio.ServicerContext, call: Callable[[], Awaitable[T]]
+    ) -> T:
+        t0, code = time.perf_counter(), "OK"
+        try:
+            return await within_deadline(context, call())
+        except ServiceError as e:
+            code = e.grpc_code
+            await context.abort(grpc.StatusCode[e.grpc_code], e.message)
+        finally:
+            self.core.metrics.observe_request("grpc", method, code, time.perf_counter() - t0)
+
+    async def ListModels(self, request: pb.ListModelsRequest, context) -> pb.ListModelsResponse:
+        async def call():
+            return pb.ListModelsResponse(models=[convert.model_info(v) for v in self.core.list_models()])
+
+        return await self._unary("ListModels", context, call)
+
+    async def GetModel(self, request: pb.GetModelRequest, context) -> pb.ModelInfo:
+        async def call():
+            return convert.model_info(self.core.get_model(request.name))
+
+        return await self._unary("GetModel", context, call)
+
+    async def CreateSession(self, request: pb.CreateSessionRequest, context) -> pb.SessionInfo:
+        async def call():
+            goal, target = convert.goal(request.goal if request.HasField("goal") else None)
+            seed = request.seed if request.HasField("seed") else None
+            v = await self.core.create_session(
+                request.model or None, goal, target, seed, request.action_mode or None
+            )
+            return convert.session_info(v)
+
+        return await self._unary("CreateSession", context, call)
+
+    async def GetSession(self, request: pb.GetSessionRequest, context) -> pb.SessionInfo:
+        async def call():
+            return convert.session_info(await self.core.get_session(request.session_id))
+
+        return await self._unary("GetSession", context, call)
+
+    async def _act(self, request: pb.ActRequest) -> pb.ActResponse:
+        return convert.act_response(await self.core.act(request.session_id, convert.observation(request)))
+
+    async def _set_goal(self, request: pb.SetGoalRequest) -> pb.SessionInfo:
+        if not request.HasField("goal"):
+            raise InvalidArgument("goal is required: set id, name or target")
+        goal, target = convert.goal(request.goal)
+        return convert.session_info(
+            await self.core.set_goal(request.session_id, goal, target, request.blend_steps)
+        )
+
+    async def _reset(self, request: pb.ResetSessionRequest) -> pb.SessionInfo:
+        goal, target = convert.goal(request.goal if request.HasField("goal") else None)
+        return convert.session_info(await self.core.reset(request.session_id, goal, target))
+
+    async def Act(self, request: pb.ActRequest, context) -> pb.ActResponse:
+        return await self._unary("Act", context, lambda: self._act(request))
+
+    async def SetGoal(self, request: pb.SetGoalRequest, context) -> pb.SessionInfo:
+        return await self._unary("SetGoal", context, lambda: self._set_goal(request))
+
+    async def ResetSession(self, request: pb.ResetSessionRequest, context) -> pb.SessionInfo:
+        return await self._unary("ResetSession", context, lambda: self._reset(request))
+
+    async def CloseSession(self, request: pb.CloseSessionRequest, context) -> pb.CloseSessionResponse:
+        async def call():
+            await self.core.close_session(request.session_id)
+            return pb.CloseSessionResponse(session_id=request.session_id)
+
+        return await self._unary("CloseSession", context, call)
+
+    async def Control(
+        self, request_iterator: AsyncIterator[pb.ControlRequest], context
+    ) -> AsyncIterator[pb.ControlResponse]:
+        """Apply one session's commands in order; errors answer in-band and the stream stays open."""
+        bound: str | None = None
+        async for req in request_iterator:
+            kind = req.WhichOneof("command")
+            t0, code = time.perf_counter(), "OK"
+            try:
+                if kind is None:
+                    raise InvalidArgument("empty command: set act, set_goal or reset")
+                cmd = getattr(req, kind)
+                sid = cmd.session_id or bound
+                if not sid:
+                    raise InvalidArgument("session_id is required in the first command of a stream")
+                if bound is not None and sid != bound:
+                    raise InvalidArgument(f"this stream controls session {bound!r}, not {sid!r}")
+                bound = cmd.session_id = sid
+                if kind == "act":
+                    out = pb.ControlResponse(act=await within_deadline(context, self._act(cmd)))
+                elif kind == "set_goal":
+                    out = pb.ControlResponse(session=await within_deadline(context, self._set_goal(cmd)))
+                else:
+                    out = pb.ControlResponse(session=await within_deadline(context, self._reset(cmd)))
+            except ServiceError as e:
+                code = e.grpc_code
+                out = pb.ControlResponse(error=pb.ControlError(code=e.code, message=e.message))
+            self.core.metrics.observe_request("grpc", f"Control.{kind}", code, time.perf_counter() - t0)
+            yield out

@@ -1,0 +1,75 @@
+"""Prometheus metrics of one server (its own registry, so several servers can live in one process)."""
+
+from __future__ import annotations
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+)
+
+LATENCY_BUCKETS = (
+    0.0005,
+    0.001,
+    0.002,
+    0.003,
+    0.005,
+    0.0075,
+    0.01,
+    0.015,
+    0.025,
+    0.05,
+    0.1,
+    0.25,
+    0.5,
+    1.0,
+    2.5,
+)
+BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512)
+
+
+class Metrics:
+    """Request latency, batch sizes, forward time, sessions and errors."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.request_latency = Histogram(
+            "gmt_request_duration_seconds",
+            "Time to answer a request, by transport, method and outcome code.",
+            ["transport", "method", "code"],
+            buckets=LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.batch_size = Histogram(
+            "gmt_batch_size", "Observations per forward pass.", ["model"], buckets=BATCH_BUCKETS, registry=r
+        )
+        self.forward_latency = Histogram(
+            "gmt_forward_duration_seconds",
+            "Time of one batched forward pass.",
+            ["model"],
+            buckets=LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.live_sessions = Gauge("gmt_live_sessions", "Live sessions in the session store.", registry=r)
+        self.models_loaded = Gauge("gmt_models_loaded", "Models this server answers for.", registry=r)
+        self.sessions_created = Counter("gmt_sessions_created", "Sessions created.", ["model"], registry=r)
+        self.sessions_expired = Counter(
+            "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r
+        )
+
+    def observe_request(self, transport: str, method: str, code: str, seconds: float) -> None:
+        """Record one answered request."""
+        self.request_latency.labels(transport, method, code).observe(seconds)
+
+    def observe_batch(self, model: str, size: int, seconds: float) -> None:
+        """Record one forward pass."""
+        self.batch_size.labels(model).observe(size)
+        self.forward_latency.labels(model).observe(seconds)
+
+    def render(self) -> tuple[bytes, str]:
+        """The exposition text and its content type."""
+        return generate_latest(self.registry), CONTENT_TYPE_LATEST

@@ -1,0 +1,80 @@
+"""Observations as clients send them (nested lists, raw tensors, base64) turned into NumPy arrays."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+from collections.abc import Sequence
+
+import numpy as np
+
+from service.errors import InvalidArgument
+
+DTYPES = (
+    "bool",
+    "uint8",
+    "int8",
+    "uint16",
+    "int16",
+    "uint32",
+    "int32",
+    "uint64",
+    "int64",
+    "float16",
+    "float32",
+    "float64",
+)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def decode_base64(data: str) -> bytes:
+    """Standard base64 (with padding) to bytes.
+
+    Raises:
+        InvalidArgument: `data` is not valid base64.
+    """
+    try:
+        return base64.b64decode(data, validate=True)
+    except (binascii.Error, ValueError) as e:
+        raise InvalidArgument(f"observation.data is not valid base64: {e}") from None
+
+
+def decode_tensor(data: bytes, dtype: str, shape: Sequence[int]) -> np.ndarray:
+    """A raw little-endian array.
+
+    Raises:
+        InvalidArgument: unsupported dtype, negative dimension, or a byte count that does not fill the shape.
+    """
+    if dtype not in DTYPES:
+        raise InvalidArgument(f"observation dtype {dtype!r} is not supported; use one of {', '.join(DTYPES)}")
+    dims = [int(s) for s in shape]
+    if any(s < 0 for s in dims):
+        raise InvalidArgument(f"observation shape {dims} has a negative dimension")
+    dt = np.dtype(dtype).newbyteorder("<")
+    need = int(np.prod(dims)) * dt.itemsize
+    if need != len(data):
+        raise InvalidArgument(f"observation data has {len(data)} bytes; shape {dims} of {dtype} needs {need}")
+    return np.frombuffer(data, dtype=dt).reshape(dims)
+
+
+def to_array(obs: object) -> np.ndarray:
+    """A nested list (or array) as an array; rejects ragged lists and floats outside the float32 range.
+
+    Size, dtype kind and NaN/Inf are checked afterwards by the model's `prepare_observation`.
+
+    Raises:
+        InvalidArgument: ragged nesting, or a finite value too large for float32.
+    """
+    if isinstance(obs, np.ndarray):
+        x = obs
+    else:
+        try:
+            x = np.asarray(obs)
+        except (ValueError, TypeError, OverflowError) as e:
+            raise InvalidArgument(f"observation is not a rectangular numeric array: {e}") from None
+    if x.dtype.kind == "f" and x.size:
+        big = np.isfinite(x) & (np.abs(x) > FLOAT32_MAX)
+        if big.any():
+            i = int(np.flatnonzero(big.ravel())[0])
+            raise InvalidArgument(f"observation value at index {i} is outside the float32 range")
+    return x

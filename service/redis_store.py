@@ -1,0 +1,145 @@
+"""Sessions in Redis, shared by replicas: any replica can continue any session exactly where it stopped.
+
+Layout (prefix `gmt:` by default): `s:<id>` is a hash written by `session_codec.encode` after every step;
+`live` is a sorted set of session ids scored by last use (the maximum-sessions count across replicas);
+`x:<id>` marks an expired session for a day, so that it answers "expired" rather than "not found".
+Expiry follows the store's clock; Redis key TTLs only collect sessions nobody touched for twice the timeout.
+"""
+
+from __future__ import annotations
+
+from service import session_codec
+from service.errors import NotFound, ResourceExhausted, SessionExpired, Unavailable
+from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
+
+TOMBSTONE_TTL_S = 86_400
+
+# KEYS: live, session hash. ARGV: now, idle timeout, max sessions, id, key TTL ms, then field/value pairs.
+_CREATE = """
+redis.call('ZREMRANGEBYSCORE', KEYS[1], '-inf', '(' .. (tonumber(ARGV[1]) - tonumber(ARGV[2])))
+local n = redis.call('ZCARD', KEYS[1])
+if n >= tonumber(ARGV[3]) then return n end
+redis.call('ZADD', KEYS[1], ARGV[1], ARGV[4])
+redis.call('DEL', KEYS[2])
+redis.call('HSET', KEYS[2], unpack(ARGV, 6))
+redis.call('PEXPIRE', KEYS[2], ARGV[5])
+return -1
+"""
+
+
+class RedisSessionStore(SessionStore):
+    """A `SessionStore` over a Redis server (redis-py asyncio client).
+
+    Args:
+        url: Redis URL, e.g. redis://localhost:6379/0.
+        idle_timeout_s: Sessions unused for longer expire.
+        max_sessions: Live sessions allowed at once, counted over all replicas.
+        clock: Wall-clock seconds; replicas must agree, so use real time outside tests.
+        prefix: Key prefix.
+    """
+
+    def __init__(
+        self, url: str, idle_timeout_s: float, max_sessions: int, clock: Clock, prefix: str = "gmt:"
+    ) -> None:
+        super().__init__(idle_timeout_s, max_sessions, clock)
+        import redis.asyncio as aioredis  # optional dependency: only needed with --redis-url
+
+        self._errors = (aioredis.RedisError, OSError)
+        self.redis = aioredis.from_url(url, decode_responses=False)
+        self.prefix = prefix
+        self._live = f"{prefix}live"
+        self._create = self.redis.register_script(_CREATE)
+        self._seen: dict[str, tuple[str, float]] = {}  # id -> (model, last use here) of sessions touched here
+
+    def _key(self, sid: str) -> str:
+        return f"{self.prefix}s:{sid}"
+
+    def _tomb(self, sid: str) -> str:
+        return f"{self.prefix}x:{sid}"
+
+    @property
+    def _ttl_ms(self) -> int:
+        return int((2 * self.idle_timeout_s + 60) * 1000)
+
+    async def _call(self, coro):
+        try:
+            return await coro
+        except self._errors as e:
+            raise Unavailable(f"session store unreachable: {e}") from e
+
+    async def ping(self) -> None:
+        """Raise Unavailable unless Redis answers."""
+        await self._call(self.redis.ping())
+
+    async def create(self, session: Session) -> None:
+        flat: list[bytes | str] = []
+        for k, v in session_codec.encode(session).items():
+            flat += [k, v]
+        args = [repr(self.clock()), repr(self.idle_timeout_s), self.max_sessions, session.id, self._ttl_ms]
+        n = await self._call(self._create(keys=[self._live, self._key(session.id)], args=args + flat))
+        if n != -1:
+            raise ResourceExhausted(
+                f"server is full: {n} live sessions (maximum {self.max_sessions}); close a session or retry later"
+            )
+        self._seen[session.id] = (session.model, session.last_used)
+
+    async def _expire(self, sid: str) -> None:
+        async with self.redis.pipeline(transaction=True) as p:
+            p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"1", ex=TOMBSTONE_TTL_S)
+            await self._call(p.execute())
+        self._seen.pop(sid, None)
+
+    async def get(self, sid: str) -> Session:
+        fields = await self._call(self.redis.hgetall(self._key(sid)))
+        if not fields:
+            self._seen.pop(sid, None)
+            if await self._call(self.redis.exists(self._tomb(sid))):
+                raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+            raise NotFound(not_found_message(sid))
+        s = session_codec.decode(fields)
+        if self.is_idle(s):
+            await self._expire(sid)
+            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+        self._seen[sid] = (s.model, s.last_used)
+        return s
+
+    async def save(self, session: Session) -> None:
+        key = self._key(session.id)
+        async with self.redis.pipeline(transaction=True) as p:
+            p.delete(key).hset(key, mapping=session_codec.encode(session)).pexpire(key, self._ttl_ms)
+            p.zadd(self._live, {session.id: session.last_used})
+            await self._call(p.execute())
+        self._seen[session.id] = (session.model, session.last_used)
+
+    async def delete(self, sid: str) -> None:
+        await self.get(sid)
+        async with self.redis.pipeline(transaction=True) as p:
+            p.delete(self._key(sid)).zrem(self._live, sid)
+            await self._call(p.execute())
+        self._seen.pop(sid, None)
+
+    async def count(self) -> int:
+        low = self.clock() - self.idle_timeout_s
+        return int(await self._call(self.redis.zcount(self._live, low, "+inf")))
+
+    async def sweep(self) -> list[Session]:
+        low = self.clock() - self.idle_timeout_s
+        stale = await self._call(self.redis.zrangebyscore(self._live, "-inf", f"({low!r}"))
+        gone = []
+        for raw in stale:
+            sid = raw.decode()
+            fields = await self._call(self.redis.hgetall(self._key(sid)))
+            if fields:
+                s = session_codec.decode(fields)
+                if not self.is_idle(s):
+                    continue
+                gone.append(s)
+            await self._expire(sid)
+        self._seen = {k: v for k, v in self._seen.items() if v[1] >= low}
+        return gone
+
+    def local_count(self, model: str) -> int:
+        return sum(1 for m, _ in self._seen.values() if m == model)
+
+    async def close(self) -> None:
+        await self.redis.aclose()

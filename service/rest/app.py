@@ -1,0 +1,186 @@
+"""The FastAPI application: lifespan (models load here, never at import), error envelope, body limit, metrics."""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.core import Core
+from service.errors import PayloadTooLarge, ServiceError
+from service.rest.routes import SESSION_HEADER, api, public
+from service.settings import Settings
+
+log = logging.getLogger("gmt.rest")
+HTTP_CODES = {
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+}
+
+
+def error_response(status: int, code: str, message: str, headers: dict | None = None) -> JSONResponse:
+    """The one error body: `{"error": {"code", "message"}}`."""
+    return JSONResponse({"error": {"code": code, "message": message}}, status_code=status, headers=headers)
+
+
+def _session_header(request: Request) -> dict:
+    sid = request.path_params.get("session_id")
+    return {SESSION_HEADER: sid} if sid else {}
+
+
+async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
+    headers = _session_header(request)
+    if exc.http_status == 401:
+        headers["WWW-Authenticate"] = "Bearer"
+    return error_response(exc.http_status, exc.code, exc.message, headers)
+
+
+def _field(loc: tuple) -> str:
+    parts = [str(p) for p in loc]
+    if parts and parts[0] in ("body", "query", "path", "header"):
+        parts = parts[1:]
+    # union branches (e.g. observation.list[any] / observation.Tensor) name the same field
+    return ".".join(p for p in parts if not (p[:1].isupper() or "[" in p)) or "body"
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    errors = exc.errors()
+    if any(e.get("type") == "json_invalid" for e in errors):
+        e = next(e for e in errors if e.get("type") == "json_invalid")
+        detail = (e.get("ctx") or {}).get("error", "invalid")
+        loc = e.get("loc", ())
+        where = f" at character {loc[1]}" if len(loc) > 1 else ""
+        msg = f"request body is not valid JSON: {detail}{where}"
+    else:
+        by_field: dict[str, list[str]] = {}
+        for e in errors:
+            by_field.setdefault(_field(tuple(e.get("loc", ()))), []).append(e.get("msg", "invalid"))
+        msg = "; ".join(f"{f}: {' or '.join(dict.fromkeys(m))}" for f, m in by_field.items())
+    return error_response(400, "invalid_argument", msg, _session_header(request))
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    code = HTTP_CODES.get(exc.status_code, "http_error")
+    if exc.status_code == 404:
+        msg = f"no route {request.method} {request.url.path}; see /docs"
+    elif exc.status_code == 405:
+        msg = f"method {request.method} is not allowed on {request.url.path}"
+    else:
+        msg = str(exc.detail)
+    return error_response(exc.status_code, code, msg, getattr(exc, "headers", None))
+
+
+async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error", extra={"path": request.url.path})
+    return error_response(500, "internal", f"internal error: {type(exc).__name__}")
+
+
+class BodyLimit:
+    """Reads the whole body first and answers 413 (error envelope) once it exceeds `limit` bytes."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def _too_large(self, scope: Scope, receive: Receive, send: Send) -> None:
+        e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
+        await error_response(e.http_status, e.code, e.message, {"Connection": "close"})(scope, receive, send)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        for k, v in scope["headers"]:
+            if k == b"content-length" and v.isdigit() and int(v) > self.limit:
+                return await self._too_large(scope, receive, send)
+        chunks, size = [], 0
+        while True:
+            msg = await receive()
+            if msg["type"] != "http.request":
+                return
+            chunks.append(msg.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.limit:
+                return await self._too_large(scope, receive, send)
+            if not msg.get("more_body", False):
+                break
+        body, replayed = b"".join(chunks), False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+class RequestMetrics:
+    """Observes each request's latency by endpoint name and status."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        t0, status = time.perf_counter(), 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            endpoint = scope.get("endpoint")
+            name = getattr(endpoint, "__name__", "unmatched")
+            core = getattr(scope["app"].state, "core", None) if "app" in scope else None
+            if core is not None:
+                core.metrics.observe_request("rest", name, str(status), time.perf_counter() - t0)
+
+
+def create_app(settings: Settings | None = None, core: Core | None = None) -> FastAPI:
+    """The REST app. Given a `core`, it serves it (its owner starts and closes it); otherwise the lifespan
+    builds one from `settings`, loads its models on startup and closes it on shutdown.
+    """
+    settings = settings or (core.settings if core else Settings())
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        own = core is None
+        c = core or Core(settings)
+        if own:
+            await c.start()
+        app.state.core = c
+        try:
+            yield
+        finally:
+            if own:
+                await c.close()
+
+    app = FastAPI(
+        title="GMT controllable-policy service",
+        version="1",
+        description="Drive an agent with a Goal-Masked Transformer and change its goal mid-episode.",
+        lifespan=lifespan,
+    )
+    app.include_router(public)
+    app.include_router(api)
+    app.add_exception_handler(ServiceError, _service_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(Exception, _unexpected)
+    app.add_middleware(RequestMetrics)
+    app.add_middleware(BodyLimit, limit=settings.max_request_bytes)
+    return app

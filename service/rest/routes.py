@@ -1,0 +1,130 @@
+"""REST routes: convert JSON to core calls and back, nothing else."""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.core import Core
+from service.errors import Unauthenticated
+from service.observations import decode_base64, decode_tensor
+from service.rest import schemas as S
+
+SESSION_HEADER = "X-Session-Id"
+ERRORS = {
+    400: {"model": S.ErrorOut, "description": "Invalid argument"},
+    401: {"model": S.ErrorOut, "description": "Missing or wrong bearer token"},
+    404: {"model": S.ErrorOut, "description": "Unknown or expired model or session"},
+}
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the server runs with --auth-token.")
+
+
+def get_core(request: Request) -> Core:
+    """The core the app serves (set by the lifespan)."""
+    return request.app.state.core
+
+
+CoreDep = Annotated[Core, Depends(get_core)]
+
+
+def require_token(
+    core: CoreDep, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+) -> None:
+    """Reject the request unless auth is off or it carries `Authorization: Bearer <token>`."""
+    token = core.settings.token
+    if token is None:
+        return
+    if creds is None:
+        raise Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
+    if not secrets.compare_digest(creds.credentials.encode(), token.encode()):
+        raise Unauthenticated("invalid bearer token")
+
+
+public = APIRouter(tags=["health"])
+api = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS)
+
+
+@public.get("/healthz", response_model=S.Health)
+async def healthz() -> S.Health:
+    """Liveness: the process answers."""
+    return S.Health(status="ok")
+
+
+@public.get("/readyz", response_model=S.Readiness, responses={503: {"model": S.Readiness}})
+async def readyz(core: CoreDep) -> JSONResponse:
+    """Readiness: at least one model is loaded and the server is not shutting down."""
+    r = core.readiness()
+    return JSONResponse(S.Readiness(**r).model_dump(), status_code=200 if r["ready"] else 503)
+
+
+@api.get("/metrics", tags=["health"], response_class=Response)
+async def metrics(core: CoreDep) -> Response:
+    """Prometheus metrics."""
+    body, content_type = core.metrics.render()
+    return Response(body, media_type=content_type)
+
+
+@api.get("/models", response_model=S.ModelList, tags=["models"])
+async def list_models(core: CoreDep) -> S.ModelList:
+    """Every loaded model."""
+    return S.ModelList(models=[S.summary(v) for v in core.list_models()])
+
+
+@api.get("/models/{name}", response_model=S.ModelOut, tags=["models"])
+async def get_model(name: str, core: CoreDep) -> S.ModelOut:
+    """A model's spaces, goal table and context length."""
+    return S.ModelOut.of(core.get_model(name))
+
+
+@api.post("/sessions", response_model=S.SessionOut, status_code=201, tags=["sessions"])
+async def create_session(body: S.CreateSession, core: CoreDep, response: Response) -> S.SessionOut:
+    """Create a session on a model with a goal id, goal name, or target statistic value."""
+    v = await core.create_session(body.model, body.goal, body.target, body.seed, body.action_mode)
+    response.headers[SESSION_HEADER] = v.session_id
+    return S.SessionOut.of(v)
+
+
+@api.get("/sessions/{session_id}", response_model=S.SessionOut, tags=["sessions"])
+async def get_session(session_id: str, core: CoreDep, response: Response) -> S.SessionOut:
+    """A session's state (does not reset its idle timer)."""
+    response.headers[SESSION_HEADER] = session_id
+    return S.SessionOut.of(await core.get_session(session_id))
+
+
+@api.post("/sessions/{session_id}/act", response_model=S.ActOut, tags=["sessions"])
+async def act(session_id: str, body: S.Act, core: CoreDep, response: Response) -> S.ActOut:
+    """One step: the observation in, the action out."""
+    obs = body.observation
+    if isinstance(obs, S.Tensor):
+        obs = decode_tensor(decode_base64(obs.data), obs.dtype, obs.shape)
+    response.headers[SESSION_HEADER] = session_id
+    return S.ActOut.of(await core.act(session_id, obs))
+
+
+@api.put("/sessions/{session_id}/goal", response_model=S.SessionOut, tags=["sessions"])
+async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Response) -> S.SessionOut:
+    """Change the goal from the next step on, optionally blended over `blend_steps` steps."""
+    response.headers[SESSION_HEADER] = session_id
+    return S.SessionOut.of(await core.set_goal(session_id, body.goal, body.target, body.blend_steps))
+
+
+@api.post("/sessions/{session_id}/reset", response_model=S.SessionOut, tags=["sessions"])
+async def reset_session(
+    session_id: str, core: CoreDep, response: Response, body: S.ResetSession | None = None
+) -> S.SessionOut:
+    """Start a new episode, keeping the goal unless one is given."""
+    body = body or S.ResetSession()
+    response.headers[SESSION_HEADER] = session_id
+    return S.SessionOut.of(await core.reset(session_id, body.goal, body.target))
+
+
+@api.delete("/sessions/{session_id}", status_code=204, tags=["sessions"], response_class=Response)
+async def close_session(session_id: str, core: CoreDep) -> Response:
+    """Close the session."""
+    await core.close_session(session_id)
+    return Response(status_code=204, headers={SESSION_HEADER: session_id})

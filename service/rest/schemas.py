@@ -1,0 +1,214 @@
+"""JSON bodies of the REST API (pydantic v2), as DESIGN.md section 6 fixes them."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field, StrictInt, StrictStr, field_validator
+
+from service.core import ActResult, ModelView, SessionView
+
+GoalRef = StrictInt | StrictStr
+
+
+class Space(BaseModel):
+    """A Gymnasium Box or Discrete space; infinite bounds are null."""
+
+    type: Literal["box", "discrete"]
+    shape: list[int]
+    dtype: str
+    low: list[float | None] | None = None
+    high: list[float | None] | None = None
+    n: int | None = None
+
+
+class GoalOut(BaseModel):
+    """One goal of a model's goal table (a cluster of the per-trajectory statistic)."""
+
+    id: int
+    name: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    count: int
+
+
+class ModelSummary(BaseModel):
+    """A loaded model, briefly."""
+
+    name: str
+    env_id: str
+    context_length: int
+    statistic: str
+    n_goals: int
+    goal_names: list[str]
+    discrete_actions: bool
+
+
+class ModelList(BaseModel):
+    """`GET /models`."""
+
+    models: list[ModelSummary]
+
+
+class ModelOut(BaseModel):
+    """`GET /models/{name}`: spaces, goal table and context length K."""
+
+    name: str
+    env_id: str
+    observation_space: Space
+    action_space: Space
+    context_length: int
+    statistic: str
+    goals: list[GoalOut]
+    discrete_actions: bool
+    action_modes: list[str]
+
+    @classmethod
+    def of(cls, v: ModelView) -> ModelOut:
+        """From the core's view."""
+        return cls(
+            name=v.name,
+            env_id=v.env_id,
+            observation_space=Space(**v.observation_space),
+            action_space=Space(**v.action_space),
+            context_length=v.context_length,
+            statistic=v.statistic,
+            goals=[GoalOut(**asdict(g)) for g in v.goals],
+            discrete_actions=v.discrete_actions,
+            action_modes=list(v.action_modes),
+        )
+
+
+def summary(v: ModelView) -> ModelSummary:
+    """A model's summary from the core's view."""
+    return ModelSummary(
+        name=v.name,
+        env_id=v.env_id,
+        context_length=v.context_length,
+        statistic=v.statistic,
+        n_goals=len(v.goals),
+        goal_names=[g.name for g in v.goals],
+        discrete_actions=v.discrete_actions,
+    )
+
+
+class CreateSession(BaseModel):
+    """`POST /sessions`: a model and a goal by id or name, or a target statistic value."""
+
+    model: str | None = Field(None, description="Model name; may be omitted when one model is loaded.")
+    goal: GoalRef | None = Field(None, description="Goal id or goal name.", examples=[0, "high"])
+    target: float | None = Field(None, description="Target statistic value: the nearest goal mean is chosen.")
+    seed: int | None = Field(
+        None, description="Seed of the session's sampler (discrete sample/expert modes)."
+    )
+    action_mode: Literal["argmax", "sample", "expert"] | None = Field(
+        None, description="Discrete-action models only; default argmax."
+    )
+
+
+class SetGoal(BaseModel):
+    """`PUT /sessions/{id}/goal`."""
+
+    goal: GoalRef | None = Field(None, description="Goal id or goal name.", examples=[2, "low"])
+    target: float | None = Field(None, description="Target statistic value: the nearest goal mean is chosen.")
+    blend_steps: StrictInt = Field(0, description="Fade the new goal in over this many steps (0 = at once).")
+
+
+class ResetSession(BaseModel):
+    """`POST /sessions/{id}/reset`: optionally a new goal."""
+
+    goal: GoalRef | None = None
+    target: float | None = None
+
+
+class SessionOut(BaseModel):
+    """A session's state."""
+
+    session_id: str
+    model: str
+    goal: int
+    goal_name: str
+    step: int
+    context_size: int
+    blend_remaining: int
+    blend_from: int
+    action_mode: str
+    idle_timeout_s: float
+    expires_in_s: float
+    context_goals: list[int]
+
+    @classmethod
+    def of(cls, v: SessionView) -> SessionOut:
+        """From the core's view."""
+        return cls(**vars(v))
+
+
+class Tensor(BaseModel):
+    """A raw little-endian array, base64-encoded (images)."""
+
+    data: str = Field(description="Standard base64 of the array's bytes.")
+    dtype: str = Field(description="NumPy dtype name, e.g. uint8 or float32.", examples=["uint8"])
+    shape: list[StrictInt]
+
+
+class Act(BaseModel):
+    """`POST /sessions/{id}/act`: one observation, as (nested) numbers or a base64 tensor."""
+
+    observation: list[Any] | Tensor = Field(examples=[[0.0] * 17])
+
+    @field_validator("observation", mode="before")
+    @classmethod
+    def _list_or_tensor(cls, v: object) -> object:
+        if not isinstance(v, list | dict):
+            raise ValueError("must be a list of numbers or an object {data, dtype, shape}")
+        return v
+
+
+class ActOut(BaseModel):
+    """The action for the observation (a list for Box spaces, an int for Discrete ones)."""
+
+    action: list[float] | int
+    step: int
+    goal: int
+    session_id: str
+
+    @classmethod
+    def of(cls, r: ActResult) -> ActOut:
+        """From the core's result."""
+        return cls(
+            action=r.action if r.action is not None else r.discrete_action,
+            step=r.step,
+            goal=r.goal,
+            session_id=r.session_id,
+        )
+
+
+class ErrorBody(BaseModel):
+    """An error's code and message."""
+
+    code: str = Field(examples=["invalid_argument"])
+    message: str = Field(examples=["observation has 5 values, expected 17 (shape [17])"])
+
+
+class ErrorOut(BaseModel):
+    """Every error answer: `{"error": {"code", "message"}}`."""
+
+    error: ErrorBody
+
+
+class Health(BaseModel):
+    """`GET /healthz`."""
+
+    status: str
+
+
+class Readiness(BaseModel):
+    """`GET /readyz` (503 when not ready)."""
+
+    ready: bool
+    reason: str | None
+    models: list[str]
+    errors: dict[str, str]

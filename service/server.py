@@ -1,0 +1,127 @@
+"""One process, one asyncio loop: the core, uvicorn (REST) and grpc.aio (gRPC), with graceful shutdown."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import socket
+
+import uvicorn
+
+from service.core import Core
+from service.grpc.server import GrpcServer
+from service.rest.app import create_app
+from service.settings import Settings
+
+log = logging.getLogger("gmt.server")
+
+
+class _Uvicorn(uvicorn.Server):
+    """uvicorn that leaves signals to us and says when it listens."""
+
+    def __init__(self, config: uvicorn.Config) -> None:
+        super().__init__(config)
+        self.listening = asyncio.Event()
+
+    def capture_signals(self):
+        return contextlib.nullcontext()
+
+    async def startup(self, sockets=None) -> None:
+        await super().startup(sockets=sockets)
+        self.listening.set()
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((host, port))
+    sock.listen(2048)
+    sock.set_inheritable(True)
+    return sock
+
+
+class Server:
+    """Both transports over one core.
+
+    Args:
+        settings: Server settings.
+        core: A core to serve (default: built from settings); it is started and closed here.
+    """
+
+    def __init__(self, settings: Settings, core: Core | None = None) -> None:
+        self.settings = settings
+        self.core = core or Core(settings)
+        self.rest_port = 0
+        self.grpc_port = 0
+        self._grpc: GrpcServer | None = None
+        self._uvicorn: _Uvicorn | None = None
+        self._uvicorn_task: asyncio.Task | None = None
+
+    async def start(self) -> None:
+        """Load models, then listen on both ports (the bound ones are in `rest_port` and `grpc_port`)."""
+        s = self.settings
+        await self.core.start()
+        self._grpc = GrpcServer(self.core, s.host, s.grpc_port)
+        self.grpc_port = self._grpc.port
+        await self._grpc.start()
+        sock = _bind(s.host, s.rest_port)
+        self.rest_port = sock.getsockname()[1]
+        config = uvicorn.Config(
+            create_app(s, self.core),
+            log_config=None,
+            access_log=False,
+            lifespan="on",
+            timeout_graceful_shutdown=max(int(s.shutdown_grace_s), 1),
+        )
+        self._uvicorn = _Uvicorn(config)
+        self._uvicorn_task = asyncio.create_task(self._uvicorn.serve(sockets=[sock]), name="uvicorn")
+        listening = asyncio.create_task(self._uvicorn.listening.wait())
+        await asyncio.wait({listening, self._uvicorn_task}, return_when=asyncio.FIRST_COMPLETED)
+        if not self._uvicorn.listening.is_set():
+            listening.cancel()
+            await self._grpc.stop(0)
+            await self.core.close()
+            raise RuntimeError("REST server failed to start")
+        log.info(
+            "serving",
+            extra={
+                "rest": f"http://{s.host}:{self.rest_port}",
+                "grpc": f"{s.host}:{self.grpc_port}",
+                "rest_port": self.rest_port,
+                "grpc_port": self.grpc_port,
+                "models": sorted(self.core.registry.models),
+                "ready": self.core.ready,
+                "auth": s.token is not None,
+                "session_store": "redis" if s.redis_url else "memory",
+            },
+        )
+
+    async def stop(self) -> None:
+        """Stop taking work, let in-flight calls finish (up to the grace period), then close the core."""
+        log.info("shutting down", extra={"grace_s": self.settings.shutdown_grace_s})
+        self.core.closing = True
+        if self._uvicorn is not None:
+            self._uvicorn.should_exit = True
+        if self._grpc is not None:
+            await self._grpc.stop(self.settings.shutdown_grace_s)
+        if self._uvicorn_task is not None:
+            await self._uvicorn_task
+        await self.core.close()
+        log.info("stopped")
+
+
+async def serve(settings: Settings) -> None:
+    """Run until SIGINT or SIGTERM, then shut down gracefully."""
+    server = Server(settings)
+    await server.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        await server.stop()

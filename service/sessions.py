@@ -1,0 +1,182 @@
+"""Sessions and where they live: the `SessionStore` interface and its in-memory default.
+
+A store enforces the idle timeout (an expired session answers `SessionExpired`, a `NotFound`) and the maximum
+number of live sessions (`ResourceExhausted`). It does not order calls: the core holds one lock per session.
+"""
+
+from __future__ import annotations
+
+import abc
+import copy
+import dataclasses
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from model.engine import Context
+from service.errors import NotFound, ResourceExhausted, SessionExpired
+
+Clock = Callable[[], float]
+TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
+
+
+@dataclass
+class Session:
+    """One client's episode on one model.
+
+    Attributes:
+        id: Session id (opaque string).
+        model: Name of the model it runs on.
+        ctx: The engine context (rolling window and goal state).
+        created_at: Clock time of creation (seconds).
+        last_used: Clock time of the last act / set_goal / reset.
+    """
+
+    id: str
+    model: str
+    ctx: Context
+    created_at: float
+    last_used: float
+
+
+def clone_context(ctx: Context) -> Context:
+    """A copy the engine may change without touching `ctx` (the engine replaces arrays, never edits them)."""
+    out = dataclasses.replace(ctx)
+    if ctx.action_mode != "argmax":
+        out.rng = copy.deepcopy(ctx.rng)
+    return out
+
+
+def expired_message(sid: str, idle_timeout_s: float) -> str:
+    """The one wording of an expiry, shared by every store."""
+    return f"session {sid!r} expired: it was idle for more than the idle timeout of {idle_timeout_s:g} s"
+
+
+def not_found_message(sid: str) -> str:
+    """The one wording of an unknown session, shared by every store."""
+    return f"session {sid!r} not found (never created, or closed)"
+
+
+class SessionStore(abc.ABC):
+    """Where sessions live between calls.
+
+    Args:
+        idle_timeout_s: Sessions unused for longer expire.
+        max_sessions: Live sessions allowed at once.
+        clock: Wall-clock seconds (injectable for tests).
+    """
+
+    def __init__(self, idle_timeout_s: float, max_sessions: int, clock: Clock) -> None:
+        self.idle_timeout_s = idle_timeout_s
+        self.max_sessions = max_sessions
+        self.clock = clock
+
+    def is_idle(self, session: Session) -> bool:
+        """Whether `session` has been unused for longer than the idle timeout."""
+        return self.clock() - session.last_used > self.idle_timeout_s
+
+    @abc.abstractmethod
+    async def create(self, session: Session) -> None:
+        """Add a new session.
+
+        Raises:
+            ResourceExhausted: the store already holds `max_sessions` live sessions.
+        """
+
+    @abc.abstractmethod
+    async def get(self, sid: str) -> Session:
+        """The session `sid` (a copy for remote stores: write changes back with `save`).
+
+        Raises:
+            SessionExpired: it was idle for too long (it is then removed).
+            NotFound: it does not exist.
+        """
+
+    @abc.abstractmethod
+    async def save(self, session: Session) -> None:
+        """Persist the session's context and `last_used`."""
+
+    @abc.abstractmethod
+    async def delete(self, sid: str) -> None:
+        """Remove the session.
+
+        Raises:
+            SessionExpired: it had already expired.
+            NotFound: it does not exist.
+        """
+
+    @abc.abstractmethod
+    async def count(self) -> int:
+        """Number of live (not expired) sessions."""
+
+    @abc.abstractmethod
+    async def sweep(self) -> list[Session]:
+        """Remove expired sessions and return them."""
+
+    @abc.abstractmethod
+    def local_count(self, model: str) -> int:
+        """Sessions of `model` that this process may serve (exact in memory, an upper estimate otherwise)."""
+
+    async def close(self) -> None:  # noqa: B027 - optional hook
+        """Release connections."""
+
+
+class MemorySessionStore(SessionStore):
+    """Sessions in a dict of this process (the default; lost on restart)."""
+
+    def __init__(self, idle_timeout_s: float, max_sessions: int, clock: Clock) -> None:
+        super().__init__(idle_timeout_s, max_sessions, clock)
+        self._sessions: dict[str, Session] = {}
+        self._per_model: Counter[str] = Counter()
+        self._expired: OrderedDict[str, None] = OrderedDict()
+
+    async def create(self, session: Session) -> None:
+        if len(self._sessions) >= self.max_sessions:
+            await self.sweep()
+        if len(self._sessions) >= self.max_sessions:
+            raise ResourceExhausted(
+                f"server is full: {len(self._sessions)} live sessions (maximum {self.max_sessions}); "
+                "close a session or retry later"
+            )
+        self._sessions[session.id] = session
+        self._per_model[session.model] += 1
+
+    def _lookup(self, sid: str) -> Session:
+        s = self._sessions.get(sid)
+        if s is None:
+            if sid in self._expired:
+                raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+            raise NotFound(not_found_message(sid))
+        if self.is_idle(s):
+            self._remove(s, expired=True)
+            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+        return s
+
+    def _remove(self, s: Session, expired: bool) -> None:
+        del self._sessions[s.id]
+        self._per_model[s.model] -= 1
+        if expired:
+            self._expired[s.id] = None
+            while len(self._expired) > TOMBSTONES:
+                self._expired.popitem(last=False)
+
+    async def get(self, sid: str) -> Session:
+        return self._lookup(sid)
+
+    async def save(self, session: Session) -> None:
+        self._sessions[session.id] = session
+
+    async def delete(self, sid: str) -> None:
+        self._remove(self._lookup(sid), expired=False)
+
+    async def count(self) -> int:
+        return len(self._sessions)
+
+    async def sweep(self) -> list[Session]:
+        gone = [s for s in self._sessions.values() if self.is_idle(s)]
+        for s in gone:
+            self._remove(s, expired=True)
+        return gone
+
+    def local_count(self, model: str) -> int:
+        return self._per_model[model]

@@ -1,0 +1,67 @@
+"""Server settings: environment variables prefixed `GMT_`, overridden by `gmt serve` flags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Everything `gmt serve` can be told; each field is also `GMT_<FIELD>` in the environment.
+
+    Attributes:
+        checkpoints: Checkpoint directories, or folders whose sub-directories are checkpoints
+            (comma-separated in GMT_CHECKPOINTS).
+        host: Interface both servers bind.
+        rest_port: REST port (0 = any free port).
+        grpc_port: gRPC port (0 = any free port).
+        max_sessions: Live sessions allowed at once (all models, all replicas sharing a Redis store).
+        idle_timeout_s: A session unused for this long expires.
+        batch_wait_ms: Longest time a request waits for others to join its batch.
+        max_batch: Most requests in one forward pass.
+        inference_threads: Worker threads running forward passes (and torch intra-op threads).
+        max_request_bytes: Largest REST body / gRPC message accepted.
+        auth_token: Bearer token required on every call except health checks (None = no auth).
+        redis_url: Keep sessions in this Redis (e.g. redis://localhost:6379/0) instead of in memory.
+        log_format: `json` or `kv` (key=value) log lines.
+        log_level: Python logging level name.
+        shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="GMT_", extra="ignore")
+
+    checkpoints: Annotated[list[Path], NoDecode] = Field(default_factory=lambda: [Path("checkpoints")])
+    host: str = "127.0.0.1"
+    rest_port: int = Field(8000, ge=0, le=65535)
+    grpc_port: int = Field(50051, ge=0, le=65535)
+    max_sessions: int = Field(1024, ge=1)
+    idle_timeout_s: float = Field(600.0, gt=0)
+    batch_wait_ms: float = Field(2.0, ge=0)
+    max_batch: int = Field(64, ge=1)
+    inference_threads: int = Field(1, ge=1)
+    max_request_bytes: int = Field(1 << 20, ge=1024)
+    auth_token: SecretStr | None = None
+    redis_url: str | None = None
+    log_format: Literal["json", "kv"] = "json"
+    log_level: str = "INFO"
+    shutdown_grace_s: float = Field(5.0, ge=0)
+
+    @field_validator("checkpoints", mode="before")
+    @classmethod
+    def _split_paths(cls, v: object) -> object:
+        if isinstance(v, str):
+            return [p.strip() for p in v.split(",") if p.strip()]
+        return v
+
+    @field_validator("auth_token", "redis_url", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+    @property
+    def token(self) -> str | None:
+        """The bearer token in clear, or None when auth is off."""
+        return self.auth_token.get_secret_value() if self.auth_token else None

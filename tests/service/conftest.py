@@ -1,0 +1,146 @@
+"""Real servers for the service tests: REST (uvicorn) and gRPC (grpc.aio) on loopback port 0, in a thread."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+from gmt.v1 import policy_pb2_grpc
+
+from model.checkpoint import load_checkpoint
+from model.engine import PolicyEngine
+from model.fixtures import tiny_checkpoint
+from service.core import Core
+from service.server import Server
+from service.settings import Settings
+
+OBS_DIM = 17
+
+
+class FakeClock:
+    """A wall clock that moves only when told to."""
+
+    def __init__(self, t: float = 1_000_000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+class RunningServer:
+    """`service.server.Server` running its own event loop in a background thread."""
+
+    def __init__(self, settings: Settings, clock=None) -> None:
+        self.settings = settings
+        self.core = Core(settings, clock=clock) if clock else Core(settings)
+        self.server = Server(settings, self.core)
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, name="test-server", daemon=True)
+
+    def _main(self) -> None:
+        async def run() -> None:
+            self.loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            try:
+                await self.server.start()
+            except BaseException as e:
+                self._error = e
+                self._started.set()
+                raise
+            self._started.set()
+            await self._stop.wait()
+            await self.server.stop()
+
+        try:
+            asyncio.run(run())
+        except BaseException as e:  # noqa: BLE001 - reported by start()
+            self._error = self._error or e
+
+    def start(self) -> RunningServer:
+        self._thread.start()
+        if not self._started.wait(60):
+            raise TimeoutError("server did not start within 60 s")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def stop(self) -> None:
+        if self._thread.is_alive():
+            self.loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join(30)
+
+    def run(self, coro):
+        """Run a coroutine on the server's loop (e.g. `core.sweep()`) and return its result."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(30)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.server.rest_port}"
+
+    @property
+    def target(self) -> str:
+        return f"127.0.0.1:{self.server.grpc_port}"
+
+
+def make_settings(checkpoints: Path, **kw) -> Settings:
+    """Settings for a loopback test server on free ports (environment ignored)."""
+    base = dict(
+        checkpoints=[checkpoints],
+        host="127.0.0.1",
+        rest_port=0,
+        grpc_port=0,
+        redis_url=None,
+        auth_token=None,
+        shutdown_grace_s=1.0,
+    )
+    return Settings(**{**base, **kw})
+
+
+@pytest.fixture(scope="session")
+def ckpt_root(tmp_path_factory) -> Path:
+    """checkpoints/ with tiny-gmt (HalfCheetah-v5, 3 goals, K = 5) and tiny-cartpole (discrete actions)."""
+    root = tmp_path_factory.mktemp("checkpoints")
+    tiny_checkpoint(root / "tiny-gmt")
+    tiny_checkpoint(root / "tiny-cartpole", env_id="CartPole-v1", name="tiny-cartpole")
+    return root
+
+
+@pytest.fixture(scope="session")
+def engine(ckpt_root) -> PolicyEngine:
+    """A reference engine over the same tiny-gmt checkpoint the servers load."""
+    return PolicyEngine(load_checkpoint(ckpt_root / "tiny-gmt"))
+
+
+@pytest.fixture(scope="module")
+def server(ckpt_root):
+    """A default server over both tiny checkpoints."""
+    s = RunningServer(make_settings(ckpt_root, max_request_bytes=64 * 1024)).start()
+    yield s
+    s.stop()
+
+
+@pytest.fixture
+def http(server):
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        yield c
+
+
+@pytest.fixture
+def stub(server):
+    with grpc.insecure_channel(server.target) as ch:
+        yield policy_pb2_grpc.PolicyServiceStub(ch)
+
+
+@pytest.fixture
+def observations() -> np.ndarray:
+    """Twelve float32 observations for tiny-gmt."""
+    return np.random.default_rng(7).normal(size=(12, OBS_DIM)).astype(np.float32)
