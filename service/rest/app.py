@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import time
 from contextlib import asynccontextmanager
 
@@ -43,12 +44,15 @@ async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
     return error_response(exc.http_status, exc.code, exc.message, headers)
 
 
+_UNION_TAG = re.compile(r"^(int|str|float|bool|none|list\[.*\]|dict\[.*\]|function-.*|[A-Z]\w*)$")
+
+
 def _field(loc: tuple) -> str:
     parts = [str(p) for p in loc]
     if parts and parts[0] in ("body", "query", "path", "header"):
         parts = parts[1:]
-    # union branches (e.g. observation.list[any] / observation.Tensor) name the same field
-    return ".".join(p for p in parts if not (p[:1].isupper() or "[" in p)) or "body"
+    # union branches (goal.int / goal.str, observation.list[any] / observation.Tensor) name the same field
+    return ".".join(p for p in parts if not _UNION_TAG.match(p)) or "body"
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -1,0 +1,456 @@
+"""Every class of bad input, on both transports: the right status and message, and the session is unharmed.
+
+Each case runs against a session that has already stepped once; afterwards it must act exactly like an untouched
+twin session that saw the same observations.
+"""
+
+import base64
+import json
+
+import grpc
+import numpy as np
+import pytest
+from gmt.v1 import policy_pb2 as pb
+
+N = 17
+
+
+def b64(a: np.ndarray) -> str:
+    return base64.b64encode(a.tobytes()).decode()
+
+
+def obs_json(values) -> str:
+    return json.dumps({"observation": values})
+
+
+# ----- REST ---------------------------------------------------------------------------------------------------
+@pytest.fixture
+def rest_twins(http, observations):
+    """(victim, twin) sessions that both stepped once; `check()` steps both and compares."""
+    sids = []
+    for _ in range(2):
+        sid = http.post("/sessions", json={"model": "tiny-gmt", "goal": 1}).json()["session_id"]
+        assert (
+            http.post(f"/sessions/{sid}/act", json={"observation": observations[0].tolist()}).status_code
+            == 200
+        )
+        sids.append(sid)
+    step = iter(observations[1:])
+
+    def check():
+        o = next(step).tolist()
+        a, b = (http.post(f"/sessions/{s}/act", json={"observation": o}) for s in sids)
+        assert a.status_code == b.status_code == 200
+        assert a.json()["action"] == b.json()["action"] and a.json()["step"] == b.json()["step"]
+
+    return sids[0], check
+
+
+ACT_BODIES = [
+    ("wrong size", obs_json([0.0] * 5), "observation has 5 values, expected 17"),
+    ("wrong size nested", obs_json([[0.0] * N, [0.0] * N]), "observation has 34 values, expected 17"),
+    ("ragged", obs_json([[0.0] * 16, [0.0]]), "observation is not a rectangular numeric array"),
+    ("strings", obs_json(["a"] * N), "observation must be numeric"),
+    ("nulls", obs_json([None] * N), "observation must be numeric"),
+    ("not a list", obs_json("fast"), "observation: Value error, must be a list of numbers or an object"),
+    ("missing", json.dumps({"obs": [0.0] * N}), "observation: Field required"),
+    ("NaN", '{"observation": [NaN' + ", 0" * 16 + "]}", "non-finite value (NaN or Inf) at index 0"),
+    (
+        "Inf",
+        '{"observation": [0, 0, 0, -Infinity' + ", 0" * 13 + "]}",
+        "non-finite value (NaN or Inf) at index 3",
+    ),
+    (
+        "float32 overflow",
+        obs_json([0.0, 1e39] + [0.0] * 15),
+        "observation value at index 1 is outside the float32 range",
+    ),
+    (
+        "tensor dtype",
+        obs_json({"data": b64(np.zeros(N, np.complex64)), "dtype": "complex64", "shape": [N]}),
+        "observation dtype 'complex64' is not supported",
+    ),
+    (
+        "tensor bytes",
+        obs_json({"data": b64(np.zeros(16, np.float32)), "dtype": "float32", "shape": [N]}),
+        "observation data has 64 bytes; shape [17] of float32 needs 68",
+    ),
+    (
+        "tensor NaN",
+        obs_json({"data": b64(np.full(N, np.nan, np.float32)), "dtype": "float32", "shape": [N]}),
+        "non-finite value (NaN or Inf) at index 0",
+    ),
+    (
+        "tensor base64",
+        obs_json({"data": "%%%", "dtype": "uint8", "shape": [3]}),
+        "observation.data is not valid base64",
+    ),
+    (
+        "tensor shape",
+        obs_json({"data": "", "dtype": "uint8", "shape": ["a"]}),
+        "observation.shape.0: Input should be a valid integer",
+    ),
+    ("bad JSON", '{"observation": [1,', "request body is not valid JSON"),
+]
+
+
+@pytest.mark.parametrize("body,message", [c[1:] for c in ACT_BODIES], ids=[c[0] for c in ACT_BODIES])
+def test_rest_bad_observation(http, rest_twins, body, message):
+    sid, check = rest_twins
+    r = http.post(f"/sessions/{sid}/act", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 400, r.text
+    assert r.json()["error"]["code"] == "invalid_argument"
+    assert message in r.json()["error"]["message"]
+    assert r.headers["X-Session-Id"] == sid
+    check()
+
+
+GOAL_BODIES = [
+    (
+        "unknown goal id",
+        {"goal": 7},
+        "goal 7 is not a goal id of model 'tiny-gmt'; goals are 0=low, 1=medium, 2=high",
+    ),
+    ("unknown goal name", {"goal": "fastest"}, "unknown goal name 'fastest' for model 'tiny-gmt'"),
+    (
+        "goal as bool",
+        {"goal": True},
+        "goal: Input should be a valid integer or Input should be a valid string",
+    ),
+    ("goal and target", {"goal": 1, "target": 1.0}, "give either goal (an id or a name) or target, not both"),
+    ("no goal", {"blend_steps": 3}, "give a goal (an id or a name) or a target statistic value"),
+    (
+        "negative blend_steps",
+        {"goal": 2, "blend_steps": -1},
+        "blend_steps must be an integer in 0..100000, got -1",
+    ),
+    ("huge blend_steps", {"goal": 2, "blend_steps": 10**9}, "blend_steps must be an integer in 0..100000"),
+    (
+        "non-integer blend_steps",
+        {"goal": 2, "blend_steps": 2.5},
+        "blend_steps: Input should be a valid integer",
+    ),
+]
+
+
+@pytest.mark.parametrize("body,message", [c[1:] for c in GOAL_BODIES], ids=[c[0] for c in GOAL_BODIES])
+def test_rest_bad_set_goal(http, rest_twins, body, message):
+    sid, check = rest_twins
+    r = http.put(f"/sessions/{sid}/goal", json=body)
+    assert r.status_code == 400, r.text
+    assert r.json()["error"] == {"code": "invalid_argument", "message": r.json()["error"]["message"]}
+    assert message in r.json()["error"]["message"]
+    assert http.get(f"/sessions/{sid}").json()["goal"] == 1
+    check()
+
+
+def test_rest_non_finite_target(http, rest_twins):
+    sid, check = rest_twins
+    r = http.put(
+        f"/sessions/{sid}/goal", content='{"target": NaN}', headers={"content-type": "application/json"}
+    )
+    assert r.status_code == 400 and "target must be a finite number, got nan" in r.json()["error"]["message"]
+    check()
+
+
+def test_rest_body_too_large(http, rest_twins):
+    sid, check = rest_twins
+    body = obs_json([0.0] * 20_000)  # about 100 kB > the test server's 64 KiB limit
+    r = http.post(f"/sessions/{sid}/act", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 413
+    assert r.json()["error"] == {
+        "code": "payload_too_large",
+        "message": "request body is larger than the limit of 65536 bytes",
+    }
+    check()
+
+
+def test_rest_body_too_large_without_content_length(http, rest_twins):
+    sid, check = rest_twins
+
+    def chunks():
+        yield b'{"observation": ['
+        for _ in range(5000):
+            yield b"0.0, 0.0, 0.0, 0.0, "
+        yield b"0.0]}"
+
+    r = http.post(f"/sessions/{sid}/act", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413 and r.json()["error"]["code"] == "payload_too_large"
+    check()
+
+
+@pytest.mark.parametrize(
+    "method,path,body,status,code,message",
+    [
+        (
+            "POST",
+            "/sessions",
+            {"model": "nope", "goal": 0},
+            404,
+            "not_found",
+            "unknown model 'nope'; loaded models: tiny-cartpole, tiny-gmt",
+        ),
+        ("GET", "/models/nope", None, 404, "not_found", "unknown model 'nope'"),
+        (
+            "POST",
+            "/sessions",
+            {"goal": 0},
+            400,
+            "invalid_argument",
+            "model is required: loaded models are tiny-cartpole, tiny-gmt",
+        ),
+        (
+            "POST",
+            "/sessions",
+            {"model": "tiny-gmt", "goal": 3},
+            400,
+            "invalid_argument",
+            "goal 3 is not a goal id",
+        ),
+        (
+            "POST",
+            "/sessions",
+            {"model": "tiny-gmt", "goal": "Low"},
+            400,
+            "invalid_argument",
+            "unknown goal name 'Low'",
+        ),
+        (
+            "POST",
+            "/sessions",
+            {"model": "tiny-gmt", "goal": 0, "seed": -1},
+            400,
+            "invalid_argument",
+            "seed must be an integer in [0, 2**63)",
+        ),
+        (
+            "POST",
+            "/sessions",
+            {"model": "tiny-gmt", "goal": 0, "action_mode": "sample"},
+            400,
+            "invalid_argument",
+            "applies to discrete actions",
+        ),
+        (
+            "POST",
+            "/sessions",
+            {"model": "tiny-gmt", "goal": 0, "action_mode": "greedy"},
+            400,
+            "invalid_argument",
+            "action_mode: Input should be 'argmax', 'sample' or 'expert'",
+        ),
+        (
+            "POST",
+            "/sessions/nope/act",
+            {"observation": [0.0] * N},
+            404,
+            "not_found",
+            "session 'nope' not found (never created, or closed)",
+        ),
+        ("GET", "/sessions/nope", None, 404, "not_found", "session 'nope' not found"),
+        ("PUT", "/sessions/nope/goal", {"goal": 0}, 404, "not_found", "session 'nope' not found"),
+        ("POST", "/sessions/nope/reset", None, 404, "not_found", "session 'nope' not found"),
+        ("DELETE", "/sessions/nope", None, 404, "not_found", "session 'nope' not found"),
+        ("GET", "/nope", None, 404, "not_found", "no route GET /nope"),
+        ("DELETE", "/models", None, 405, "method_not_allowed", "method DELETE is not allowed on /models"),
+    ],
+)
+def test_rest_unknown_things(http, rest_twins, method, path, body, status, code, message):
+    _, check = rest_twins
+    r = http.request(method, path, json=body)
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["code"] == code and message in r.json()["error"]["message"]
+    check()
+
+
+# ----- gRPC ---------------------------------------------------------------------------------------------------
+@pytest.fixture
+def grpc_twins(stub, observations):
+    sids = []
+    for _ in range(2):
+        sid = stub.CreateSession(
+            pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=1))
+        ).session_id
+        stub.Act(pb.ActRequest(session_id=sid, values=pb.FloatVector(values=observations[0])))
+        sids.append(sid)
+    step = iter(observations[1:])
+
+    def check():
+        o = next(step)
+        a, b = (stub.Act(pb.ActRequest(session_id=s, values=pb.FloatVector(values=o))) for s in sids)
+        assert list(a.action) == list(b.action) and a.step == b.step
+
+    return sids[0], check
+
+
+def _tensor(a: np.ndarray, dtype=None, shape=None) -> pb.Tensor:
+    return pb.Tensor(
+        data=a.tobytes(), dtype=dtype or str(a.dtype), shape=list(a.shape) if shape is None else shape
+    )
+
+
+GRPC_ACTS = [
+    ("wrong size", dict(values=pb.FloatVector(values=[0.0] * 5)), "observation has 5 values, expected 17"),
+    (
+        "NaN",
+        dict(values=pb.FloatVector(values=[0.0, 0.0, float("nan")] + [0.0] * 14)),
+        "non-finite value (NaN or Inf) at index 2",
+    ),
+    (
+        "Inf",
+        dict(values=pb.FloatVector(values=[float("inf")] * N)),
+        "non-finite value (NaN or Inf) at index 0",
+    ),
+    (
+        "tensor dtype",
+        dict(tensor=_tensor(np.zeros(N, np.float32), dtype="object")),
+        "observation dtype 'object' is not supported",
+    ),
+    (
+        "tensor bytes",
+        dict(tensor=_tensor(np.zeros(N, np.float32), shape=[18])),
+        "observation data has 68 bytes; shape [18] of float32 needs 72",
+    ),
+    (
+        "tensor size",
+        dict(tensor=_tensor(np.zeros((2, N), np.uint8))),
+        "observation has 34 values, expected 17",
+    ),
+    ("no observation", dict(), "observation is required: set values or tensor"),
+]
+
+
+@pytest.mark.parametrize("fields,message", [c[1:] for c in GRPC_ACTS], ids=[c[0] for c in GRPC_ACTS])
+def test_grpc_bad_observation(stub, grpc_twins, fields, message):
+    sid, check = grpc_twins
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Act(pb.ActRequest(session_id=sid, **fields))
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert message in e.value.details()
+    check()
+
+
+GRPC_CALLS = [
+    (
+        "unknown model",
+        "CreateSession",
+        pb.CreateSessionRequest(model="nope", goal=pb.GoalSelector(id=0)),
+        "NOT_FOUND",
+        "unknown model 'nope'",
+    ),
+    ("unknown model info", "GetModel", pb.GetModelRequest(name="nope"), "NOT_FOUND", "unknown model 'nope'"),
+    (
+        "no model",
+        "CreateSession",
+        pb.CreateSessionRequest(goal=pb.GoalSelector(id=0)),
+        "INVALID_ARGUMENT",
+        "model is required",
+    ),
+    (
+        "no goal",
+        "CreateSession",
+        pb.CreateSessionRequest(model="tiny-gmt"),
+        "INVALID_ARGUMENT",
+        "give a goal (an id or a name) or a target",
+    ),
+    (
+        "unknown session",
+        "Act",
+        pb.ActRequest(session_id="nope", values=pb.FloatVector(values=[0.0] * N)),
+        "NOT_FOUND",
+        "session 'nope' not found",
+    ),
+    (
+        "unknown session info",
+        "GetSession",
+        pb.GetSessionRequest(session_id="nope"),
+        "NOT_FOUND",
+        "session 'nope' not found",
+    ),
+    (
+        "unknown session close",
+        "CloseSession",
+        pb.CloseSessionRequest(session_id="nope"),
+        "NOT_FOUND",
+        "session 'nope' not found",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    "method,request_,code,message", [c[1:] for c in GRPC_CALLS], ids=[c[0] for c in GRPC_CALLS]
+)
+def test_grpc_unknown_things(stub, grpc_twins, method, request_, code, message):
+    _, check = grpc_twins
+    with pytest.raises(grpc.RpcError) as e:
+        getattr(stub, method)(request_)
+    assert e.value.code() == grpc.StatusCode[code] and message in e.value.details()
+    check()
+
+
+GRPC_GOALS = [
+    ("unknown goal id", dict(goal=pb.GoalSelector(id=9)), "goal 9 is not a goal id of model 'tiny-gmt'"),
+    ("unknown goal name", dict(goal=pb.GoalSelector(name="fastest")), "unknown goal name 'fastest'"),
+    ("no goal", dict(), "goal is required: set id, name or target"),
+    ("NaN target", dict(goal=pb.GoalSelector(target=float("nan"))), "target must be a finite number"),
+    (
+        "negative blend_steps",
+        dict(goal=pb.GoalSelector(id=2), blend_steps=-4),
+        "blend_steps must be an integer in 0..100000, got -4",
+    ),
+]
+
+
+@pytest.mark.parametrize("fields,message", [c[1:] for c in GRPC_GOALS], ids=[c[0] for c in GRPC_GOALS])
+def test_grpc_bad_set_goal(stub, grpc_twins, fields, message):
+    sid, check = grpc_twins
+    with pytest.raises(grpc.RpcError) as e:
+        stub.SetGoal(pb.SetGoalRequest(session_id=sid, **fields))
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and message in e.value.details()
+    assert stub.GetSession(pb.GetSessionRequest(session_id=sid)).goal == 1
+    check()
+
+
+def test_grpc_message_too_large(stub, grpc_twins):
+    sid, check = grpc_twins
+    big = pb.Tensor(data=bytes(100_000), dtype="uint8", shape=[100_000])  # > the test server's 64 KiB limit
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Act(pb.ActRequest(session_id=sid, tensor=big))
+    assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "larger than max" in e.value.details()
+    check()
+
+
+def test_control_stream_answers_errors_in_band_and_stays_open(stub, grpc_twins, observations):
+    sid, _ = grpc_twins
+    twin = stub.CreateSession(
+        pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=1))
+    ).session_id
+    stub.Act(pb.ActRequest(session_id=twin, values=pb.FloatVector(values=observations[0])))
+    o = observations[1].tolist()
+    reqs = [
+        pb.ControlRequest(act=pb.ActRequest(session_id=sid, values=pb.FloatVector(values=[1.0] * 5))),
+        pb.ControlRequest(set_goal=pb.SetGoalRequest(goal=pb.GoalSelector(name="fastest"))),
+        pb.ControlRequest(set_goal=pb.SetGoalRequest(goal=pb.GoalSelector(id=0), blend_steps=-1)),
+        pb.ControlRequest(act=pb.ActRequest(session_id="someone-else", values=pb.FloatVector(values=o))),
+        pb.ControlRequest(),
+        pb.ControlRequest(act=pb.ActRequest(values=pb.FloatVector(values=o))),
+    ]
+    out = list(stub.Control(iter(reqs)))
+    assert [r.WhichOneof("result") for r in out] == ["error"] * 5 + ["act"]
+    assert (
+        out[0].error.code == "invalid_argument"
+        and "observation has 5 values, expected 17" in out[0].error.message
+    )
+    assert "unknown goal name 'fastest'" in out[1].error.message
+    assert "blend_steps must be an integer" in out[2].error.message
+    assert f"this stream controls session '{sid}', not 'someone-else'" in out[3].error.message
+    assert "empty command" in out[4].error.message
+    want = stub.Act(pb.ActRequest(session_id=twin, values=pb.FloatVector(values=o)))
+    assert list(out[5].act.action) == list(want.action) and out[5].act.step == want.step == 1
+
+
+def test_control_stream_unknown_session_is_in_band(stub):
+    reqs = [pb.ControlRequest(act=pb.ActRequest(session_id="nope", values=pb.FloatVector(values=[0.0] * N)))]
+    (out,) = list(stub.Control(iter(reqs)))
+    assert out.error.code == "not_found" and "session 'nope' not found" in out.error.message
