@@ -91,10 +91,9 @@ class RunningServer:
         return f"127.0.0.1:{self.server.grpc_port}"
 
 
-def make_settings(checkpoints: Path, **kw) -> Settings:
-    """Settings for a loopback test server on free ports (environment ignored)."""
+def make_settings(**kw) -> Settings:
+    """Settings for a loopback test server on free ports (environment ignored); `checkpoints` is required."""
     base = dict(
-        checkpoints=[checkpoints],
         host="127.0.0.1",
         rest_port=0,
         grpc_port=0,
@@ -123,7 +122,7 @@ def engine(ckpt_root) -> PolicyEngine:
 @pytest.fixture(scope="module")
 def server(ckpt_root):
     """A default server over both tiny checkpoints."""
-    s = RunningServer(make_settings(ckpt_root, max_request_bytes=64 * 1024)).start()
+    s = RunningServer(make_settings(checkpoints=[ckpt_root], max_request_bytes=64 * 1024)).start()
     yield s
     s.stop()
 
@@ -144,3 +143,25 @@ def stub(server):
 def observations() -> np.ndarray:
     """Twelve float32 observations for tiny-gmt."""
     return np.random.default_rng(7).normal(size=(12, OBS_DIM)).astype(np.float32)
+
+
+@pytest.fixture
+def make_server(ckpt_root):
+    """Start a dedicated server: `make_server(clock=..., **settings)`; stopped after the test."""
+    started = []
+
+    def make(clock=None, **kw) -> RunningServer:
+        kw.setdefault("checkpoints", [ckpt_root])
+        s = RunningServer(make_settings(**kw), clock=clock).start()
+        started.append(s)
+        return s
+
+    yield make
+    for s in started:
+        s.stop()
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    """A fake wall clock to inject into a server."""
+    return FakeClock()

@@ -1,0 +1,274 @@
+"""Idle timeout, the session limit, micro-batching, deadlines and bearer auth, against real servers."""
+
+import asyncio
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from prometheus_client.parser import text_string_to_metric_families
+
+
+def stub_for(server):
+    return policy_pb2_grpc.PolicyServiceStub(grpc.insecure_channel(server.target))
+
+
+def create(http, goal=0, model="tiny-gmt"):
+    r = http.post("/sessions", json={"model": model, "goal": goal})
+    assert r.status_code == 201, r.text
+    return r.json()["session_id"]
+
+
+def act(http, sid, obs):
+    return http.post(f"/sessions/{sid}/act", json={"observation": np.asarray(obs).tolist()})
+
+
+OBS_DIM = 17
+
+
+def metric_samples(http, name: str) -> dict:
+    """{(sample name, labels as a sorted tuple): value} of one metric family from GET /metrics."""
+    text = http.get("/metrics").text
+    out = {}
+    for fam in text_string_to_metric_families(text):
+        if fam.name == name:
+            for s in fam.samples:
+                out[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return out
+
+
+# ----- idle timeout -------------------------------------------------------------------------------------------
+def test_idle_session_expires_with_a_clear_message(make_server, clock, observations):
+    server = make_server(clock=clock, idle_timeout_s=10)
+    stub = stub_for(server)
+    with httpx.Client(base_url=server.url) as http:
+        sid = create(http)
+        g = stub.CreateSession(
+            pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=0))
+        ).session_id
+        assert act(http, sid, observations[0]).status_code == 200
+        clock.advance(9.5)
+        assert act(http, sid, observations[1]).status_code == 200  # use restarts the idle timer
+        clock.advance(9.5)
+        assert act(http, sid, observations[2]).json()["step"] == 2
+        clock.advance(10.5)
+        r = act(http, sid, observations[3])
+        assert r.status_code == 404
+        assert r.json()["error"] == {
+            "code": "not_found",
+            "message": f"session '{sid}' expired: it was idle for more than the idle timeout of 10 s",
+        }
+        assert "expired" in http.get(f"/sessions/{sid}").json()["error"]["message"]  # and stays expired
+        with pytest.raises(grpc.RpcError) as e:
+            stub.Act(pb.ActRequest(session_id=g, values=pb.FloatVector(values=observations[0])))
+        assert e.value.code() == grpc.StatusCode.NOT_FOUND and f"session '{g}' expired" in e.value.details()
+        req = pb.ControlRequest(
+            act=pb.ActRequest(session_id=sid, values=pb.FloatVector(values=observations[0]))
+        )
+        (out,) = list(stub.Control(iter([req])))
+        assert out.error.code == "not_found" and "expired" in out.error.message
+        # A fresh session on the same server works.
+        assert act(http, create(http), observations[0]).status_code == 200
+
+
+def test_sweeper_removes_idle_sessions(make_server, clock):
+    server = make_server(clock=clock, idle_timeout_s=10)
+    with httpx.Client(base_url=server.url) as http:
+        sids = [create(http) for _ in range(3)]
+        clock.advance(11)
+        assert server.run(server.core.sweep()) == 3
+        assert metric_samples(http, "gmt_live_sessions")[("gmt_live_sessions", ())] == 0
+        assert all("expired" in http.get(f"/sessions/{s}").json()["error"]["message"] for s in sids)
+
+
+# ----- session limit ------------------------------------------------------------------------------------------
+def test_full_server_answers_429_and_resource_exhausted(make_server, clock, observations):
+    server = make_server(clock=clock, max_sessions=3, idle_timeout_s=10)
+    stub = stub_for(server)
+    with httpx.Client(base_url=server.url) as http:
+        sids = [create(http) for _ in range(3)]
+        r = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0})
+        assert r.status_code == 429
+        assert r.json()["error"] == {
+            "code": "resource_exhausted",
+            "message": "server is full: 3 live sessions (maximum 3); close a session or retry later",
+        }
+        with pytest.raises(grpc.RpcError) as e:
+            stub.CreateSession(pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=0)))
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "server is full" in e.value.details()
+        assert all(act(http, s, observations[0]).status_code == 200 for s in sids)  # live sessions unaffected
+        assert http.delete(f"/sessions/{sids[0]}").status_code == 204
+        sids[0] = create(http)  # a closed session frees its place
+        assert http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).status_code == 429
+        clock.advance(11)  # idle sessions free theirs
+        assert http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).status_code == 201
+
+
+# ----- micro-batching -----------------------------------------------------------------------------------------
+async def _act_all(url, sids, observations):
+    async with httpx.AsyncClient(base_url=url, timeout=60) as c:
+        rs = await asyncio.gather(
+            *(
+                c.post(f"/sessions/{s}/act", json={"observation": np.asarray(o).tolist()})
+                for s, o in zip(sids, observations, strict=True)
+            )
+        )
+    return rs
+
+
+def test_concurrent_sessions_share_one_forward_pass(make_server, engine):
+    server = make_server(batch_wait_ms=10_000, max_batch=64)
+    n = 8
+    rng = np.random.default_rng(3)
+    obs = rng.normal(size=(2, n, OBS_DIM)).astype(np.float32)
+    with httpx.Client(base_url=server.url) as http:
+        sids = [create(http, goal=i % 3) for i in range(n)]
+        got = [asyncio.run(_act_all(server.url, sids, obs[t])) for t in range(2)]
+        batches = metric_samples(http, "gmt_batch_size")
+    key = (("model", "tiny-gmt"),)
+    # All 8 requests of each round went through one forward pass: 2 batches, 16 observations.
+    assert batches[("gmt_batch_size_count", key)] == 2
+    assert batches[("gmt_batch_size_sum", key)] == 2 * n
+    assert batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt")))] == 0
+    # Batching changes nothing: every session's actions are the engine's for that session alone.
+    for i in range(n):
+        ctx = engine.new_context(i % 3)
+        for t in range(2):
+            want = engine.act([ctx], [obs[t, i]])[0]
+            assert got[t][i].status_code == 200
+            np.testing.assert_array_equal(np.float32(got[t][i].json()["action"]), want)
+
+
+def test_bad_observation_fails_only_its_own_request(make_server, engine):
+    server = make_server(batch_wait_ms=300)
+    obs = np.random.default_rng(4).normal(size=(3, OBS_DIM)).astype(np.float32)
+    bad = obs.copy()
+    bad[1, 5] = np.nan
+    with httpx.Client(base_url=server.url) as http:
+        sids = [create(http, goal=2) for _ in range(3)]
+        rs = asyncio.run(_act_all(server.url, sids, [bad[0], [0.0] * 4, bad[2]]))
+        assert [r.status_code for r in rs] == [200, 400, 200]
+        assert "observation has 4 values, expected 17" in rs[1].json()["error"]["message"]
+        batches = metric_samples(http, "gmt_batch_size")
+        assert batches[("gmt_batch_size_sum", (("model", "tiny-gmt"),))] == 2
+    for r, o in ((rs[0], obs[0]), (rs[2], obs[2])):
+        np.testing.assert_array_equal(
+            np.float32(r.json()["action"]), engine.act([engine.new_context(2)], [o])[0]
+        )
+
+
+def test_grpc_deadline_is_respected_and_the_session_is_unchanged(make_server, observations):
+    # Two live sessions and one queued request: the batcher would wait 20 s for the second one.
+    server = make_server(batch_wait_ms=20_000)
+    stub = stub_for(server)
+    victim, twin = (
+        stub.CreateSession(pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=1))).session_id
+        for _ in range(2)
+    )
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Act(pb.ActRequest(session_id=victim, values=pb.FloatVector(values=observations[0])), timeout=0.3)
+    assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    # Had the server kept the timed-out request, the victim would be one step ahead of its twin.
+    futs = [
+        stub.Act.future(pb.ActRequest(session_id=s, values=pb.FloatVector(values=observations[1])))
+        for s in (victim, twin)
+    ]
+    a, b = (f.result(timeout=30) for f in futs)
+    assert a.step == b.step == 0 and list(a.action) == list(b.action)
+    with httpx.Client(base_url=server.url) as http:
+        samples = metric_samples(http, "gmt_request_duration_seconds")
+    assert (
+        samples[
+            (
+                "gmt_request_duration_seconds_count",
+                (("code", "DEADLINE_EXCEEDED"), ("method", "Act"), ("transport", "grpc")),
+            )
+        ]
+        == 1
+    )
+
+
+# ----- auth ---------------------------------------------------------------------------------------------------
+def test_bearer_auth_on_both_transports(make_server, observations):
+    server = make_server(auth_token="s3cret")
+    good = {"Authorization": "Bearer s3cret"}
+    with httpx.Client(base_url=server.url) as http:
+        assert http.get("/healthz").status_code == 200 and http.get("/readyz").status_code == 200
+        r = http.get("/models")
+        assert r.status_code == 401 and r.headers["WWW-Authenticate"] == "Bearer"
+        assert r.json()["error"] == {
+            "code": "unauthenticated",
+            "message": "missing bearer token: send 'Authorization: Bearer <token>'",
+        }
+        assert http.get("/metrics").status_code == 401
+        victim, twin = (
+            http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}, headers=good).json()["session_id"]
+            for _ in range(2)
+        )
+        r = http.post(
+            f"/sessions/{victim}/act",
+            json={"observation": observations[0].tolist()},
+            headers={"Authorization": "Bearer nope"},
+        )
+        assert r.status_code == 401 and r.json()["error"]["message"] == "invalid bearer token"
+        a, b = (
+            http.post(
+                f"/sessions/{s}/act", json={"observation": observations[0].tolist()}, headers=good
+            ).json()
+            for s in (victim, twin)
+        )
+        assert a["step"] == b["step"] == 0 and a["action"] == b["action"]
+
+    with grpc.insecure_channel(server.target) as ch:
+        stub = policy_pb2_grpc.PolicyServiceStub(ch)
+        health = health_pb2_grpc.HealthStub(ch)
+        assert (
+            health.Check(health_pb2.HealthCheckRequest(service="")).status
+            == health_pb2.HealthCheckResponse.SERVING
+        )
+        for md, msg in (
+            (None, "missing bearer token"),
+            ((("authorization", "Bearer nope"),), "invalid bearer token"),
+        ):
+            with pytest.raises(grpc.RpcError) as e:
+                stub.ListModels(pb.ListModelsRequest(), metadata=md)
+            assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED and msg in e.value.details()
+            with pytest.raises(grpc.RpcError) as e:
+                req = pb.ControlRequest(
+                    act=pb.ActRequest(session_id=victim, values=pb.FloatVector(values=observations[1]))
+                )
+                list(stub.Control(iter([req]), metadata=md))
+            assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        md = (("authorization", "Bearer s3cret"),)
+        a, b = (
+            stub.Act(pb.ActRequest(session_id=s, values=pb.FloatVector(values=observations[1])), metadata=md)
+            for s in (victim, twin)
+        )
+        assert a.step == b.step == 1 and list(a.action) == list(b.action)
+
+
+def test_health_reflection_and_readiness_without_models(make_server, tmp_path):
+    from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
+
+    empty = make_server(checkpoints=[tmp_path / "nothing-here"])
+    with httpx.Client(base_url=empty.url) as http:
+        assert http.get("/healthz").json() == {"status": "ok"}
+        r = http.get("/readyz")
+        assert r.status_code == 503 and r.json()["ready"] is False and r.json()["reason"] == "no model loaded"
+        r = http.post("/sessions", json={"goal": 0})
+        assert r.status_code == 503 and r.json()["error"]["message"] == "no model is loaded on this server"
+    with grpc.insecure_channel(empty.target) as ch:
+        h = health_pb2_grpc.HealthStub(ch).Check(
+            health_pb2.HealthCheckRequest(service="gmt.v1.PolicyService")
+        )
+        assert h.status == health_pb2.HealthCheckResponse.NOT_SERVING
+        services = ProtoReflectionDescriptorDatabase(ch).get_services()
+        assert "gmt.v1.PolicyService" in services and "grpc.health.v1.Health" in services
+        with pytest.raises(grpc.RpcError) as e:
+            policy_pb2_grpc.PolicyServiceStub(ch).CreateSession(
+                pb.CreateSessionRequest(goal=pb.GoalSelector(id=0))
+            )
+        assert e.value.code() == grpc.StatusCode.UNAVAILABLE
