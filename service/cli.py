@@ -46,6 +46,10 @@ def _register() -> None:
 
     app.command("serve")(serve_command)
 
+    from clients.cli import run_command
+
+    app.command("run")(run_command)
+
 
 _register()
 

@@ -1,0 +1,114 @@
+"""Local environments for a served model: made and preprocessed according to the model's spec.
+
+`make_env` picks a maker by the spec (Atari ids get the usual DQN preprocessing sized to the spec's observation
+space; everything else is a plain `gym.make`), then `check_spaces` refuses an environment whose spaces differ
+from the model's.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import gymnasium as gym
+
+from clients.base import ModelInfo
+
+VIDEO_SIZE = (480, 320)  # width, height of rendered MuJoCo frames
+
+
+class SpaceMismatch(ValueError):
+    """The local environment's spaces are not the model's."""
+
+
+def describe_space(d: dict) -> str:
+    """A short text for a space dict, e.g. "Box(float64, shape=[17])" or "Discrete(6)"."""
+    if d["type"] == "discrete":
+        return f"Discrete({d['n']})"
+    return f"Box({d.get('dtype', '?')}, shape={list(d.get('shape', []))})"
+
+
+def is_atari(env_id: str) -> bool:
+    """Whether `env_id` is an Arcade Learning Environment game."""
+    return env_id.startswith("ALE/")
+
+
+def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:
+    """ALE game with DQN preprocessing (frame skip 4, grayscale, square resize, stacking) matching the spec.
+
+    The raw game is returned unchanged when the spec describes raw frames. Preprocessing uses Gymnasium's
+    `AtariPreprocessing`, which needs opencv-python (`pip install "gymnasium[other]"`).
+    """
+    import ale_py
+
+    gym.register_envs(ale_py)
+    kw = {"render_mode": "rgb_array"} if render else {}
+    shape = list(spec.observation_space.get("shape", []))
+    raw = gym.make(env_id, max_episode_steps=max_steps, **kw)
+    if list(raw.observation_space.shape) == shape:
+        return raw
+    raw.close()
+    env = gym.make(env_id, frameskip=1, max_episode_steps=max_steps, **kw)
+    size = shape[-1] if shape else 84
+    env = gym.wrappers.AtariPreprocessing(env, frame_skip=4, screen_size=size, grayscale_obs=True)
+    if len(shape) == 3:  # [stack, H, W]
+        env = gym.wrappers.FrameStackObservation(env, stack_size=shape[0])
+    return env
+
+
+def _make_plain(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:
+    """`gym.make(env_id)`; MuJoCo frames are rendered offscreen (EGL unless MUJOCO_GL says otherwise)."""
+    if not render:
+        return gym.make(env_id, max_episode_steps=max_steps)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    width, height = VIDEO_SIZE
+    try:
+        return gym.make(
+            env_id, max_episode_steps=max_steps, render_mode="rgb_array", width=width, height=height
+        )
+    except TypeError:  # not a MuJoCo env: no width / height arguments
+        return gym.make(env_id, max_episode_steps=max_steps, render_mode="rgb_array")
+
+
+EnvMaker = Callable[[ModelInfo, str, "int | None", bool], gym.Env]
+MAKERS: list[tuple[Callable[[str], bool], EnvMaker]] = [(is_atari, _make_atari)]
+
+
+def make_env(
+    spec: ModelInfo, env_id: str | None = None, max_steps: int | None = None, render: bool = False
+) -> gym.Env:
+    """The environment to drive with `spec`'s model (default id: the model's own), time limit `max_steps`.
+
+    Raises:
+        SpaceMismatch: its spaces are not the model's.
+    """
+    env_id = env_id or spec.env_id
+    maker = next((m for pred, m in MAKERS if pred(env_id)), _make_plain)
+    env = maker(spec, env_id, max_steps, render)
+    try:
+        check_spaces(spec, env, env_id)
+    except SpaceMismatch:
+        env.close()
+        raise
+    return env
+
+
+def check_spaces(spec: ModelInfo, env: gym.Env, env_id: str) -> None:
+    """Raise `SpaceMismatch`, naming both sides, when `env`'s spaces differ from the model's."""
+    from model.spaces import space_to_dict, spaces_match
+
+    problems = []
+    for what, model_space, env_space in (
+        ("observation", spec.observation_space, env.observation_space),
+        ("action", spec.action_space, env.action_space),
+    ):
+        local = space_to_dict(env_space)
+        if not spaces_match(local, model_space):
+            problems.append(
+                f"{what} space {describe_space(local)} of {env_id} vs {describe_space(model_space)} of the model"
+            )
+    if problems:
+        raise SpaceMismatch(
+            f"environment {env_id} does not match model {spec.name!r} (trained on {spec.env_id}): "
+            + "; ".join(problems)
+        )

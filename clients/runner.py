@@ -1,0 +1,277 @@
+"""Drive a local Gymnasium environment with a remote policy, following a goal schedule.
+
+Each episode opens a session, sends every observation, applies the returned action and records the goal the
+server reports with it. The per-goal segments are therefore delimited by what the server did, including goal
+changes made by other clients (e.g. `curl -X PUT .../goal`) in the middle of the episode.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from clients.base import ModelInfo, PolicyClient, Session
+from clients.segments import Segment, measure, table
+from clients.statistic import step_signal
+from clients.trace import Trace
+
+StepHook = Callable[[int, Session], None]
+STATUS_WINDOW = 50
+
+
+def parse_goal(text: str | int) -> int | str:
+    """A goal id when `text` is an integer, else a goal name."""
+    if isinstance(text, int):
+        return text
+    t = text.strip()
+    return int(t) if t.lstrip("-").isdigit() else t
+
+
+def parse_schedule(text: str | None) -> list[tuple[int, int | str]]:
+    """Parse "2@500,high@800" into [(500, 2), (800, "high")]: (step, goal) pairs sorted by step.
+
+    Raises:
+        ValueError: a malformed item, a negative step, or two goals for one step.
+    """
+    if not text or not text.strip():
+        return []
+    out: dict[int, int | str] = {}
+    for item in text.split(","):
+        goal, sep, step = item.strip().rpartition("@")
+        if not sep or not goal or not step.strip().isdigit():
+            raise ValueError(f"schedule item {item.strip()!r} is not GOAL@STEP (e.g. 2@500 or high@500)")
+        s = int(step)
+        if s in out:
+            raise ValueError(f"schedule gives two goals for step {s}")
+        out[s] = parse_goal(goal)
+    return sorted(out.items())
+
+
+@dataclass
+class RunConfig:
+    """What `run` does.
+
+    Attributes:
+        env_id: Environment to step locally (default: the model's own).
+        model: Model name (default: the server's only model, or the one for `env_id`).
+        goal: Goal at step 0 (id or name).
+        schedule: (step, goal) changes made by this client before acting at that step.
+        episodes: Number of episodes; episode i uses seed + i for the environment and the session.
+        seed: First seed.
+        steps: Maximum steps per episode (the environment's time limit is set to it).
+        out: Folder for the JSON / CSV traces, PNG plots and videos (None: write nothing).
+        video: Record an MP4 per episode into `out`.
+        transport: Description of how the server is reached, for the summary.
+    """
+
+    env_id: str | None = None
+    model: str | None = None
+    goal: int | str = 0
+    schedule: list[tuple[int, int | str]] = field(default_factory=list)
+    episodes: int = 1
+    seed: int = 0
+    steps: int = 1000
+    out: Path | None = None
+    video: bool = False
+    transport: str = ""
+
+
+@dataclass
+class EpisodeResult:
+    """One episode: its trace, the per-goal segments, and the files written."""
+
+    episode: int
+    seed: int
+    session_id: str
+    trace: Trace
+    segments: list[Segment]
+    terminated: bool
+    files: list[Path] = field(default_factory=list)
+
+    def summary(self, spec: ModelInfo, cfg: RunConfig, env_id: str) -> dict:
+        """JSON-ready description (without the trace)."""
+        return {
+            "model": spec.name,
+            "env_id": env_id,
+            "transport": cfg.transport,
+            "statistic": spec.statistic,
+            "episode": self.episode,
+            "seed": self.seed,
+            "session_id": self.session_id,
+            "goal": cfg.goal,
+            "schedule": [[s, g] for s, g in cfg.schedule],
+            "steps": len(self.trace),
+            "terminated": self.terminated,
+            "goals": [g.__dict__ for g in spec.goals],
+            "segments": [s.to_dict() for s in self.segments],
+        }
+
+
+class StatusLine:
+    """A live one-line status: rewritten in place on a terminal, one line every `every` steps otherwise."""
+
+    def __init__(self, stream: TextIO | None = None, every: int = 100) -> None:
+        self.stream = stream or sys.stdout
+        self.tty = self.stream.isatty()
+        self.every = every
+        self._width = 0
+
+    def update(self, step: int, text: str) -> None:
+        """Show `text` for `step`."""
+        if self.tty:
+            self.stream.write("\r" + text.ljust(self._width))
+            self._width = len(text)
+            self.stream.flush()
+        elif step % self.every == 0:
+            print(text, file=self.stream)
+
+    def done(self) -> None:
+        """End the line."""
+        if self.tty and self._width:
+            self.stream.write("\n")
+            self._width = 0
+
+
+def resolve_model(client: PolicyClient, name: str | None, env_id: str | None) -> ModelInfo:
+    """The named model's spec; without a name, the server's only model or its only model for `env_id`.
+
+    Raises:
+        ValueError: no name given and no single model fits.
+    """
+    if name:
+        return client.get_model(name)
+    models = client.list_models()
+    fits = [m for m in models if env_id is None or m.env_id == env_id] if len(models) > 1 else models
+    if len(fits) != 1:
+        listing = ", ".join(f"{m.name} ({m.env_id})" for m in models) or "none"
+        raise ValueError(f"choose a model with --model; the server serves: {listing}")
+    return fits[0]
+
+
+def run_episode(
+    session: Session,
+    env,
+    spec: ModelInfo,
+    cfg: RunConfig,
+    seed: int,
+    on_step: StepHook | None = None,
+    status: StatusLine | None = None,
+    video=None,
+) -> tuple[Trace, bool]:
+    """Step one episode; returns its trace and whether the environment terminated early."""
+    schedule = dict(cfg.schedule)
+    trace = Trace()
+    window: deque[float] = deque(maxlen=STATUS_WINDOW)
+    obs, _ = env.reset(seed=seed)
+    terminated = False
+    for t in range(cfg.steps):
+        if t in schedule:
+            session.set_goal(schedule[t])
+        if on_step is not None:
+            on_step(t, session)
+        res = session.act(obs)
+        obs, reward, terminated, truncated, info = env.step(res.action)
+        sig = step_signal(spec.statistic, reward, info)
+        trace.append(t, res.step, res.goal, sig, reward, res.action)
+        if video is not None:
+            video.append(env.render())
+        window.append(sig)
+        if status is not None:
+            g = spec.goal(res.goal)
+            status.update(
+                t,
+                f"step {t:5d}  goal {g.id} ({g.name}, target {g.mean:.2f})  "
+                f"{spec.statistic} avg{len(window)} {sum(window) / len(window):+.3f}",
+            )
+        if terminated or truncated:
+            break
+    if status is not None:
+        status.done()
+    return trace, bool(terminated)
+
+
+def _check_goals(spec: ModelInfo, cfg: RunConfig) -> None:
+    for g in [cfg.goal, *(g for _, g in cfg.schedule)]:
+        spec.goal(g)  # KeyError naming the model's goals
+    late = [s for s, _ in cfg.schedule if s >= cfg.steps]
+    if late:
+        raise ValueError(f"schedule steps {late} are past the episode length ({cfg.steps} steps)")
+
+
+def _write_outputs(res: EpisodeResult, spec: ModelInfo, cfg: RunConfig, env_id: str) -> list[Path]:
+    from clients.plots import plot_episode
+    from clients.trace import write_csv, write_json
+
+    assert cfg.out is not None
+    stem = cfg.out / f"episode-{res.episode}"
+    title = f"{spec.name} on {env_id}, episode {res.episode} (seed {res.seed})"
+    return [
+        write_json(stem.with_suffix(".json"), res.summary(spec, cfg, env_id), res.trace),
+        write_csv(stem.with_suffix(".csv"), res.trace),
+        plot_episode(stem.with_suffix(".png"), res.trace.signal, res.segments, spec.statistic, title),
+    ]
+
+
+def run(
+    client: PolicyClient,
+    cfg: RunConfig,
+    on_step: StepHook | None = None,
+    echo: Callable[[str], None] = print,
+    status: StatusLine | None = None,
+) -> list[EpisodeResult]:
+    """Run `cfg.episodes` episodes against the server behind `client`.
+
+    Args:
+        client: REST or gRPC client.
+        cfg: What to run.
+        on_step: Called as on_step(step, session) before each action is requested (after the schedule's
+            own goal change at that step).
+        echo: Where the session ids and per-segment tables are printed.
+        status: Live status line (None: no live status).
+
+    Raises:
+        SpaceMismatch: the environment's spaces differ from the model's.
+        KeyError: a goal that the model does not have.
+        ServiceError: the server answered with an error.
+    """
+    from clients.envs import make_env
+
+    spec = resolve_model(client, cfg.model, cfg.env_id)
+    env_id = cfg.env_id or spec.env_id
+    _check_goals(spec, cfg)
+    env = make_env(spec, env_id, max_steps=cfg.steps, render=cfg.video)
+    if cfg.out is not None:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    try:
+        for ep in range(cfg.episodes):
+            seed = cfg.seed + ep
+            video = None
+            if cfg.video and cfg.out is not None:
+                from clients.video import VideoWriter
+
+                video = VideoWriter(cfg.out / f"episode-{ep}.mp4", fps=env.metadata.get("render_fps") or 30)
+            with client.create_session(spec.name, cfg.goal, seed=seed) as session:
+                echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
+                try:
+                    trace, terminated = run_episode(session, env, spec, cfg, seed, on_step, status, video)
+                finally:
+                    files = [video.close()] if video is not None else []
+            res = EpisodeResult(
+                ep, seed, session.id, trace, measure(trace.goal, trace.signal, spec), terminated
+            )
+            if cfg.out is not None:
+                res.files = _write_outputs(res, spec, cfg, env_id) + files
+            if terminated:
+                echo(f"terminated early after {len(trace)} steps")
+            echo(table(res.segments, spec.statistic))
+            for f in res.files:
+                echo(f"wrote {f}")
+            results.append(res)
+    finally:
+        env.close()
+    return results
