@@ -1,0 +1,62 @@
+"""`gmt run` end to end: a real server, a HalfCheetah-v5 episode, the table, the files, the errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from service.cli import app
+
+runner = CliRunner()
+
+
+def test_run_over_grpc_stream_prints_the_table_and_writes_the_files(live_server, tmp_path):
+    args = ["run", "--grpc", live_server.grpc_target, "--stream", "--env", "HalfCheetah-v5"]
+    args += ["--goal", "1", "--schedule", "low@16", "--steps", "24", "--seed", "2", "--out", str(tmp_path)]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    rows = [line.split()[:4] for line in r.output.splitlines() if line[:1].isdigit()]
+    assert rows == [["1", "(medium)", "0-15", "4-15"], ["0", "(low)", "16-23", "18-23"]]
+    assert "step     0  goal 1 (medium, target 1.00)" in r.output  # the status line
+    doc = json.loads((tmp_path / "episode-0.json").read_text())
+    assert doc["transport"] == f"grpc stream {live_server.grpc_target}" and doc["schedule"] == [[16, "low"]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode-0.csv", "episode-0.json", "episode-0.png"]
+
+
+def test_video_is_an_mp4_with_one_frame_per_step(live_server, tmp_path):
+    imageio = pytest.importorskip("imageio.v2")
+    pytest.importorskip("imageio_ffmpeg")
+    r = runner.invoke(
+        app, ["run", "--server", live_server.rest_url, "--steps", "8", "--out", str(tmp_path), "--video"]
+    )
+    assert r.exit_code == 0, r.output
+    video = tmp_path / "episode-0.mp4"
+    assert f"wrote {video}" in r.output
+    with imageio.get_reader(video) as reader:
+        assert reader.count_frames() == 8
+        frame = reader.get_data(0)
+    assert frame.shape == (320, 480, 3) and frame.std() > 10  # rendered, not blank
+
+
+def test_mismatched_environment_exits_with_a_message_naming_both(live_server):
+    r = runner.invoke(app, ["run", "--server", live_server.rest_url, "--env", "Hopper-v5", "--steps", "5"])
+    assert r.exit_code == 1
+    assert (
+        "error: environment Hopper-v5 does not match model 'tiny-gmt' (trained on HalfCheetah-v5)" in r.output
+    )
+    assert "Box(float64, shape=[11]) of Hopper-v5 vs Box(float64, shape=[17]) of the model" in r.output
+
+
+def test_unreachable_server_exits_with_a_clear_message():
+    r = runner.invoke(app, ["run", "--server", "http://127.0.0.1:9", "--retries", "1", "--steps", "5"])
+    assert r.exit_code == 1
+    assert "error: unavailable: could not connect to http://127.0.0.1:9 after 2 attempt(s)" in r.output
+
+
+def test_bad_schedule_and_video_without_out_are_usage_errors():
+    r = runner.invoke(app, ["run", "--schedule", "2@x"])
+    assert r.exit_code == 2 and "GOAL@STEP" in r.output
+    r = runner.invoke(app, ["run", "--video"])
+    assert r.exit_code == 2 and "--out" in r.output

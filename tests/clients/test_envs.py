@@ -1,0 +1,44 @@
+"""Local environments are made from the model's spec and refused when their spaces differ."""
+
+from __future__ import annotations
+
+import pytest
+
+from clients.base import ModelInfo
+from clients.envs import SpaceMismatch, describe_space, make_env
+
+PONG_FRAMES = {"type": "box", "shape": [210, 160, 3], "dtype": "uint8", "low": None, "high": None}
+
+
+def spec(env_id: str, obs: dict, act: dict) -> ModelInfo:
+    return ModelInfo("m", env_id, obs, act, context_length=5, statistic="return")
+
+
+def test_atari_spec_of_raw_frames_gets_the_raw_game():
+    env = make_env(spec("ALE/Pong-v5", PONG_FRAMES, {"type": "discrete", "n": 6, "shape": []}), max_steps=3)
+    try:
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (210, 160, 3) and env.action_space.n == 6
+        assert env.step(0)[0].shape == (210, 160, 3)
+    finally:
+        env.close()
+
+
+def test_atari_with_other_action_count_is_refused():
+    with pytest.raises(SpaceMismatch, match=r"action space Discrete\(6\) of ALE/Pong-v5 vs Discrete\(4\)"):
+        make_env(spec("ALE/Pong-v5", PONG_FRAMES, {"type": "discrete", "n": 4, "shape": []}))
+
+
+def test_time_limit_is_the_episode_length():
+    obs17 = {"type": "box", "shape": [17], "dtype": "float64"}
+    act6 = {"type": "box", "shape": [6], "dtype": "float32"}
+    env = make_env(spec("HalfCheetah-v5", obs17, act6), max_steps=3)
+    env.reset(seed=0)
+    truncated = [env.step(env.action_space.sample())[3] for _ in range(3)]
+    env.close()
+    assert truncated == [False, False, True]
+
+
+def test_describe_space():
+    assert describe_space({"type": "discrete", "n": 6}) == "Discrete(6)"
+    assert describe_space({"type": "box", "shape": [17], "dtype": "float64"}) == "Box(float64, shape=[17])"

@@ -1,0 +1,229 @@
+"""Both clients against a real server: the same answers, the server's errors as typed exceptions, and retries
+only when the server cannot be reached."""
+
+from __future__ import annotations
+
+import socket
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+
+from clients import base
+from clients.base import PolicyClient
+from clients.errors import (
+    ConnectionFailed,
+    InvalidArgument,
+    NotFound,
+    ResourceExhausted,
+    ServiceError,
+    Unavailable,
+)
+from clients.grpc import GrpcClient
+from clients.rest import RestClient
+
+TRANSPORTS = ["rest", "grpc", "grpc-stream"]
+OBS = np.linspace(-1, 1, 17)
+
+
+def make_client(kind: str, server, **kw) -> PolicyClient:
+    if kind == "rest":
+        return RestClient(server.rest_url, **kw)
+    return GrpcClient(server.grpc_target, stream=kind == "grpc-stream", **kw)
+
+
+@pytest.fixture(params=TRANSPORTS)
+def client(request, live_server):
+    with make_client(request.param, live_server) as c:
+        yield c
+
+
+def free_port() -> int:
+    """A loopback port nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def no_sleep(monkeypatch):
+    """Record retry back-off delays instead of sleeping."""
+    delays: list[float] = []
+    monkeypatch.setattr(base.time, "sleep", delays.append)
+    return delays
+
+
+def test_model_spec_is_the_same_over_both_transports(live_server):
+    with RestClient(live_server.rest_url) as r, GrpcClient(live_server.grpc_target) as g:
+        rm, gm = r.get_model("tiny-gmt"), g.get_model("tiny-gmt")
+        assert [m.name for m in r.list_models()] == [m.name for m in g.list_models()] == ["tiny-gmt"]
+    assert rm.goals == gm.goals
+    assert [x.name for x in rm.goals] == ["low", "medium", "high"]
+    assert (rm.env_id, rm.context_length, rm.statistic) == (gm.env_id, gm.context_length, gm.statistic)
+    assert (rm.env_id, rm.context_length, rm.statistic) == ("HalfCheetah-v5", 5, "mean_x_velocity")
+    for a, b in ((rm.observation_space, gm.observation_space), (rm.action_space, gm.action_space)):
+        assert (a["type"], a["shape"], a["dtype"]) == (b["type"], b["shape"], b["dtype"])
+        assert a["low"] == b["low"] and a["high"] == b["high"]
+    assert rm.observation_space["shape"] == [17] and rm.action_space["shape"] == [6]
+    assert rm.action_space["low"] == [-1.0] * 6
+
+
+def test_session_lifecycle(client):
+    with client.create_session("tiny-gmt", "medium", seed=3) as s:
+        assert s.info.goal == 1 and s.info.goal_name == "medium" and s.info.model == "tiny-gmt"
+        r0, r1 = s.act(OBS), s.act(OBS)
+        assert (r0.step, r1.step, r0.goal) == (0, 1, 1)
+        assert isinstance(r0.action, np.ndarray) and r0.action.dtype == np.float32 and r0.action.shape == (6,)
+        assert np.all(np.abs(r0.action) <= 1.0)
+        assert s.set_goal(target=1.9).goal == 2
+        assert s.act(OBS).goal == 2
+        assert s.set_goal(0, blend_steps=4).blend_remaining == 4
+        info = s.refresh()
+        assert (info.step, info.goal, info.context_size) == (3, 0, 3)
+        reset = s.reset("high")
+        assert (reset.step, reset.goal) == (0, 2)
+        assert s.act(OBS).step == 0
+    with pytest.raises(NotFound):  # the context manager closed it
+        client.get_session(s.id)
+
+
+def test_unknown_session_is_not_found_with_the_servers_message(client):
+    session = base.Session(client, base.SessionInfo(session_id="no-such-session", model="tiny-gmt", goal=0))
+    with pytest.raises(NotFound) as e:
+        session.act(OBS)
+    assert e.value.code == "not_found"
+    assert "no-such-session" in e.value.message
+    with pytest.raises(NotFound, match="no-such-session"):
+        session.set_goal(1)
+
+
+def test_bad_observation_and_goal_are_invalid_arguments(client):
+    with client.create_session("tiny-gmt", 0) as s:
+        with pytest.raises(InvalidArgument) as e:
+            s.act(np.zeros(5))
+        assert e.value.code == "invalid_argument"
+        assert "5 values" in e.value.message and "17" in e.value.message
+        with pytest.raises(InvalidArgument, match="fastest"):
+            s.set_goal("fastest")
+        assert s.act(OBS).step == 0  # the bad observation left the session as it was
+
+
+def test_unknown_model_is_not_found(client):
+    with pytest.raises(NotFound, match="nope"):
+        client.get_model("nope")
+    with pytest.raises(NotFound, match="nope"):
+        client.create_session("nope", 0)
+
+
+def test_full_server_is_resource_exhausted(ckpt_root, start_server):
+    srv = start_server(ckpt_root, max_sessions=1)
+    for kind in ("rest", "grpc"):
+        with make_client(kind, srv) as c, c.create_session(goal=0):
+            with pytest.raises(ResourceExhausted) as e:
+                c.create_session(goal=0)
+            assert e.value.code == "resource_exhausted" and e.value.message
+
+
+@pytest.mark.parametrize("kind", TRANSPORTS)
+def test_unreachable_server_is_retried_then_fails_clearly(kind, no_sleep):
+    port = free_port()
+    c = (
+        RestClient(f"http://127.0.0.1:{port}", retries=2, backoff_s=0.1)
+        if kind == "rest"
+        else GrpcClient(f"127.0.0.1:{port}", retries=2, backoff_s=0.1, stream=kind == "grpc-stream")
+    )
+    with c:
+        with pytest.raises(ConnectionFailed) as e:
+            if kind == "grpc-stream":
+                from clients.grpc import StreamSession
+
+                StreamSession(c, base.SessionInfo("s", "tiny-gmt", 0)).act(OBS)
+            else:
+                c.list_models()
+    assert no_sleep == [0.1, 0.2]  # two retries, exponential back-off, then give up
+    assert f"127.0.0.1:{port}" in str(e.value) and "3 attempt(s)" in str(e.value)
+    assert isinstance(e.value, Unavailable) and e.value.code == "unavailable"
+
+
+class CountingTransport(httpx.HTTPTransport):
+    """Counts requests; the first `fail` ones fail to connect."""
+
+    def __init__(self, fail: int = 0) -> None:
+        super().__init__()
+        self.calls, self.fail = 0, fail
+
+    def handle_request(self, request):
+        self.calls += 1
+        if self.calls <= self.fail:
+            raise httpx.ConnectError("connection refused (simulated)", request=request)
+        return super().handle_request(request)
+
+
+def test_rest_retries_connection_errors_only(live_server, no_sleep):
+    flaky = CountingTransport(fail=2)
+    with RestClient(live_server.rest_url, retries=3, transport=flaky) as c:
+        assert c.get_model("tiny-gmt").name == "tiny-gmt"
+    assert flaky.calls == 3 and len(no_sleep) == 2
+
+    counting = CountingTransport()
+    with RestClient(live_server.rest_url, retries=3, transport=counting) as c:
+        with pytest.raises(NotFound):
+            c.get_session("missing")
+        with pytest.raises(InvalidArgument):
+            c.create_session(goal=99)
+    assert counting.calls == 2 and len(no_sleep) == 2  # answers (4xx) are never retried
+
+
+class CountingStub:
+    """Wraps a PolicyService stub: counts unary calls; the first `fail` ones fail as gRPC does on connect."""
+
+    def __init__(self, stub, fail: int = 0) -> None:
+        self.stub, self.fail, self.calls = stub, fail, 0
+
+    def __getattr__(self, name):
+        rpc = getattr(self.stub, name)
+
+        def call(*args, **kw):
+            self.calls += 1
+            if self.calls <= self.fail:
+                raise ConnectRefused()
+            return rpc(*args, **kw)
+
+        return call
+
+
+class ConnectRefused(grpc.RpcError):
+    def code(self):
+        return grpc.StatusCode.UNAVAILABLE
+
+    def details(self):
+        return "failed to connect to all addresses; last error: Connection refused (simulated)"
+
+
+def test_grpc_retries_connection_errors_only(live_server, no_sleep):
+    with GrpcClient(live_server.grpc_target, retries=3) as c:
+        c.stub = stub = CountingStub(c.stub, fail=1)
+        assert c.get_model("tiny-gmt").name == "tiny-gmt"
+        assert stub.calls == 2 and len(no_sleep) == 1
+        with pytest.raises(NotFound):
+            c.get_session("missing")
+        assert stub.calls == 3 and len(no_sleep) == 1
+
+
+def test_server_side_unavailable_is_not_retried(tmp_path, start_server, no_sleep):
+    """A server with no model answers UNAVAILABLE itself: an answer, so no retry (unlike a refused connect)."""
+    srv = start_server(tmp_path)
+    for kind in ("rest", "grpc"):
+        with make_client(kind, srv) as c:
+            with pytest.raises(Unavailable) as e:
+                c.create_session(goal=0)
+        assert not isinstance(e.value, ConnectionFailed)
+        assert "no model is loaded" in e.value.message
+    assert no_sleep == []
+
+
+def test_service_error_str_names_code_and_message():
+    err = NotFound("session 'x' does not exist")
+    assert str(err) == "not_found: session 'x' does not exist"
+    assert isinstance(err, ServiceError)
