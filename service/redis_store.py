@@ -9,7 +9,7 @@ Expiry follows the store's clock; Redis key TTLs only collect sessions nobody to
 from __future__ import annotations
 
 from service import session_codec
-from service.errors import NotFound, ResourceExhausted, SessionExpired, Unavailable
+from service.errors import Internal, NotFound, ResourceExhausted, SessionExpired, Unavailable
 from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
 
 TOMBSTONE_TTL_S = 86_400
@@ -89,6 +89,13 @@ class RedisSessionStore(SessionStore):
             await self._call(p.execute())
         self._seen.pop(sid, None)
 
+    @staticmethod
+    def _decode(sid: str, fields: dict) -> Session:
+        try:
+            return session_codec.decode(fields)
+        except session_codec.CodecError as e:
+            raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
+
     async def get(self, sid: str) -> Session:
         fields = await self._call(self.redis.hgetall(self._key(sid)))
         if not fields:
@@ -96,7 +103,7 @@ class RedisSessionStore(SessionStore):
             if await self._call(self.redis.exists(self._tomb(sid))):
                 raise SessionExpired(expired_message(sid, self.idle_timeout_s))
             raise NotFound(not_found_message(sid))
-        s = session_codec.decode(fields)
+        s = self._decode(sid, fields)
         if self.is_idle(s):
             await self._expire(sid)
             raise SessionExpired(expired_message(sid, self.idle_timeout_s))
@@ -130,7 +137,7 @@ class RedisSessionStore(SessionStore):
             sid = raw.decode()
             fields = await self._call(self.redis.hgetall(self._key(sid)))
             if fields:
-                s = session_codec.decode(fields)
+                s = self._decode(sid, fields)
                 if not self.is_idle(s):
                     continue
                 gone.append(s)

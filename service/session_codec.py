@@ -61,12 +61,21 @@ def _array(desc: dict, raw: bytes | None, name: str) -> np.ndarray:
 
 
 def decode(fields: dict[bytes | str, bytes]) -> Session:
-    """Inverse of `encode` (keys may be bytes, as redis-py returns them)."""
-    f = {(k.decode() if isinstance(k, bytes) else k): v for k, v in fields.items()}
+    """Inverse of `encode` (keys may be bytes, as redis-py returns them).
+
+    Raises:
+        CodecError: the fields do not describe a session of this format.
+    """
     try:
-        meta = json.loads(f["meta"])
-    except (KeyError, json.JSONDecodeError) as e:
-        raise CodecError(f"no readable meta field: {e}") from e
+        return _decode({(k.decode() if isinstance(k, bytes) else k): v for k, v in fields.items()})
+    except CodecError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise CodecError(f"unreadable session: {type(e).__name__}: {e}") from e
+
+
+def _decode(f: dict[str, bytes]) -> Session:
+    meta = json.loads(f["meta"])
     if meta.get("v") != FORMAT_VERSION:
         raise CodecError(f"session format v{meta.get('v')} is not v{FORMAT_VERSION}")
     state = meta["rng"]

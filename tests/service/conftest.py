@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import os
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -165,3 +169,48 @@ def make_server(ckpt_root):
 def clock() -> FakeClock:
     """A fake wall clock to inject into a server."""
     return FakeClock()
+
+
+class ServeProcess:
+    """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
+
+    def __init__(self, *args: str) -> None:
+        exe = Path(sys.executable).parent / "gmt"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+        cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
+        self.proc = subprocess.Popen(
+            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+        )
+        self.lines: list[dict] = []
+        self.serving: dict | None = None
+        self._ready = threading.Event()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for raw in self.proc.stderr:
+            try:
+                rec = json.loads(raw)
+            except json.JSONDecodeError:
+                rec = {"msg": raw.rstrip()}
+            self.lines.append(rec)
+            if rec.get("msg") == "serving":
+                self.serving = rec
+                self._ready.set()
+        self._ready.set()  # exited
+
+    def wait_serving(self, timeout: float = 60) -> dict:
+        assert self._ready.wait(timeout), "gmt serve did not start in time"
+        assert self.serving is not None, f"gmt serve exited: {self.lines}"
+        return self.serving
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.serving['rest_port']}"
+
+    def messages(self) -> list[str]:
+        return [rec.get("msg", "") for rec in self.lines]
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(30)

@@ -1,0 +1,179 @@
+"""Sessions in Redis (a real redis-server on a free loopback port): codec, store semantics, replica failover."""
+
+import asyncio
+import json
+import shutil
+import socket
+import subprocess
+
+import httpx
+import numpy as np
+import pytest
+from conftest import RunningServer, ServeProcess, make_settings
+
+from model.checkpoint import load_checkpoint
+from model.engine import PolicyEngine
+from service import session_codec
+from service.errors import NotFound, ResourceExhausted, SessionExpired
+from service.sessions import Session
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def redis_url(tmp_path_factory):
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.skip("redis-server is not installed (apt-get install redis-server; .ci/run installs it)")
+    port = _free_port()
+    proc = subprocess.Popen(
+        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        cwd=tmp_path_factory.mktemp("redis"),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    for line in proc.stdout:  # ends at EOF if redis exits
+        if "Ready to accept connections" in line:
+            break
+    assert proc.poll() is None, "redis-server did not start"
+    yield f"redis://127.0.0.1:{port}/0"
+    proc.terminate()
+    proc.wait(10)
+
+
+@pytest.fixture
+def redis_clean(redis_url):
+    import redis
+
+    r = redis.Redis.from_url(redis_url)
+    r.flushall()
+    r.close()
+    return redis_url
+
+
+@pytest.fixture(scope="module")
+def cartpole(ckpt_root) -> PolicyEngine:
+    return PolicyEngine(load_checkpoint(ckpt_root / "tiny-cartpole"))
+
+
+def test_codec_round_trip_keeps_rng_and_arrays_exact(cartpole):
+    rng = np.random.default_rng(0)
+    ctx = cartpole.new_context(1, action_mode="sample", seed=11)
+    obs = rng.normal(size=(9, 4)).astype(np.float32)
+    for o in obs[:6]:
+        cartpole.act([ctx], [o])
+    cartpole.set_goal(ctx, 0, blend_steps=2)
+    fields = session_codec.encode(Session("s1", "tiny-cartpole", ctx, 1.0, 2.0))
+    meta = json.loads(fields["meta"])  # plain JSON, no pickle anywhere
+    assert meta["rng"]["bit_generator"] == "PCG64" and set(meta["arrays"]) == set(session_codec.ARRAYS)
+    assert all(isinstance(v, bytes) and not v.startswith(b"\x80") for v in fields.values())
+    back = session_codec.decode({k.encode(): v for k, v in fields.items()})
+    assert (back.id, back.model, back.created_at, back.last_used) == ("s1", "tiny-cartpole", 1.0, 2.0)
+    for name in session_codec.ARRAYS:
+        a, b = getattr(ctx, name), getattr(back.ctx, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    # Sampled actions continue identically from the restored generator.
+    original = [cartpole.act([ctx], [o])[0] for o in obs[6:]]
+    restored = [cartpole.act([back.ctx], [o])[0] for o in obs[6:]]
+    assert original == restored and ctx.rng.bit_generator.state == back.ctx.rng.bit_generator.state
+
+
+def test_codec_refuses_foreign_data():
+    with pytest.raises(session_codec.CodecError):
+        session_codec.decode({b"meta": b"\x80\x04K\x01."})  # a pickle
+    bad = {"v": 1, "rng": {"bit_generator": "MT19937"}, "ctx": {}, "arrays": {}}
+    with pytest.raises(session_codec.CodecError, match="unsupported bit generator"):
+        session_codec.decode({b"meta": json.dumps(bad).encode()})
+
+
+def test_redis_store_semantics(redis_clean, engine, clock):
+    from service.redis_store import RedisSessionStore
+
+    async def scenario():
+        a = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=2, clock=clock)
+        b = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=2, clock=clock)  # a second replica
+        try:
+            s1 = Session("one", "tiny-gmt", engine.new_context(0), clock(), clock())
+            await a.create(s1)
+            await b.create(Session("two", "tiny-gmt", engine.new_context(2), clock(), clock()))
+            with pytest.raises(ResourceExhausted, match=r"server is full: 2 live sessions \(maximum 2\)"):
+                await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
+            assert await a.count() == await b.count() == 2
+            got = await b.get("one")
+            engine.act([got.ctx], [np.zeros(17, np.float32)])
+            clock.advance(6)
+            got.last_used = clock()
+            await b.save(got)
+            again = await a.get("one")
+            assert again.ctx.step == 1 and np.array_equal(again.ctx.states, got.ctx.states)
+            clock.advance(6)  # "two" is now idle for 12 s, "one" for 6 s
+            assert [s.id for s in await a.sweep()] == ["two"]
+            with pytest.raises(SessionExpired, match="session 'two' expired"):
+                await b.get("two")
+            await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
+            await a.delete("three")
+            with pytest.raises(NotFound, match="session 'three' not found"):
+                await b.get("three")
+            clock.advance(20)
+            with pytest.raises(SessionExpired):  # expired on access, without a sweep
+                await a.get("one")
+        finally:
+            await a.close()
+            await b.close()
+
+    asyncio.run(scenario())
+
+
+def test_replica_dies_and_another_answers_exactly_as_it_would_have(redis_clean, ckpt_root, engine, cartpole):
+    rng = np.random.default_rng(5)
+    obs = rng.normal(size=(10, 17)).astype(np.float32)
+    cobs = rng.normal(size=(10, 4)).astype(np.float32)
+    # What one uninterrupted replica answers: the engine, step by step (goal switch with a blend at step 3).
+    ctx = engine.new_context(0)
+    cctx = cartpole.new_context(1, action_mode="sample", seed=5)
+    want, cwant = [], []
+    for t in range(10):
+        if t == 3:
+            engine.set_goal(ctx, 2, blend_steps=4)
+        want.append(engine.act([ctx], [obs[t]])[0])
+        cwant.append(cartpole.act([cctx], [cobs[t]])[0])
+
+    a = ServeProcess("--checkpoints", str(ckpt_root), "--redis-url", redis_clean)
+    try:
+        a.wait_serving()
+        with httpx.Client(base_url=a.url) as http:
+            sid = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).json()["session_id"]
+            body = {"model": "tiny-cartpole", "goal": 1, "action_mode": "sample", "seed": 5}
+            csid = http.post("/sessions", json=body).json()["session_id"]
+            for t in range(5):
+                if t == 3:
+                    assert (
+                        http.put(f"/sessions/{sid}/goal", json={"goal": 2, "blend_steps": 4}).status_code
+                        == 200
+                    )
+                r = http.post(f"/sessions/{sid}/act", json={"observation": obs[t].tolist()}).json()
+                np.testing.assert_array_equal(np.float32(r["action"]), want[t])
+                c = http.post(f"/sessions/{csid}/act", json={"observation": cobs[t].tolist()}).json()
+                assert c["action"] == cwant[t]
+    finally:
+        a.kill()  # SIGKILL: no goodbye, no flush
+    assert a.proc.returncode == -9
+
+    b = RunningServer(make_settings(checkpoints=[ckpt_root], redis_url=redis_clean)).start()
+    try:
+        with httpx.Client(base_url=b.url) as http:
+            s = http.get(f"/sessions/{sid}").json()
+            assert s["step"] == 5 and s["goal"] == 2 and s["blend_remaining"] == 2
+            for t in range(5, 10):
+                r = http.post(f"/sessions/{sid}/act", json={"observation": obs[t].tolist()})
+                assert r.status_code == 200 and r.json()["step"] == t
+                np.testing.assert_array_equal(np.float32(r.json()["action"]), want[t])
+                c = http.post(f"/sessions/{csid}/act", json={"observation": cobs[t].tolist()}).json()
+                assert c["action"] == cwant[t]
+            assert len(set(cwant)) > 1  # sampling really happened, so the generator state mattered
+    finally:
+        b.stop()
