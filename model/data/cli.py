@@ -29,32 +29,40 @@ def behaviour(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
     timesteps: int = typer.Option(1_000_000, help="PPO environment steps."),
     eval_every: int = typer.Option(20_000, help="Steps between snapshot speed measurements."),
+    dense_steps: int = typer.Option(200_000, help="Measure 4x as often during the first DENSE_STEPS."),
     eval_episodes: int = typer.Option(3, help="Stochastic episodes per measurement."),
-    final_episodes: int = typer.Option(10, help="Episodes to re-measure each chosen snapshot."),
+    final_episodes: int = typer.Option(
+        30, help="Episodes per snapshot in the measurement that picks levels."
+    ),
     target: list[str] = typer.Option(None, help="LEVEL=SPEED (m/s) or LEVEL=max; repeat. Default per env."),
     seed: int = typer.Option(0, help="Seed of PPO and of the measurements."),
     out_dir: Path = typer.Option(None, help="Where snapshots go (default behaviour/<env>/)."),
-    select_only: bool = typer.Option(False, help="Skip training; choose levels from the kept measurements."),
+    select_only: bool = typer.Option(
+        False, help="Skip training; choose levels among the kept snapshots up to TIMESTEPS (runs/behaviour/)."
+    ),
 ) -> None:
     """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
-    import json
-
-    from model.data.train_behaviour import BehaviourTrainConfig, select_levels, train
+    from model.data.train_behaviour import (
+        BehaviourTrainConfig,
+        remeasure_all,
+        select_levels,
+        train,
+        write_provenance,
+    )
 
     cfg = BehaviourTrainConfig(
         env_id=env,
         total_timesteps=timesteps,
         eval_every=eval_every,
+        dense_steps=dense_steps,
         eval_episodes=eval_episodes,
         final_episodes=final_episodes,
         targets=_parse_targets(target),
         seed=seed,
         out_dir=out_dir,
     )
-    if select_only:
-        select_levels(cfg, json.loads((cfg.work_dir / "records.json").read_text()))
-    else:
-        train(cfg)
+    chosen = select_levels(cfg, remeasure_all(cfg)) if select_only else train(cfg)
+    typer.echo(f"wrote {write_provenance(cfg, chosen)}")
 
 
 @app.command()

@@ -25,7 +25,11 @@ FASTEST = "max"
 
 @dataclass
 class PPOPreset:
-    """PPO hyperparameters (rl-zoo style) for one environment."""
+    """PPO hyperparameters (rl-zoo style) for one environment.
+
+    `stuck_penalty` > 0 wraps the training env in `StuckTermination` (training only; collection and
+    measurements use the plain environment).
+    """
 
     n_steps: int = 512
     batch_size: int = 64
@@ -41,17 +45,30 @@ class PPOPreset:
     activation: str = "relu"
     log_std_init: float = -2.0
     ortho_init: bool = False
+    stuck_penalty: float = 0.0
 
 
 PRESETS: dict[str, PPOPreset] = {
     # rl-zoo's tuned HalfCheetah settings.
     "halfcheetah": PPOPreset(
         n_steps=512, batch_size=64, n_epochs=20, learning_rate=2.0633e-05, gamma=0.98, gae_lambda=0.92,
-        clip_range=0.1, ent_coef=0.000401762, vf_coef=0.58096, max_grad_norm=0.8,
+        clip_range=0.1, ent_coef=0.000401762, vf_coef=0.58096, max_grad_norm=0.8, stuck_penalty=200.0,
     ),
-    "hopper": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
-    "walker2d": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
-    "ant": PPOPreset(n_steps=2048, batch_size=64, n_epochs=10, hidden_sizes=[64, 64]),
+    # rl-zoo's tuned Hopper settings.
+    "hopper": PPOPreset(
+        n_steps=512, batch_size=32, n_epochs=5, learning_rate=9.80828e-05, gamma=0.999, gae_lambda=0.99,
+        clip_range=0.2, ent_coef=0.00229519, vf_coef=0.835671, max_grad_norm=0.7,
+    ),
+    # rl-zoo's Walker2d settings with Hopper's network and fewer, larger minibatches (CPU time).
+    "walker2d": PPOPreset(
+        n_steps=512, batch_size=64, n_epochs=10, learning_rate=5.05041e-05, gamma=0.99, gae_lambda=0.95,
+        clip_range=0.1, ent_coef=0.000585045, vf_coef=0.871923, max_grad_norm=1.0,
+    ),
+    # rl-zoo's Ant settings with the same network.
+    "ant": PPOPreset(
+        n_steps=512, batch_size=64, n_epochs=10, learning_rate=1.90609e-05, gamma=0.98, gae_lambda=0.8,
+        clip_range=0.1, ent_coef=4.9646e-07, vf_coef=0.677239, max_grad_norm=0.6,
+    ),
 }  # fmt: skip
 
 # Target mean x-velocities (m/s) per level; "max" keeps the fastest consistent snapshot.
@@ -73,8 +90,7 @@ class BehaviourTrainConfig:
         eval_every: Steps between snapshot measurements.
         dense_steps: During the first `dense_steps`, measure four times as often (skill changes fast early).
         eval_episodes: Stochastic episodes per measurement.
-        final_episodes: Episodes used to re-measure the chosen snapshots.
-        candidates: Snapshots per level that get re-measured.
+        final_episodes: Episodes per snapshot in the final measurement that chooses the levels.
         targets: Level name -> target mean x-velocity, or "max".
         seed: Seed of PPO, of its environment and of the measurements.
         out_dir: Where the chosen snapshots go (behaviour/<env>/).
@@ -87,8 +103,7 @@ class BehaviourTrainConfig:
     eval_every: int = 20_000
     dense_steps: int = 200_000
     eval_episodes: int = 3
-    final_episodes: int = 10
-    candidates: int = 3
+    final_episodes: int = 30
     targets: dict[str, float | str] | None = None
     seed: int = 0
     out_dir: Path | None = None
@@ -101,6 +116,47 @@ class BehaviourTrainConfig:
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
         self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug)
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+
+
+class StuckTermination(gym.Wrapper):
+    """Training-only shaping: end the episode with a penalty once a running agent has come to a standstill.
+
+    PPO cheetahs occasionally fall into a pose where they stay still for the rest of the episode (3-10% of
+    stochastic episodes); such rare events barely move the policy. Here, after the agent has averaged more
+    than `run_speed` over `window` steps, an average |x-velocity| below `stop_speed` over `window` steps
+    terminates the episode and subtracts `penalty` from the reward.
+    """
+
+    def __init__(
+        self, env, penalty: float, window: int = 20, run_speed: float = 1.0, stop_speed: float = 0.1
+    ):
+        super().__init__(env)
+        self.penalty, self.window, self.run_speed, self.stop_speed = penalty, window, run_speed, stop_speed
+
+    def reset(self, **kwargs):
+        self._speeds: list[float] = []
+        self._ran = False
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._speeds = (self._speeds + [float(info["x_velocity"])])[-self.window :]
+        if len(self._speeds) == self.window:
+            mean = float(np.mean(self._speeds))
+            self._ran = self._ran or mean > self.run_speed
+            if self._ran and abs(mean) < self.stop_speed and not terminated:
+                terminated, reward = True, reward - self.penalty
+        return obs, reward, terminated, truncated, info
+
+
+def make_train_env(env_id: str, preset: PPOPreset):
+    """The training environment: Monitor over the (optionally stuck-terminated) Gymnasium env."""
+    from stable_baselines3.common.monitor import Monitor
+
+    env = gym.make(env_id)
+    if preset.stuck_penalty > 0:
+        env = StuckTermination(env, preset.stuck_penalty)
+    return Monitor(env)
 
 
 def export_actor(model, vec_normalize, env_id: str, level: str, hidden_sizes: list[int], activation: str):
@@ -163,6 +219,26 @@ def level_score(record: dict, target: float | str, max_len: int) -> float:
     return abs(record["mean_speed"] - float(target)) + 2.0 * record["std_speed"] + 100.0 * fell
 
 
+def measure_snapshot(cfg: BehaviourTrainConfig, step: int, env) -> dict:
+    """The coarse measurement of the snapshot saved at `step` (deterministic: fixed seeds)."""
+    from model.data.behaviour import load_behaviour
+
+    policy = load_behaviour(cfg.work_dir / f"step_{step:08d}", env.action_space)
+    return {**measure(env, policy, cfg.eval_episodes, 10_000), "step": step}
+
+
+def remeasure_all(cfg: BehaviourTrainConfig) -> list[dict]:
+    """Coarse measurements of every snapshot kept in `cfg.work_dir` up to `cfg.total_timesteps`.
+
+    Reuses records.json where it has a snapshot, else measures again (same seeds, same numbers).
+    """
+    path = cfg.work_dir / "records.json"
+    known = {r["step"]: r for r in json.loads(path.read_text())} if path.exists() else {}
+    env = gym.make(cfg.env_id)
+    steps = sorted(int(f.stem.split("_")[1]) for f in cfg.work_dir.glob("step_*.safetensors"))
+    return [known.get(s) or measure_snapshot(cfg, s, env) for s in steps if s <= cfg.total_timesteps]
+
+
 def train(cfg: BehaviourTrainConfig) -> list[dict]:
     """Train PPO, measure snapshots as it goes, then choose and export one snapshot per level.
 
@@ -171,13 +247,12 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
     """
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
     p = cfg.preset
     cfg.work_dir.mkdir(parents=True, exist_ok=True)
-    venv = VecNormalize(DummyVecEnv([lambda: Monitor(gym.make(cfg.env_id))]), gamma=p.gamma)
+    venv = VecNormalize(DummyVecEnv([lambda: make_train_env(cfg.env_id, p)]), gamma=p.gamma)
     venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
     act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
@@ -212,11 +287,8 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
             every = cfg.eval_every // 4 if self.num_timesteps <= cfg.dense_steps else cfg.eval_every
             if self.num_timesteps % every == 0:
                 state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
-                rec = measure(
-                    eval_env, as_policy(state, meta, eval_env.action_space), cfg.eval_episodes, 10_000
-                )
-                rec["step"] = self.num_timesteps
                 save_behaviour(cfg.work_dir / f"step_{self.num_timesteps:08d}", state, meta)
+                rec = measure_snapshot(cfg, self.num_timesteps, eval_env)
                 records.append(rec)
                 (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
                 fps = self.num_timesteps / (time.time() - start)
@@ -232,27 +304,33 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
 
 
 def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
-    """Choose one measured snapshot per target level, re-measure the best candidates, export the winners.
+    """Re-measure every snapshot on `final_episodes` episodes, then choose one per level and export it.
+
+    A rare failure (e.g. a cheetah stuck on its head) shows up only over many episodes, so the choice uses
+    the fine measurements: per level, in the order given, the unused snapshot with the best `level_score`.
 
     Args:
         cfg: The training configuration (targets, work and output folders, episodes).
-        records: Coarse measurements, one per snapshot in `cfg.work_dir`.
+        records: Coarse measurements, one per snapshot in `cfg.work_dir` (their steps are re-measured).
     """
     from model.data.behaviour import load_behaviour
 
     torch.set_num_threads(1)
     env = gym.make(cfg.env_id)
     max_len = env.spec.max_episode_steps or 1000
-    fine: dict[int, dict] = {}
-    chosen = []
+    cache_path = cfg.work_dir / f"fine_records_{cfg.final_episodes}.json"
+    cache = {r["step"]: r for r in json.loads(cache_path.read_text())} if cache_path.exists() else {}
+    fine = []
+    for rec in records:
+        if rec["step"] not in cache:
+            policy = load_behaviour(cfg.work_dir / f"step_{rec['step']:08d}", env.action_space)
+            cache[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
+            cache_path.write_text(json.dumps(sorted(cache.values(), key=lambda r: r["step"]), indent=1))
+        fine.append(cache[rec["step"]])
+    chosen, used = [], set()
     for level, target in cfg.targets.items():
-        ranked = sorted(records, key=lambda r: level_score(r, target, max_len))[: cfg.candidates]
-        for rec in ranked:
-            if rec["step"] not in fine:
-                path = cfg.work_dir / f"step_{rec['step']:08d}"
-                policy = load_behaviour(path, env.action_space)
-                fine[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
-        best = min((fine[r["step"]] for r in ranked), key=lambda r: level_score(r, target, max_len))
+        best = min((r for r in fine if r["step"] not in used), key=lambda r: level_score(r, target, max_len))
+        used.add(best["step"])
         policy = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
         meta = policy.meta
         meta.level = level
@@ -262,6 +340,7 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
             "episodes": cfg.final_episodes,
             "mean_return": best["mean_return"],
             "mean_length": best["mean_length"],
+            "min_length": best["min_length"],
         }
         state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
         save_behaviour(cfg.out_dir / level, state, meta)
@@ -272,3 +351,51 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
             flush=True,
         )
     return chosen
+
+
+def command_line(cfg: BehaviourTrainConfig) -> str:
+    """The `gmt data behaviour` invocation that reproduces `cfg`, every option explicit."""
+    targets = " ".join(f"--target {k}={v}" for k, v in cfg.targets.items())
+    return (
+        f"gmt data behaviour --env {cfg.env_id} --timesteps {cfg.total_timesteps} --eval-every {cfg.eval_every} "
+        f"--dense-steps {cfg.dense_steps} --eval-episodes {cfg.eval_episodes} "
+        f"--final-episodes {cfg.final_episodes} {targets} --seed {cfg.seed}"
+    )
+
+
+def write_provenance(cfg: BehaviourTrainConfig, chosen: list[dict]) -> Path:
+    """Write `<out_dir>/TRAINED_WITH.md`: the command, package versions, hyperparameters and levels."""
+    from dataclasses import asdict
+    from importlib.metadata import version
+
+    pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
+    rows = "\n".join(
+        f"| {c['level']} | {c['target']} | {c['step']} | {c['mean_speed']:.3f} | {c['std_speed']:.3f} "
+        f"| {c['mean_length']:.0f} | {c['mean_return']:.0f} |"
+        for c in chosen
+    )
+    text = f"""# Behaviour agents for {cfg.env_id}
+
+Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
+
+```bash
+{command_line(cfg)}
+```
+
+Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
+
+Every `{cfg.eval_every}` steps (every `{cfg.eval_every // 4}` during the first `{cfg.dense_steps}`) the actor was
+exported and measured; afterwards every snapshot was measured again on {cfg.final_episodes} stochastic episodes
+(reset seeds 20000+) and, per level in order, the unused snapshot closest to the target speed with the smallest
+spread was kept (`max` keeps the highest mean minus two standard deviations; episodes that fell are excluded).
+Speeds are the mean and standard deviation over episodes of the per-episode mean `x_velocity` (m/s).
+
+| level | target | PPO step | mean speed | std | mean length | mean return |
+| --- | --- | --- | --- | --- | --- | --- |
+{rows}
+
+`gmt data collect --env {cfg.env_id}` adds a uniform-random policy to these levels.
+"""
+    path = cfg.out_dir / "TRAINED_WITH.md"
+    path.write_text(text)
+    return path
