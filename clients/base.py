@@ -65,7 +65,15 @@ class ModelInfo:
 
 @dataclass(frozen=True)
 class SessionInfo:
-    """A session's state as the server reports it."""
+    """A session's state as the server reports it.
+
+    Attributes:
+        goal: The goal pursued (the new goal while a blend runs).
+        step: Timestep of the next observation.
+        blend_from: Goal being faded out (equal to `goal` when no blend runs).
+        context_goals: Goal token of each step in the context, oldest first.
+        expires_in_s: Seconds left before the idle timeout ends the session.
+    """
 
     session_id: str
     model: str
@@ -74,8 +82,11 @@ class SessionInfo:
     step: int = 0
     context_size: int = 0
     blend_remaining: int = 0
+    blend_from: int = 0
     idle_timeout_s: float = 0.0
+    expires_in_s: float = 0.0
     action_mode: str = ""
+    context_goals: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)

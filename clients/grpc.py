@@ -90,8 +90,11 @@ def session_from_proto(s: pb.SessionInfo) -> SessionInfo:
         step=s.step,
         context_size=s.context_size,
         blend_remaining=s.blend_remaining,
+        blend_from=s.blend_from,
         idle_timeout_s=s.idle_timeout_s,
+        expires_in_s=s.expires_in_s,
         action_mode=s.action_mode,
+        context_goals=tuple(s.context_goals),
     )
 
 
@@ -139,7 +142,7 @@ class GrpcClient(PolicyClient):
         retries: Extra attempts when the server cannot be connected to (never after it answered).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
-        stream: Sessions send act / set_goal over one ordered `Control` stream instead of unary calls.
+        stream: Sessions send act / set_goal / reset over one ordered `Control` stream instead of unary calls.
     """
 
     def __init__(
@@ -287,7 +290,7 @@ class ControlStream:
 
 
 class StreamSession(Session):
-    """A session whose act / set_goal travel over one ordered `Control` stream."""
+    """A session whose act / set_goal / reset travel over one ordered `Control` stream."""
 
     def __init__(self, client: GrpcClient, info: SessionInfo) -> None:
         super().__init__(client, info)
@@ -302,13 +305,20 @@ class StreamSession(Session):
     def set_goal(
         self, goal: int | str | None = None, *, target: float | None = None, blend_steps: int = 0
     ) -> SessionInfo:
-        r = self._stream.call(
-            pb.ControlRequest(set_goal=set_goal_request(self.id, goal, target, blend_steps))
-        )
-        if r.WhichOneof("result") != "session":
-            raise ProtocolError(f"Control answered a set_goal with {r.WhichOneof('result')!r}")
-        self.info = session_from_proto(r.session)
+        req = set_goal_request(self.id, goal, target, blend_steps)
+        self.info = self._session_answer(pb.ControlRequest(set_goal=req), "set_goal")
         return self.info
+
+    def reset(self, goal: int | str | None = None, *, target: float | None = None) -> SessionInfo:
+        req = pb.ResetSessionRequest(session_id=self.id, goal=goal_proto(goal, target))
+        self.info = self._session_answer(pb.ControlRequest(reset=req), "reset")
+        return self.info
+
+    def _session_answer(self, request: pb.ControlRequest, what: str) -> SessionInfo:
+        r = self._stream.call(request)
+        if r.WhichOneof("result") != "session":
+            raise ProtocolError(f"Control answered a {what} with {r.WhichOneof('result')!r}")
+        return session_from_proto(r.session)
 
     def close(self) -> None:
         self._stream.close()

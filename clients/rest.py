@@ -45,7 +45,9 @@ def model_from_json(d: dict) -> ModelInfo:
 
 def session_from_json(d: dict) -> SessionInfo:
     """A `SessionInfo` from a session body (fields the server does not send keep their defaults)."""
-    return SessionInfo(**{k: d[k] for k in SessionInfo.__dataclass_fields__ if d.get(k) is not None})
+    fields = {k: d[k] for k in SessionInfo.__dataclass_fields__ if d.get(k) is not None}
+    fields["context_goals"] = tuple(fields.get("context_goals", ()))
+    return SessionInfo(**fields)
 
 
 def act_from_json(d: dict) -> ActResult:

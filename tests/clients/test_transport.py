@@ -78,9 +78,11 @@ def test_session_lifecycle(client):
         assert np.all(np.abs(r0.action) <= 1.0)
         assert s.set_goal(target=1.9).goal == 2
         assert s.act(OBS).goal == 2
-        assert s.set_goal(0, blend_steps=4).blend_remaining == 4
+        blending = s.set_goal(0, blend_steps=4)
+        assert (blending.blend_remaining, blending.blend_from, blending.goal) == (4, 2, 0)
         info = s.refresh()
-        assert (info.step, info.goal, info.context_size) == (3, 0, 3)
+        assert (info.step, info.goal, info.context_size, info.context_goals) == (3, 0, 3, (1, 1, 2))
+        assert 0 < info.expires_in_s <= info.idle_timeout_s
         reset = s.reset("high")
         assert (reset.step, reset.goal) == (0, 2)
         assert s.act(OBS).step == 0
@@ -147,16 +149,16 @@ def test_unreachable_server_is_retried_then_fails_clearly(kind, no_sleep):
 
 
 class CountingTransport(httpx.HTTPTransport):
-    """Counts requests; the first `fail` ones fail to connect."""
+    """Counts requests; the first `fail` ones raise `error` (default: a refused connection)."""
 
-    def __init__(self, fail: int = 0) -> None:
+    def __init__(self, fail: int = 0, error: type[httpx.TransportError] = httpx.ConnectError) -> None:
         super().__init__()
-        self.calls, self.fail = 0, fail
+        self.calls, self.fail, self.error = 0, fail, error
 
     def handle_request(self, request):
         self.calls += 1
         if self.calls <= self.fail:
-            raise httpx.ConnectError("connection refused (simulated)", request=request)
+            raise self.error("simulated", request=request)
         return super().handle_request(request)
 
 
@@ -175,11 +177,37 @@ def test_rest_retries_connection_errors_only(live_server, no_sleep):
     assert counting.calls == 2 and len(no_sleep) == 2  # answers (4xx) are never retried
 
 
-class CountingStub:
-    """Wraps a PolicyService stub: counts unary calls; the first `fail` ones fail as gRPC does on connect."""
+def test_rest_does_not_resend_after_the_connection_broke_mid_request(live_server, no_sleep):
+    """The server may have applied a request whose answer was lost: resending could act twice."""
+    broken = CountingTransport(fail=1, error=httpx.ReadError)
+    with RestClient(live_server.rest_url, retries=3, transport=broken) as c:
+        with pytest.raises(ServiceError) as e:
+            c.get_model("tiny-gmt")
+    assert broken.calls == 1 and no_sleep == []
+    assert e.value.code == "transport_error" and "ReadError" in e.value.message
 
-    def __init__(self, stub, fail: int = 0) -> None:
-        self.stub, self.fail, self.calls = stub, fail, 0
+
+class Unreachable(grpc.RpcError):
+    """What grpcio raises for a call that could not be sent or whose connection broke."""
+
+    def __init__(self, details: str) -> None:
+        self._details = details
+
+    def code(self):
+        return grpc.StatusCode.UNAVAILABLE
+
+    def details(self):
+        return self._details
+
+
+REFUSED = "failed to connect to all addresses; last error: Connection refused (simulated)"
+
+
+class CountingStub:
+    """Wraps a PolicyService stub: counts unary calls; the first `fail` ones raise Unreachable(details)."""
+
+    def __init__(self, stub, fail: int = 0, details: str = REFUSED) -> None:
+        self.stub, self.fail, self.details, self.calls = stub, fail, details, 0
 
     def __getattr__(self, name):
         rpc = getattr(self.stub, name)
@@ -187,18 +215,10 @@ class CountingStub:
         def call(*args, **kw):
             self.calls += 1
             if self.calls <= self.fail:
-                raise ConnectRefused()
+                raise Unreachable(self.details)
             return rpc(*args, **kw)
 
         return call
-
-
-class ConnectRefused(grpc.RpcError):
-    def code(self):
-        return grpc.StatusCode.UNAVAILABLE
-
-    def details(self):
-        return "failed to connect to all addresses; last error: Connection refused (simulated)"
 
 
 def test_grpc_retries_connection_errors_only(live_server, no_sleep):
@@ -209,6 +229,11 @@ def test_grpc_retries_connection_errors_only(live_server, no_sleep):
         with pytest.raises(NotFound):
             c.get_session("missing")
         assert stub.calls == 3 and len(no_sleep) == 1
+
+        c.stub = stub = CountingStub(stub.stub, fail=1, details="Socket closed")  # broke mid-call
+        with pytest.raises(Unavailable, match="Socket closed") as e:
+            c.get_model("tiny-gmt")
+        assert stub.calls == 1 and len(no_sleep) == 1 and not isinstance(e.value, ConnectionFailed)
 
 
 def test_server_side_unavailable_is_not_retried(tmp_path, start_server, no_sleep):
