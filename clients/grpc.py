@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import queue
+import threading
 from typing import Any
 
 import grpc
@@ -25,7 +26,7 @@ from clients.base import (
     goal_selector,
     with_retries,
 )
-from clients.errors import ProtocolError, ServiceError, error_for
+from clients.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
 
 # gRPC reports a server it never reached as UNAVAILABLE, like a server that answers "unavailable"; these
 # phrases of gRPC core mark the former (the request was not sent, so retrying it is safe).
@@ -229,37 +230,56 @@ class GrpcClient(PolicyClient):
 class ControlStream:
     """One `Control` stream: each command is sent and its answer awaited before the next (strict order).
 
-    A stream that fails to connect before its first answer is reopened (bounded retries); once the server
-    has answered, a broken stream is an error, never silently resent.
+    A reader thread moves answers into a queue so that each wait has the client's timeout. A stream that
+    fails to connect before its first answer is reopened (bounded retries); once the server has answered, a
+    broken or silent stream is an error, never silently resent.
     """
+
+    _END = object()
 
     def __init__(self, client: GrpcClient) -> None:
         self._client = client
-        self._requests: queue.SimpleQueue | None = None
-        self._responses: Any = None
+        self._call: Any = None
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        self._answers: queue.SimpleQueue = queue.SimpleQueue()
         self._answered = False
 
     def _open(self) -> None:
-        self._requests = queue.SimpleQueue()
-        self._responses = self._client.stub.Control(
-            iter(self._requests.get, None), metadata=self._client.metadata
-        )
+        self._requests, self._answers = queue.SimpleQueue(), queue.SimpleQueue()
+        self._call = self._client.stub.Control(iter(self._requests.get, None), metadata=self._client.metadata)
         self._answered = False
+        threading.Thread(
+            target=self._read, args=(self._call, self._answers), name="gmt-control-reader", daemon=True
+        ).start()
+
+    @classmethod
+    def _read(cls, call: Any, answers: queue.SimpleQueue) -> None:
+        try:
+            for response in call:
+                answers.put(response)
+            answers.put(cls._END)
+        except grpc.RpcError as e:  # includes the CANCELLED of our own close
+            answers.put(e)
 
     def _send(self, request: pb.ControlRequest) -> pb.ControlResponse:
-        if self._responses is None:
+        if self._call is None:
             self._open()
         self._requests.put(request)
         try:
-            response = next(self._responses)
-        except grpc.RpcError:
-            self._responses = None
-            raise
-        except StopIteration:
-            self._responses = None
-            raise ProtocolError("the server closed the Control stream") from None
+            answer = self._answers.get(timeout=self._client.timeout_s)
+        except queue.Empty:
+            self.close()
+            raise DeadlineExceeded(
+                f"no answer on the Control stream to {self._client.target} within {self._client.timeout_s} s"
+            ) from None
+        if isinstance(answer, grpc.RpcError):
+            self.close()
+            raise answer
+        if answer is self._END:
+            self.close()
+            raise ProtocolError("the server closed the Control stream")
         self._answered = True
-        return response
+        return answer
 
     def call(self, request: pb.ControlRequest) -> pb.ControlResponse:
         """Send one command and return its answer; in-band errors are raised as `ServiceError`s."""
@@ -283,10 +303,10 @@ class ControlStream:
 
     def close(self) -> None:
         """End the stream (half-close, then cancel anything outstanding)."""
-        if self._responses is not None:
+        if self._call is not None:
             self._requests.put(None)
-            self._responses.cancel()
-            self._responses = None
+            self._call.cancel()
+            self._call = None
 
 
 class StreamSession(Session):

@@ -14,13 +14,14 @@ from clients import base
 from clients.base import PolicyClient
 from clients.errors import (
     ConnectionFailed,
+    DeadlineExceeded,
     InvalidArgument,
     NotFound,
     ResourceExhausted,
     ServiceError,
     Unavailable,
 )
-from clients.grpc import GrpcClient
+from clients.grpc import GrpcClient, StreamSession
 from clients.rest import RestClient
 
 TRANSPORTS = ["rest", "grpc", "grpc-stream"]
@@ -138,8 +139,6 @@ def test_unreachable_server_is_retried_then_fails_clearly(kind, no_sleep):
     with c:
         with pytest.raises(ConnectionFailed) as e:
             if kind == "grpc-stream":
-                from clients.grpc import StreamSession
-
                 StreamSession(c, base.SessionInfo("s", "tiny-gmt", 0)).act(OBS)
             else:
                 c.list_models()
@@ -252,3 +251,52 @@ def test_service_error_str_names_code_and_message():
     err = NotFound("session 'x' does not exist")
     assert str(err) == "not_found: session 'x' does not exist"
     assert isinstance(err, ServiceError)
+
+
+@pytest.fixture
+def silent_grpc_server():
+    """A PolicyService that takes calls and never answers in time (until the test ends)."""
+    from concurrent.futures import ThreadPoolExecutor
+    from threading import Event
+
+    from gmt.v1 import policy_pb2 as pb
+    from gmt.v1 import policy_pb2_grpc as pb_grpc
+
+    release = Event()
+
+    class Silent(pb_grpc.PolicyServiceServicer):
+        def Act(self, request, context):
+            release.wait(30)
+            return pb.ActResponse()
+
+        def Control(self, request_iterator, context):
+            for _ in request_iterator:
+                release.wait(30)
+                yield pb.ControlResponse()
+
+    server = grpc.server(ThreadPoolExecutor(4))
+    pb_grpc.add_PolicyServiceServicer_to_server(Silent(), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    yield f"127.0.0.1:{port}"
+    release.set()
+    server.stop(0)
+
+
+@pytest.mark.parametrize("stream", [False, True], ids=["unary", "stream"])
+def test_grpc_call_without_an_answer_times_out(silent_grpc_server, stream, no_sleep):
+    with GrpcClient(silent_grpc_server, timeout_s=0.2, stream=stream) as c:
+        session = (StreamSession if stream else base.Session)(c, base.SessionInfo("s", "tiny-gmt", 0))
+        with pytest.raises(DeadlineExceeded) as e:
+            session.act(OBS)
+    assert e.value.code == "deadline_exceeded" and no_sleep == []
+
+
+def test_rest_request_without_an_answer_times_out(no_sleep):
+    with socket.socket() as listener:  # accepts connections (backlog) but never answers
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        url = f"http://127.0.0.1:{listener.getsockname()[1]}"
+        with RestClient(url, timeout_s=0.2) as c, pytest.raises(DeadlineExceeded) as e:
+            c.act("s", OBS)
+    assert e.value.code == "deadline_exceeded" and "/sessions/s/act" in e.value.message and no_sleep == []
