@@ -12,12 +12,17 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from clients.base import ModelInfo, PolicyClient, Session
 from clients.segments import Segment, measure, table
 from clients.statistic import step_signal
 from clients.trace import Trace
+
+if TYPE_CHECKING:
+    import gymnasium as gym
+
+    from clients.video import VideoWriter
 
 StepHook = Callable[[int, Session], None]
 STATUS_WINDOW = 50
@@ -154,13 +159,13 @@ def resolve_model(client: PolicyClient, name: str | None, env_id: str | None) ->
 
 def run_episode(
     session: Session,
-    env,
+    env: gym.Env,
     spec: ModelInfo,
     cfg: RunConfig,
     seed: int,
     on_step: StepHook | None = None,
     status: StatusLine | None = None,
-    video=None,
+    video: VideoWriter | None = None,
 ) -> tuple[Trace, bool]:
     """Step one episode; returns its trace and whether the environment terminated early."""
     schedule = dict(cfg.schedule)
@@ -168,29 +173,31 @@ def run_episode(
     window: deque[float] = deque(maxlen=STATUS_WINDOW)
     obs, _ = env.reset(seed=seed)
     terminated = False
-    for t in range(cfg.steps):
-        if t in schedule:
-            session.set_goal(schedule[t])
-        if on_step is not None:
-            on_step(t, session)
-        res = session.act(obs)
-        obs, reward, terminated, truncated, info = env.step(res.action)
-        sig = step_signal(spec.statistic, reward, info)
-        trace.append(t, res.step, res.goal, sig, reward, res.action)
-        if video is not None:
-            video.append(env.render())
-        window.append(sig)
+    try:
+        for t in range(cfg.steps):
+            if t in schedule:
+                session.set_goal(schedule[t])
+            if on_step is not None:
+                on_step(t, session)
+            res = session.act(obs)
+            obs, reward, terminated, truncated, info = env.step(res.action)
+            sig = step_signal(spec.statistic, reward, info)
+            trace.append(t, res.step, res.goal, sig, reward, res.action)
+            if video is not None:
+                video.append(env.render())
+            window.append(sig)
+            if status is not None:
+                g = spec.goal(res.goal)
+                status.update(
+                    t,
+                    f"step {t:5d}  goal {g.id} ({g.name}, target {g.mean:.2f})  "
+                    f"{spec.statistic} avg{len(window)} {sum(window) / len(window):+.3f}",
+                )
+            if terminated or truncated:
+                break
+    finally:
         if status is not None:
-            g = spec.goal(res.goal)
-            status.update(
-                t,
-                f"step {t:5d}  goal {g.id} ({g.name}, target {g.mean:.2f})  "
-                f"{spec.statistic} avg{len(window)} {sum(window) / len(window):+.3f}",
-            )
-        if terminated or truncated:
-            break
-    if status is not None:
-        status.done()
+            status.done()
     return trace, bool(terminated)
 
 
@@ -240,6 +247,8 @@ def run(
     """
     from clients.envs import make_env
 
+    if cfg.video and cfg.out is None:
+        raise ValueError("video needs an output folder (out)")
     spec = resolve_model(client, cfg.model, cfg.env_id)
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)

@@ -91,12 +91,16 @@ def test_session_lifecycle(client):
         client.get_session(s.id)
 
 
-def test_unknown_session_is_not_found_with_the_servers_message(client):
+def test_unknown_session_is_not_found_with_the_servers_message(client, live_server):
+    raw = httpx.post(
+        f"{live_server.rest_url}/sessions/no-such-session/act", json={"observation": OBS.tolist()}
+    )
+    assert raw.status_code == 404
     session = base.Session(client, base.SessionInfo(session_id="no-such-session", model="tiny-gmt", goal=0))
     with pytest.raises(NotFound) as e:
         session.act(OBS)
     assert e.value.code == "not_found"
-    assert "no-such-session" in e.value.message
+    assert e.value.message == raw.json()["error"]["message"] and "no-such-session" in e.value.message
     with pytest.raises(NotFound, match="no-such-session"):
         session.set_goal(1)
 
