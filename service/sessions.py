@@ -164,7 +164,8 @@ class MemorySessionStore(SessionStore):
         return self._lookup(sid)
 
     async def save(self, session: Session) -> None:
-        self._sessions[session.id] = session
+        if session.id in self._sessions:  # never resurrect a session the sweeper removed meanwhile
+            self._sessions[session.id] = session
 
     async def delete(self, sid: str) -> None:
         self._remove(self._lookup(sid), expired=False)

@@ -272,3 +272,36 @@ def test_health_reflection_and_readiness_without_models(make_server, tmp_path):
                 pb.CreateSessionRequest(goal=pb.GoalSelector(id=0))
             )
         assert e.value.code() == grpc.StatusCode.UNAVAILABLE
+
+
+def test_calls_on_one_session_are_applied_one_at_a_time(make_server, engine):
+    server = make_server(batch_wait_ms=5)
+    obs = np.random.default_rng(9).normal(size=(6, OBS_DIM)).astype(np.float32)
+    with httpx.Client(base_url=server.url) as http:
+        sid = create(http, goal=1)
+        rs = asyncio.run(_act_all(server.url, [sid] * 6, obs))
+        assert http.get(f"/sessions/{sid}").json()["step"] == 6
+    steps = [r.json()["step"] for r in rs]
+    assert sorted(steps) == list(range(6))  # each call saw the context its predecessor left
+    ctx = engine.new_context(1)
+    for i in np.argsort(steps):  # the order the server applied them in
+        np.testing.assert_array_equal(np.float32(rs[i].json()["action"]), engine.act([ctx], [obs[i]])[0])
+
+
+def test_openapi_lists_exactly_the_designed_routes(http):
+    spec = http.get("/openapi.json").json()
+    routes = {(m.upper(), p) for p, ops in spec["paths"].items() for m in ops}
+    assert routes == {
+        ("GET", "/models"),
+        ("GET", "/models/{name}"),
+        ("POST", "/sessions"),
+        ("GET", "/sessions/{session_id}"),
+        ("POST", "/sessions/{session_id}/act"),
+        ("PUT", "/sessions/{session_id}/goal"),
+        ("POST", "/sessions/{session_id}/reset"),
+        ("DELETE", "/sessions/{session_id}"),
+        ("GET", "/healthz"),
+        ("GET", "/readyz"),
+        ("GET", "/metrics"),
+    }
+    assert http.get("/docs").status_code == 200

@@ -177,3 +177,14 @@ def test_replica_dies_and_another_answers_exactly_as_it_would_have(redis_clean, 
             assert len(set(cwant)) > 1  # sampling really happened, so the generator state mattered
     finally:
         b.stop()
+    # A replica that does not serve the session's model says so.
+    c = RunningServer(make_settings(checkpoints=[ckpt_root / "tiny-gmt"], redis_url=redis_clean)).start()
+    try:
+        with httpx.Client(base_url=c.url) as http:
+            r = http.post(f"/sessions/{csid}/act", json={"observation": cobs[0].tolist()})
+            assert r.status_code == 409 and r.json()["error"] == {
+                "code": "failed_precondition",
+                "message": f"session '{csid}' runs model 'tiny-cartpole', which this server does not serve",
+            }
+    finally:
+        c.stop()
