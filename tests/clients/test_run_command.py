@@ -55,6 +55,11 @@ def test_unreachable_server_exits_with_a_clear_message():
     assert "error: unavailable: could not connect to http://127.0.0.1:9 after 2 attempt(s)" in r.output
 
 
+def test_run_is_a_gmt_command():
+    r = runner.invoke(app, ["--help"])
+    assert r.exit_code == 0 and "run" in r.output and "Drive an agent remotely" in r.output
+
+
 def test_bad_schedule_and_video_without_out_are_usage_errors():
     r = runner.invoke(app, ["run", "--schedule", "2@x"])
     assert r.exit_code == 2 and "GOAL@STEP" in r.output

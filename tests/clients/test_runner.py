@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ from clients.envs import SpaceMismatch
 from clients.errors import NotFound
 from clients.grpc import GrpcClient
 from clients.rest import RestClient
-from clients.runner import RunConfig, parse_goal, parse_schedule, run
+from clients.runner import RunConfig, StatusLine, parse_goal, parse_schedule, run
 from clients.segments import runs, settle_in
 
 STEPS = 60
@@ -163,3 +164,21 @@ def test_runs_and_settle_in():
     assert runs([0, 0, 2, 2, 2, 0]) == [(0, 0, 2), (2, 2, 5), (0, 5, 6)]
     assert runs([]) == []
     assert [settle_in(n) for n in (1, 4, 60, 400, 500, 1000)] == [0, 1, 15, 100, 100, 100]
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_status_line_rewrites_itself_on_a_terminal_and_prints_every_n_steps_otherwise():
+    tty = StatusLine(Terminal())
+    tty.update(0, "step 0 long text")
+    tty.update(1, "step 1")
+    tty.done()
+    assert tty.stream.getvalue() == "\rstep 0 long text\rstep 1          \n"
+    log = StatusLine(io.StringIO(), every=2)
+    for t in range(5):
+        log.update(t, f"step {t}")
+    log.done()
+    assert log.stream.getvalue() == "step 0\nstep 2\nstep 4\n"
