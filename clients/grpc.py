@@ -139,7 +139,7 @@ class GrpcClient(PolicyClient):
 
     Args:
         target: "host:port" of the gRPC server.
-        timeout_s: Deadline of each unary call.
+        timeout_s: Deadline of each unary call, and the longest wait for each answer on a Control stream.
         retries: Extra attempts when the server cannot be connected to (never after it answered).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
