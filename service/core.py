@@ -104,6 +104,7 @@ class Core:
         self.metrics = Metrics()
         self.started = False
         self.closing = False
+        self._closed = False
         self._batchers: dict[str, MicroBatcher] = {}
         self._executor: ThreadPoolExecutor | None = None
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
@@ -152,8 +153,10 @@ class Core:
         self.started = True
 
     async def close(self) -> None:
-        """Stop batching and sweeping and release the store (sessions in memory are dropped)."""
-        self.closing = True
+        """Stop batching and sweeping and release the store (sessions in memory are dropped); idempotent."""
+        if self._closed:
+            return
+        self._closed = self.closing = True
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)

@@ -48,7 +48,7 @@ class Server:
 
     Args:
         settings: Server settings.
-        core: A core to serve (default: built from settings); it is started and closed here.
+        core: A core to serve (default: built from settings); the REST lifespan starts it, `stop` closes it.
     """
 
     def __init__(self, settings: Settings, core: Core | None = None) -> None:
@@ -61,12 +61,10 @@ class Server:
         self._uvicorn_task: asyncio.Task | None = None
 
     async def start(self) -> None:
-        """Load models, then listen on both ports (the bound ones are in `rest_port` and `grpc_port`)."""
+        """Listen for REST (its lifespan loads the models), then for gRPC; the bound ports are in `rest_port`
+        and `grpc_port`.
+        """
         s = self.settings
-        await self.core.start()
-        self._grpc = GrpcServer(self.core, s.host, s.grpc_port)
-        self.grpc_port = self._grpc.port
-        await self._grpc.start()
         sock = _bind(s.host, s.rest_port)
         self.rest_port = sock.getsockname()[1]
         config = uvicorn.Config(
@@ -82,9 +80,18 @@ class Server:
         await asyncio.wait({listening, self._uvicorn_task}, return_when=asyncio.FIRST_COMPLETED)
         if not self._uvicorn.listening.is_set():
             listening.cancel()
-            await self._grpc.stop(0)
+            sock.close()
             await self.core.close()
-            raise RuntimeError("REST server failed to start")
+            raise RuntimeError("REST server failed to start (see the log above)")
+        try:
+            self._grpc = GrpcServer(self.core, s.host, s.grpc_port)
+            self.grpc_port = self._grpc.port
+            await self._grpc.start()
+        except BaseException:
+            self._uvicorn.should_exit = True
+            await self._uvicorn_task
+            await self.core.close()
+            raise
         log.info(
             "serving",
             extra={
@@ -105,10 +112,10 @@ class Server:
         self.core.closing = True
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
+        waits = [self._uvicorn_task] if self._uvicorn_task is not None else []
         if self._grpc is not None:
-            await self._grpc.stop(self.settings.shutdown_grace_s)
-        if self._uvicorn_task is not None:
-            await self._uvicorn_task
+            waits.append(self._grpc.stop(self.settings.shutdown_grace_s))
+        await asyncio.gather(*waits)
         await self.core.close()
         log.info("stopped")
 

@@ -155,22 +155,23 @@ class RequestMetrics:
 
 
 def create_app(settings: Settings | None = None, core: Core | None = None) -> FastAPI:
-    """The REST app. Given a `core`, it serves it (its owner starts and closes it); otherwise the lifespan
-    builds one from `settings`, loads its models on startup and closes it on shutdown.
+    """The REST app over `core` (default: a new one from `settings`).
+
+    The lifespan loads the models (starts the core) unless the core already runs, and closes the core on
+    shutdown only if it created it; whoever passes a core closes it.
     """
     settings = settings or (core.settings if core else Settings())
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        own = core is None
         c = core or Core(settings)
-        if own:
-            await c.start()
+        if not c.started:
+            await c.start()  # models load here, never at import time
         app.state.core = c
         try:
             yield
         finally:
-            if own:
+            if core is None:
                 await c.close()
 
     app = FastAPI(

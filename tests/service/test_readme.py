@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import RunningServer, make_settings
+from service_harness import RunningServer, make_settings
 
 from model.fixtures import tiny_checkpoint
 

@@ -9,7 +9,7 @@ import subprocess
 import httpx
 import numpy as np
 import pytest
-from conftest import RunningServer, ServeProcess, make_settings
+from service_harness import RunningServer, ServeProcess, make_settings
 
 from model.checkpoint import load_checkpoint
 from model.engine import PolicyEngine

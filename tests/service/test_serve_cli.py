@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 import httpx
-from conftest import ServeProcess
+from service_harness import ServeProcess
 
 from service.settings import Settings
 

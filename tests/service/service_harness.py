@@ -1,0 +1,144 @@
+"""Real servers for the service tests: in-process (REST + gRPC on loopback port 0, in a thread) or `gmt serve`."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from service.core import Core
+from service.server import Server
+from service.settings import Settings
+
+OBS_DIM = 17
+
+
+class FakeClock:
+    """A wall clock that moves only when told to."""
+
+    def __init__(self, t: float = 1_000_000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+class RunningServer:
+    """`service.server.Server` running its own event loop in a background thread."""
+
+    def __init__(self, settings: Settings, clock=None) -> None:
+        self.settings = settings
+        self.core = Core(settings, clock=clock) if clock else Core(settings)
+        self.server = Server(settings, self.core)
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, name="test-server", daemon=True)
+
+    def _main(self) -> None:
+        async def run() -> None:
+            self.loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            try:
+                await self.server.start()
+            except BaseException as e:
+                self._error = e
+                self._started.set()
+                raise
+            self._started.set()
+            await self._stop.wait()
+            await self.server.stop()
+
+        try:
+            asyncio.run(run())
+        except BaseException as e:  # noqa: BLE001 - reported by start()
+            self._error = self._error or e
+
+    def start(self) -> RunningServer:
+        self._thread.start()
+        if not self._started.wait(60):
+            raise TimeoutError("server did not start within 60 s")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def stop(self) -> None:
+        if self._thread.is_alive():
+            self.loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join(30)
+
+    def run(self, coro):
+        """Run a coroutine on the server's loop (e.g. `core.sweep()`) and return its result."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(30)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.server.rest_port}"
+
+    @property
+    def target(self) -> str:
+        return f"127.0.0.1:{self.server.grpc_port}"
+
+
+def make_settings(**kw) -> Settings:
+    """Settings for a loopback test server on free ports (environment ignored); `checkpoints` is required."""
+    base = dict(
+        host="127.0.0.1",
+        rest_port=0,
+        grpc_port=0,
+        redis_url=None,
+        auth_token=None,
+        shutdown_grace_s=1.0,
+    )
+    return Settings(**{**base, **kw})
+
+
+class ServeProcess:
+    """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
+
+    def __init__(self, *args: str) -> None:
+        exe = Path(sys.executable).parent / "gmt"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+        cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
+        self.proc = subprocess.Popen(
+            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+        )
+        self.lines: list[dict] = []
+        self.serving: dict | None = None
+        self._ready = threading.Event()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for raw in self.proc.stderr:
+            try:
+                rec = json.loads(raw)
+            except json.JSONDecodeError:
+                rec = {"msg": raw.rstrip()}
+            self.lines.append(rec)
+            if rec.get("msg") == "serving":
+                self.serving = rec
+                self._ready.set()
+        self._ready.set()  # exited
+
+    def wait_serving(self, timeout: float = 60) -> dict:
+        assert self._ready.wait(timeout), "gmt serve did not start in time"
+        assert self.serving is not None, f"gmt serve exited: {self.lines}"
+        return self.serving
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.serving['rest_port']}"
+
+    def messages(self) -> list[str]:
+        return [rec.get("msg", "") for rec in self.lines]
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(30)
