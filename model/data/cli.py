@@ -79,6 +79,7 @@ def collect(
     ),
     max_steps: int = typer.Option(None, help="Cap episode length (for quick checks)."),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
+    keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset."""
     from model.data.collect import CollectConfig, collect
@@ -92,6 +93,7 @@ def collect(
         behaviour_dir=behaviour_dir,
         max_steps=max_steps,
         include_random=not no_random,
+        drop_stuck=not keep_stuck,
     )
     res = collect(cfg)
     typer.echo(f"wrote {res.dataset_id} to {res.path}")
@@ -102,7 +104,9 @@ def collect(
             if lv["mean_speed"] is None
             else f"  mean x-velocity {lv['mean_speed']:.3f} +- {lv['std_speed']:.3f}"
         )
-        typer.echo(f"  {name:<8} {lv['episodes']} episodes{speed}")
+        typer.echo(
+            f"  {name:<8} {lv['episodes']} episodes ({lv['stuck_dropped']} stuck ones replaced){speed}"
+        )
 
 
 def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):

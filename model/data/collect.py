@@ -16,7 +16,7 @@ import torch
 
 from model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
 from model.data.minari_io import Episode, write_dataset
-from model.data.rollout import rollout
+from model.data.rollout import rollout, stuck_step
 
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
@@ -42,6 +42,11 @@ class CollectConfig:
         behaviour_dir: Folder holding <env>/<level>.safetensors (None: the repository's behaviour/).
         max_steps: Optional cap on episode length (tests use a tiny one).
         include_random: Add the uniform-random policy as a level.
+        drop_stuck: Replace snapshot episodes in which the agent, after running, came to a standstill
+            (`rollout.stuck_step` over `stuck_window` steps): the behaviour changed mid-episode, which would
+            blur the level's speed. Counted per level; the random policy is never filtered.
+        stuck_window: Steps averaged by the standstill test.
+        max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         overwrite: Replace an existing dataset with the same id.
     """
 
@@ -53,6 +58,9 @@ class CollectConfig:
     behaviour_dir: Path | None = None
     max_steps: int | None = None
     include_random: bool = True
+    drop_stuck: bool = True
+    stuck_window: int = 100
+    max_attempts: int = 3
     overwrite: bool = True
 
     def __post_init__(self) -> None:
@@ -92,11 +100,22 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     episodes, metadata, levels = [], [], {}
     bar = tqdm(total=n * len(policies), desc=f"collect {cfg.env_id}", unit="ep", disable=not progress)
     for (name, policy), child in zip(policies.items(), children, strict=True):
-        reset_seeds = child.generate_state(n, dtype=np.uint32)
+        reset_seeds = iter(child.generate_state(n * cfg.max_attempts, dtype=np.uint32))
         rng = np.random.default_rng(child)
-        speeds = []
-        for reset_seed in reset_seeds:
+        speeds, kept, dropped = [], 0, 0
+        filtered = cfg.drop_stuck and name != RANDOM
+        while kept < n:
+            reset_seed = next(reset_seeds, None)
+            if reset_seed is None:
+                raise RuntimeError(f"{name}: {dropped} of {kept + dropped} episodes got stuck; giving up")
             ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps)
+            if (
+                filtered
+                and "x_velocity" in ep.infos
+                and stuck_step(ep.infos["x_velocity"], cfg.stuck_window) is not None
+            ):
+                dropped += 1
+                continue
             episodes.append(
                 Episode(
                     observations=ep.observations[:-1],
@@ -112,15 +131,26 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             metadata.append({"policy": name, "reset_seed": int(reset_seed)})
             if "x_velocity" in ep.infos:
                 speeds.append(float(ep.infos["x_velocity"].mean()))
+            kept += 1
             bar.update(1)
-            bar.set_postfix(level=name)
-        levels[name] = {"episodes": n, "mean_speed": float(np.mean(speeds)) if speeds else None}
-        levels[name]["std_speed"] = float(np.std(speeds)) if speeds else None
+            bar.set_postfix(level=name, stuck=dropped)
+        levels[name] = {
+            "episodes": n,
+            "stuck_dropped": dropped,
+            "mean_speed": float(np.mean(speeds)) if speeds else None,
+            "std_speed": float(np.std(speeds)) if speeds else None,
+        }
     bar.close()
+    dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
     description = (
         f"Mixed-skill {cfg.env_id} data: uniform-random policy and PPO snapshots "
         f"({', '.join(p for p in policies if p != RANDOM)}) rolled out stochastically, {n} episodes each, "
-        f"seed {cfg.seed}. Written by `gmt data collect`."
+        f"seed {cfg.seed}. "
+        + (
+            f"Episodes where a running agent came to a standstill were replaced (per level: {dropped}). "
+            * cfg.drop_stuck
+        )
+        + "Written by `gmt data collect`."
     )
     path = write_dataset(
         cfg.dataset_id,

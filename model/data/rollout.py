@@ -74,3 +74,29 @@ def rollout(
         infos={k: np.asarray([i[k] for i in infos], dtype=np.float64) for k in sorted(keys)},
         reset_info=reset_info,
     )
+
+
+def stuck_step(
+    x_velocity: np.ndarray,
+    window: int = 20,
+    run_speed: float = 1.0,
+    stop_speed: float = 0.1,
+    run_window: int = 20,
+) -> int | None:
+    """First step at which an agent that was running has come to a standstill, else None.
+
+    "Running" means a `run_window`-step mean x-velocity above `run_speed` at some earlier point; "standstill"
+    means a later `window`-step mean |x-velocity| below `stop_speed`.
+    """
+    v = np.asarray(x_velocity, dtype=np.float64)
+    if len(v) < max(window, run_window):
+        return None
+    run_means = np.convolve(
+        v, np.ones(run_window) / run_window, mode="valid"
+    )  # [i] covers i .. i+run_window-1
+    ran_by_end = np.maximum.accumulate(run_means > run_speed)  # indexed by window end - run_window + 1
+    stop_means = np.convolve(v, np.ones(window) / window, mode="valid")
+    ends = np.arange(len(stop_means)) + window - 1  # last step of each stop window
+    ran = ran_by_end[np.minimum(ends - run_window + 1, len(ran_by_end) - 1)]
+    hits = np.flatnonzero(ran & (np.abs(stop_means) < stop_speed))
+    return int(ends[hits[0]]) if len(hits) else None

@@ -89,3 +89,14 @@ def test_saved_snapshot_round_trip(tmp_path):
     a1 = pol.act(obs, np.random.default_rng(0))
     assert not np.array_equal(a1, pol.act(obs))  # stochastic vs mean
     np.testing.assert_array_equal(a1, pol.act(obs, np.random.default_rng(0)))
+
+
+def test_stuck_step_finds_a_runner_that_stopped():
+    from model.data.rollout import stuck_step
+
+    ran_then_stopped = np.r_[np.full(50, 2.0), np.zeros(200)]
+    assert stuck_step(ran_then_stopped) == 69
+    assert stuck_step(ran_then_stopped, window=100) == 145
+    assert stuck_step(np.zeros(300)) is None  # never ran
+    assert stuck_step(np.r_[np.zeros(100), np.full(150, 2.0)], window=100) is None  # stopped before running
+    assert stuck_step(np.full(300, 0.9)) is None  # slow but steady
