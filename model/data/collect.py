@@ -81,6 +81,45 @@ class CollectResult:
     seconds: float
 
 
+def collect_level(
+    env, name: str, policy, cfg: CollectConfig, seeds: np.random.SeedSequence, first_id: int, bar=None
+) -> tuple[list[Episode], list[dict], dict]:
+    """`cfg.episodes_per_level` episodes of one policy, replacing stuck ones (never for the random policy).
+
+    Returns:
+        The episodes, their Minari episode metadata, and a summary (counts, speed mean and std).
+    """
+    n = cfg.episodes_per_level
+    reset_seeds = iter(seeds.generate_state(n * cfg.max_attempts, dtype=np.uint32))
+    rng = np.random.default_rng(seeds)
+    filtered = cfg.drop_stuck and name != RANDOM
+    episodes, metadata, dropped = [], [], 0
+    while len(episodes) < n:
+        reset_seed = next(reset_seeds, None)
+        if reset_seed is None:
+            raise RuntimeError(
+                f"{name}: {dropped} of {len(episodes) + dropped} episodes got stuck; giving up"
+            )
+        ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps)
+        v = ep.infos.get("x_velocity")
+        if filtered and v is not None and stuck_step(v, cfg.stuck_window) is not None:
+            dropped += 1
+            continue
+        episodes.append(ep.to_episode(first_id + len(episodes)))
+        metadata.append({"policy": name, "reset_seed": int(reset_seed)})
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(level=name, stuck=dropped)
+    speeds = [float(e.infos["x_velocity"].mean()) for e in episodes if "x_velocity" in e.infos]
+    summary = {
+        "episodes": n,
+        "stuck_dropped": dropped,
+        "mean_speed": float(np.mean(speeds)) if speeds else None,
+        "std_speed": float(np.std(speeds)) if speeds else None,
+    }
+    return episodes, metadata, summary
+
+
 def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     """Roll out every level's policy `episodes_per_level` times and write one Minari dataset.
 
@@ -95,61 +134,21 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     policies = {RANDOM: RandomPolicy(env.action_space)} if cfg.include_random else {}
     for path in list_snapshots(cfg.env_id, cfg.behaviour_dir):
         policies[path.stem] = load_behaviour(path, env.action_space)
-    n = cfg.episodes_per_level
     children = np.random.SeedSequence(cfg.seed).spawn(len(policies))
     episodes, metadata, levels = [], [], {}
-    bar = tqdm(total=n * len(policies), desc=f"collect {cfg.env_id}", unit="ep", disable=not progress)
-    for (name, policy), child in zip(policies.items(), children, strict=True):
-        reset_seeds = iter(child.generate_state(n * cfg.max_attempts, dtype=np.uint32))
-        rng = np.random.default_rng(child)
-        speeds, kept, dropped = [], 0, 0
-        filtered = cfg.drop_stuck and name != RANDOM
-        while kept < n:
-            reset_seed = next(reset_seeds, None)
-            if reset_seed is None:
-                raise RuntimeError(f"{name}: {dropped} of {kept + dropped} episodes got stuck; giving up")
-            ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps)
-            if (
-                filtered
-                and "x_velocity" in ep.infos
-                and stuck_step(ep.infos["x_velocity"], cfg.stuck_window) is not None
-            ):
-                dropped += 1
-                continue
-            episodes.append(
-                Episode(
-                    observations=ep.observations[:-1],
-                    actions=ep.actions.astype(np.float32),
-                    rewards=ep.rewards,
-                    terminated=ep.terminated,
-                    truncated=ep.truncated,
-                    infos=ep.infos,
-                    final_observation=ep.observations[-1],
-                    episode_id=len(episodes),
-                )
-            )
-            metadata.append({"policy": name, "reset_seed": int(reset_seed)})
-            if "x_velocity" in ep.infos:
-                speeds.append(float(ep.infos["x_velocity"].mean()))
-            kept += 1
-            bar.update(1)
-            bar.set_postfix(level=name, stuck=dropped)
-        levels[name] = {
-            "episodes": n,
-            "stuck_dropped": dropped,
-            "mean_speed": float(np.mean(speeds)) if speeds else None,
-            "std_speed": float(np.std(speeds)) if speeds else None,
-        }
-    bar.close()
+    with tqdm(total=cfg.episodes_per_level * len(policies), desc=f"collect {cfg.env_id}", unit="ep",
+              disable=not progress) as bar:  # fmt: skip
+        for (name, policy), seeds in zip(policies.items(), children, strict=True):
+            eps, meta, levels[name] = collect_level(env, name, policy, cfg, seeds, len(episodes), bar)
+            episodes += eps
+            metadata += meta
     dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
     description = (
-        f"Mixed-skill {cfg.env_id} data: uniform-random policy and PPO snapshots "
-        f"({', '.join(p for p in policies if p != RANDOM)}) rolled out stochastically, {n} episodes each, "
-        f"seed {cfg.seed}. "
-        + (
-            f"Episodes where a running agent came to a standstill were replaced (per level: {dropped}). "
-            * cfg.drop_stuck
-        )
+        f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} (PPO snapshots rolled out with their "
+        f"Gaussian noise{', and a uniform-random policy' * cfg.include_random}), {cfg.episodes_per_level} "
+        f"episodes each, seed {cfg.seed}. "
+        + f"Snapshot episodes where a running agent came to a standstill were replaced ({dropped}). "
+        * cfg.drop_stuck
         + "Written by `gmt data collect`."
     )
     path = write_dataset(

@@ -7,6 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
+from model.data.minari_io import Episode
+
 
 class Policy(Protocol):
     """Anything with `act(obs, rng) -> action` (rng None means deterministic)."""
@@ -28,6 +30,19 @@ class Rollout:
 
     def __len__(self) -> int:
         return len(self.actions)
+
+    def to_episode(self, episode_id: int) -> Episode:
+        """The dataset view: observations at which actions were taken, the last one kept apart."""
+        return Episode(
+            observations=self.observations[:-1],
+            actions=self.actions.astype(np.float32 if self.actions.dtype.kind == "f" else np.int64),
+            rewards=self.rewards,
+            terminated=self.terminated,
+            truncated=self.truncated,
+            infos=self.infos,
+            final_observation=self.observations[-1],
+            episode_id=episode_id,
+        )
 
 
 def scalar_items(info: dict) -> dict[str, float]:
