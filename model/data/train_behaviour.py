@@ -54,21 +54,11 @@ PRESETS: dict[str, PPOPreset] = {
         n_steps=512, batch_size=64, n_epochs=20, learning_rate=2.0633e-05, gamma=0.98, gae_lambda=0.92,
         clip_range=0.1, ent_coef=0.000401762, vf_coef=0.58096, max_grad_norm=0.8, stuck_penalty=200.0,
     ),
-    # rl-zoo's tuned Hopper settings.
-    "hopper": PPOPreset(
-        n_steps=512, batch_size=32, n_epochs=5, learning_rate=9.80828e-05, gamma=0.999, gae_lambda=0.99,
-        clip_range=0.2, ent_coef=0.00229519, vf_coef=0.835671, max_grad_norm=0.7,
-    ),
-    # rl-zoo's Walker2d settings with Hopper's network and fewer, larger minibatches (CPU time).
-    "walker2d": PPOPreset(
-        n_steps=512, batch_size=64, n_epochs=10, learning_rate=5.05041e-05, gamma=0.99, gae_lambda=0.95,
-        clip_range=0.1, ent_coef=0.000585045, vf_coef=0.871923, max_grad_norm=1.0,
-    ),
-    # rl-zoo's Ant settings with the same network.
-    "ant": PPOPreset(
-        n_steps=512, batch_size=64, n_epochs=10, learning_rate=1.90609e-05, gamma=0.98, gae_lambda=0.8,
-        clip_range=0.1, ent_coef=4.9646e-07, vf_coef=0.677239, max_grad_norm=0.6,
-    ),
+    # SB3's default PPO: its unit initial noise keeps Hopper, Walker2d and Ant from settling on standing still
+    # for the healthy reward (rl-zoo's Hopper settings with log-std -2 did, for 460k steps).
+    "hopper": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=0.0, ortho_init=True),
+    "walker2d": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=0.0, ortho_init=True),
+    "ant": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=0.0, ortho_init=True),
 }  # fmt: skip
 
 # Target mean x-velocities (m/s) per level; "max" keeps the fastest consistent snapshot.
