@@ -7,6 +7,7 @@ import subprocess
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
@@ -41,6 +42,8 @@ class Checkpoint:
         statistic: Name of the per-trajectory statistic the goals cluster.
         goals: Goal table, goal 0 = lowest statistic.
         meta: The whole gmt.json (training config, dataset fingerprint, code revision, ...).
+        action_noise: [n_goals, A] per-goal action std in model space for sampled continuous actions
+            (`model.calibrate`), or None when not calibrated.
     """
 
     name: str
@@ -53,6 +56,7 @@ class Checkpoint:
     statistic: str
     goals: list[Goal]
     meta: dict = field(default_factory=dict)
+    action_noise: np.ndarray | None = None
 
     @property
     def config(self) -> GMTConfig:
@@ -101,6 +105,13 @@ def save_checkpoint(ckpt: Checkpoint, directory: str | Path, extra_meta: dict | 
         "statistic": ckpt.statistic,
         "goals": [asdict(g) for g in ckpt.goals],
     }
+    meta.pop("action_noise", None)
+    if ckpt.action_noise is not None:
+        meta["action_noise"] = {
+            "std": np.asarray(ckpt.action_noise, dtype=np.float32).astype(np.float64).tolist(),
+            "description": "[goal][action dim] RMS residual of the dataset actions around the prediction "
+            "(model space); continuous `sample` mode adds std * N(0, 1)",
+        }
     (d / META).write_text(json.dumps(meta, indent=2, allow_nan=False) + "\n")
     return d
 
@@ -165,7 +176,24 @@ def load_checkpoint(directory: str | Path, name: str | None = None) -> Checkpoin
         statistic=meta["statistic"],
         goals=[Goal(**g) for g in meta["goals"]],
         meta=meta,
+        action_noise=_action_noise(meta, cfg, meta_path),
     )
+
+
+def _action_noise(meta: dict, cfg: GMTConfig, meta_path: Path) -> np.ndarray | None:
+    if "action_noise" not in meta:
+        return None
+    std = np.asarray(meta["action_noise"].get("std"), dtype=np.float32)
+    if (
+        cfg.discrete_actions
+        or std.shape != (cfg.n_goals, cfg.act_dim)
+        or not (np.isfinite(std) & (std >= 0)).all()
+    ):
+        raise CheckpointError(
+            f"{meta_path}: action_noise.std must be [{cfg.n_goals}, {cfg.act_dim}] finite values >= 0 "
+            f"for a continuous-action model, got shape {list(std.shape)}"
+        )
+    return std
 
 
 def state_dicts_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:

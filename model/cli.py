@@ -101,16 +101,26 @@ def eval_command(
     markdown_out: Path = typer.Option(None, "--markdown", help="Write the Markdown table here."),
     plot: Path = typer.Option(None, help="Write the figure (PNG) here."),
     threads: int = typer.Option(2, help="torch threads."),
+    action_mode: str = typer.Option(
+        None,
+        help="mean or sample (continuous), argmax/sample/expert (discrete); default: the model's default.",
+    ),
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps."""
     import torch
 
     from model.checkpoint import load_checkpoint
+    from model.engine import PolicyEngine
     from model.evaluate import evaluate
 
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
-    result = evaluate(ckpt, seeds=seeds, steps=steps)
+    modes = PolicyEngine(ckpt).action_modes
+    if action_mode is not None and action_mode not in modes:
+        raise typer.BadParameter(
+            f"{action_mode!r} is not one of this model's modes {modes}", param_hint="--action-mode"
+        )
+    result = evaluate(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
     table = result.markdown()
     typer.echo(table)
     if json_out:

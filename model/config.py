@@ -90,6 +90,8 @@ class TrainConfig:
         save_every: Steps between resumable checkpoints.
         statistic: Per-trajectory statistic the goals cluster.
         k: Number of goals; None picks k by silhouette score.
+        calibration_batches: Batches of windows scored after training to measure the per-goal action noise
+            of continuous-action models (`model.calibrate`).
         bf16: Run matrix products under bfloat16 autocast (AMX on this CPU).
     """
 
@@ -109,6 +111,7 @@ class TrainConfig:
     save_every: int = 2000
     statistic: str = "mean_x_velocity"
     k: int | None = None
+    calibration_batches: int = 200
     bf16: bool = False
     extra: dict = field(default_factory=dict)
 
@@ -119,5 +122,7 @@ class TrainConfig:
             raise ValueError(f"mask_prob must be in [0, 1], got {self.mask_prob}")
         if self.steps < 1 or self.batch_size < 1:
             raise ValueError("steps and batch_size must be positive")
+        if self.calibration_batches < 1:
+            raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
         if self.warmup_steps < 0 or self.lr <= 0:
             raise ValueError("warmup_steps must be >= 0 and lr > 0")

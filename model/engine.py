@@ -15,7 +15,9 @@ import torch
 from model.checkpoint import Checkpoint
 from model.tokens import Windows, pad_left
 
-ACTION_MODES = ("argmax", "sample", "expert")
+ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions
+CONTINUOUS_MODES = ("mean", "sample")  # continuous actions; sample needs a calibrated checkpoint
+DETERMINISTIC_MODES = ("argmax", "mean")
 EXPERT_QUANTILE = 0.6
 
 
@@ -33,8 +35,8 @@ class Context:
         blend_from: Goal being faded out during a gradual switch.
         blend_steps: Length of the current gradual switch (0 = none).
         blend_done: Steps of the gradual switch already taken.
-        action_mode: Discrete actions: argmax, sample or expert.
-        rng: Generator for sampled discrete actions.
+        action_mode: Discrete actions: argmax, sample or expert; continuous: mean or sample.
+        rng: Generator for sampled actions.
         goals: [n] goal token of each step (the faded-out goal during a blend).
         blend_to: [n] second goal of each step's token.
         blend_w: [n] weight of `blend_to` in each step's token (0 = plain goal).
@@ -79,13 +81,30 @@ class PolicyEngine:
         self.n_goals = self.cfg.n_goals
         self.obs_size = int(np.prod(self.cfg.obs_shape))
         self.discrete = self.cfg.discrete_actions
+        self.noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] or None
+
+    @property
+    def action_modes(self) -> tuple[str, ...]:
+        """The action modes this model supports."""
+        if self.discrete:
+            return ACTION_MODES
+        return CONTINUOUS_MODES if self.noise is not None else ("mean",)
+
+    @property
+    def default_action_mode(self) -> str:
+        """argmax for discrete actions; sample for calibrated continuous models (reproduces the goal
+        statistics measured under the behaviour noise), else mean."""
+        return self.action_modes[0] if self.discrete else self.action_modes[-1]
 
     # ----- contexts -----------------------------------------------------------------------------------------
-    def new_context(self, goal: int, action_mode: str = "argmax", seed: int | None = None) -> Context:
-        """An empty context for a new episode."""
+    def new_context(self, goal: int, action_mode: str | None = None, seed: int | None = None) -> Context:
+        """An empty context for a new episode (`action_mode` None = the model's default)."""
         self.check_goal(goal)
-        if action_mode not in ACTION_MODES:
-            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
+        action_mode = action_mode or self.default_action_mode
+        if action_mode not in self.action_modes:
+            raise ValueError(
+                f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}"
+            )
         return Context(goal=goal, blend_from=goal, action_mode=action_mode, rng=np.random.default_rng(seed))
 
     def reset(self, ctx: Context, goal: int | None = None) -> None:
@@ -215,8 +234,10 @@ class PolicyEngine:
                 a[-1] = act
                 out.append(int(act))
             else:
+                if ctx.action_mode == "sample":
+                    row = row + self._noise_std(g[-1], b[-1], w[-1]) * ctx.rng.standard_normal(row.shape)
                 a[-1] = np.clip(row, -1.0, 1.0)
-                out.append(self.ckpt.action_codec.decode(row))
+                out.append(self.ckpt.action_codec.decode(a[-1]))
             ctx.goals, ctx.blend_to, ctx.blend_w, ctx.states, ctx.actions, ctx.timesteps = g, b, w, s, a, t
             if ctx.blend_remaining > 0:
                 ctx.blend_done += 1
@@ -224,6 +245,11 @@ class PolicyEngine:
                     ctx.blend_from, ctx.blend_steps, ctx.blend_done = ctx.goal, 0, 0
             ctx.step += 1
         return out
+
+    def _noise_std(self, goal: int, blend_to: int, weight: float) -> np.ndarray:
+        """[A] action std of a step's goal token (variances interpolated during a blend)."""
+        var = self.noise.astype(np.float64) ** 2
+        return np.sqrt((1.0 - weight) * var[goal] + weight * var[blend_to])
 
     @staticmethod
     def _choose(logits: np.ndarray, ctx: Context) -> int:

@@ -6,7 +6,7 @@ every N steps. An episode succeeds when it never terminates early and every meas
 lies within tolerance of its goal's dataset mean.
 
 JSON schema (`EvalResult.to_dict`):
-    checkpoint, env_id, statistic, seeds (list), episode_steps, wall_time_s,
+    checkpoint, env_id, statistic, action_mode, seeds (list), episode_steps, wall_time_s,
     goals: [{id, name, mean, std, min, max, count, tolerance}],
     conditions: [{
         name ("hold 0", "switch 0->2", "every 200"), kind ("hold" | "switch" | "multi_switch"),
@@ -118,6 +118,7 @@ class EvalResult:
     checkpoint: str
     env_id: str
     statistic: str
+    action_mode: str
     seeds: list[int]
     episode_steps: int
     goals: list[Goal]
@@ -130,6 +131,7 @@ class EvalResult:
             "checkpoint": self.checkpoint,
             "env_id": self.env_id,
             "statistic": self.statistic,
+            "action_mode": self.action_mode,
             "seeds": self.seeds,
             "episode_steps": self.episode_steps,
             "wall_time_s": round(self.wall_time_s, 1),
@@ -142,7 +144,7 @@ class EvalResult:
         n = len(self.seeds)
         lines = [
             f"Evaluation of `{self.checkpoint}` on {self.env_id} ({self.statistic}), {n} seeds, "
-            f"{self.episode_steps} steps",
+            f"{self.episode_steps} steps, action mode {self.action_mode}",
             "",
             "| condition | success | segments: goal target ± tol -> achieved mean (std) |",
             "| --- | --- | --- |",
@@ -168,6 +170,7 @@ def evaluate(
     steps: int = 1000,
     conditions: list[Condition] | None = None,
     progress: bool = True,
+    action_mode: str | None = None,
 ) -> EvalResult:
     """Run every condition for every seed, all episodes in lockstep through one engine.
 
@@ -177,6 +180,8 @@ def evaluate(
         steps: Episode length (the environment's own time limit is raised to it).
         conditions: Defaults to `protocol(n_goals, steps)`.
         progress: Show a progress bar.
+        action_mode: The engine's action mode (default: the model's default, as the server uses); episode i of
+            a condition seeds its sampler with seed i.
     """
     import gymnasium as gym
 
@@ -190,7 +195,8 @@ def evaluate(
     envs = [gym.make(ckpt.env_id, max_episode_steps=steps) for _ in runs]
     t0 = time.time()
     obs = [env.reset(seed=s)[0] for env, (_, s) in zip(envs, runs, strict=True)]
-    ctxs = [engine.new_context(c.goal_at(0), seed=s) for c, s in runs]
+    mode = action_mode or engine.default_action_mode
+    ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     signal = np.full((len(runs), steps), np.nan)
     terminated = np.zeros(len(runs), dtype=bool)
     alive = np.ones(len(runs), dtype=bool)
@@ -253,6 +259,7 @@ def evaluate(
         checkpoint=ckpt.name,
         env_id=ckpt.env_id,
         statistic=ckpt.statistic,
+        action_mode=mode,
         seeds=seed_list,
         episode_steps=steps,
         goals=ckpt.goals,

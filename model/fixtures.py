@@ -24,10 +24,12 @@ def tiny_checkpoint(
     context_length: int = 5,
     seed: int = 0,
     name: str = "tiny-gmt",
+    calibrated: bool = False,
 ) -> Checkpoint:
     """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
 
-    The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded.
+    The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded. `calibrated` gives a
+    continuous-action model a synthetic action noise (std 0.1 * (goal + 1)), enabling its `sample` mode.
     """
     env = gym.make(env_id)
     obs_space, act_space = env.observation_space, env.action_space
@@ -79,6 +81,11 @@ def tiny_checkpoint(
         statistic="mean_x_velocity",
         goals=goals,
         meta={"note": "random weights for tests"},
+        action_noise=(
+            np.repeat(0.1 * np.arange(1, n_goals + 1, dtype=np.float32)[:, None], cfg.act_dim, axis=1)
+            if calibrated and not discrete
+            else None
+        ),
     )
     if directory is not None:
         save_checkpoint(ckpt, directory)

@@ -13,6 +13,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from model.calibrate import action_noise
 from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from model.config import GMTConfig, TrainConfig
 from model.gmt import GMT
@@ -128,6 +129,8 @@ def train(
         extra_meta: More fields for gmt.json (relabelling details, commands).
         resume: Continue from `out_dir/_resume` when it exists.
         progress: Show a progress bar.
+
+    Continuous-action checkpoints are calibrated at the end (`model.calibrate.action_noise`).
     """
     out = Path(out_dir)
     if tc.threads:
@@ -177,6 +180,11 @@ def train(
         writer.close()
     model.eval()
     elapsed = time.time() - t0
+    noise = (
+        None
+        if cfg.discrete_actions
+        else action_noise(model, sampler, len(goals), batches=tc.calibration_batches, seed=tc.seed)
+    )
     meta = {
         **(extra_meta or {}),
         "training": {
@@ -204,6 +212,7 @@ def train(
         statistic=tc.statistic,
         goals=goals,
         meta=meta,
+        action_noise=noise,
     )
     save_checkpoint(ckpt, out)
     return ckpt

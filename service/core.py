@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from model.checkpoint import Goal
-from model.engine import ACTION_MODES, InvalidObservation
+from model.engine import InvalidObservation
 from service.batcher import MicroBatcher
 from service.errors import FailedPrecondition, InvalidArgument, NotFound, ServiceError, Unavailable
 from service.metrics import Metrics
@@ -41,7 +41,7 @@ class ModelView:
     statistic: str
     goals: list[Goal]
     discrete_actions: bool
-    action_modes: tuple[str, ...]
+    action_modes: tuple[str, ...]  # the first is the default
 
 
 @dataclass(frozen=True)
@@ -204,7 +204,7 @@ class Core:
 
     # ----- models -------------------------------------------------------------------------------------------
     def _view_model(self, m: LoadedModel) -> ModelView:
-        c = m.checkpoint
+        c, e = m.checkpoint, m.engine
         return ModelView(
             name=m.name,
             env_id=c.env_id,
@@ -214,7 +214,7 @@ class Core:
             statistic=c.statistic,
             goals=list(c.goals),
             discrete_actions=c.config.discrete_actions,
-            action_modes=ACTION_MODES if c.config.discrete_actions else ("argmax",),
+            action_modes=(e.default_action_mode, *(x for x in e.action_modes if x != e.default_action_mode)),
         )
 
     def list_models(self) -> list[ModelView]:
@@ -310,12 +310,12 @@ class Core:
         self._check_serving()
         m = self.registry.resolve(model)
         g = self.resolve_goal(m, goal, target)
-        mode = action_mode or "argmax"
-        if mode not in ACTION_MODES:
-            raise InvalidArgument(f"action_mode must be one of {', '.join(ACTION_MODES)}, got {mode!r}")
-        if mode != "argmax" and not m.checkpoint.config.discrete_actions:
+        mode = action_mode or m.engine.default_action_mode
+        if mode not in m.engine.action_modes:
+            kind = "discrete" if m.checkpoint.config.discrete_actions else "continuous"
             raise InvalidArgument(
-                f"action_mode {mode!r} applies to discrete actions; model {m.name!r} is continuous"
+                f"action_mode {mode!r} is not available for model {m.name!r} ({kind} actions); "
+                f"choose one of {', '.join(m.engine.action_modes)}"
             )
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")

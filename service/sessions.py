@@ -13,7 +13,7 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from model.engine import Context
+from model.engine import DETERMINISTIC_MODES, Context
 from service.errors import NotFound, ResourceExhausted, SessionExpired
 
 Clock = Callable[[], float]
@@ -42,7 +42,7 @@ class Session:
 def clone_context(ctx: Context) -> Context:
     """A copy the engine may change without touching `ctx` (the engine replaces arrays, never edits them)."""
     out = dataclasses.replace(ctx)
-    if ctx.action_mode != "argmax":
+    if ctx.action_mode not in DETERMINISTIC_MODES:
         out.rng = copy.deepcopy(ctx.rng)
     return out
 

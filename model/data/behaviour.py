@@ -75,6 +75,7 @@ class BehaviourPolicy(nn.Module):
         self.register_buffer("obs_var", torch.as_tensor(meta.obs_var, dtype=torch.float64))
         self.low = np.asarray(low, dtype=np.float32)
         self.high = np.asarray(high, dtype=np.float32)
+        self.noise_scale = 1.0  # multiplies the Gaussian noise std of `act`
 
     def normalise(self, obs: np.ndarray) -> torch.Tensor:
         """VecNormalize's observation transform, computed in float64 then cast to float32."""
@@ -95,7 +96,7 @@ class BehaviourPolicy(nn.Module):
         """
         mean = self.mean_net(self.normalise(obs)).numpy()
         if rng is not None:
-            std = self.log_std.exp().numpy()
+            std = self.log_std.exp().numpy() * self.noise_scale
             mean = mean + std * rng.standard_normal(mean.shape)
         return np.clip(mean, self.low, self.high).astype(np.float32)
 

@@ -78,6 +78,9 @@ def collect(
         None, help="Folder with <env>/<level>.safetensors (default behaviour/)."
     ),
     max_steps: int = typer.Option(None, help="Cap episode length (for quick checks)."),
+    noise_scale: float = typer.Option(
+        None, help="Multiplier of the snapshots' action-noise std (default per env: HalfCheetah 0.35, else 1)."
+    ),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
     keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),
 ) -> None:
@@ -92,6 +95,7 @@ def collect(
         data_dir=data_dir,
         behaviour_dir=behaviour_dir,
         max_steps=max_steps,
+        noise_scale=noise_scale,
         include_random=not no_random,
         drop_stuck=not keep_stuck,
     )

@@ -64,7 +64,7 @@ class ModelOut(BaseModel):
     statistic: str
     goals: list[GoalOut]
     discrete_actions: bool
-    action_modes: list[str]
+    action_modes: list[str] = Field(description="Accepted `action_mode` values; the first is the default.")
 
     @classmethod
     def of(cls, v: ModelView) -> ModelOut:
@@ -101,11 +101,12 @@ class CreateSession(BaseModel):
     model: str | None = Field(None, description="Model name; may be omitted when one model is loaded.")
     goal: GoalRef | None = Field(None, description="Goal id or goal name.", examples=[0, "high"])
     target: float | None = Field(None, description="Target statistic value: the nearest goal mean is chosen.")
-    seed: int | None = Field(
-        None, description="Seed of the session's sampler (discrete sample/expert modes)."
-    )
-    action_mode: Literal["argmax", "sample", "expert"] | None = Field(
-        None, description="Discrete-action models only; default argmax."
+    seed: int | None = Field(None, description="Seed of the session's sampler (sample/expert modes).")
+    action_mode: Literal["argmax", "sample", "expert", "mean"] | None = Field(
+        None,
+        description="Discrete actions: argmax, sample or expert (default argmax). Continuous: mean, or sample "
+        "(mean + the goal's calibrated behaviour noise; the default when the checkpoint is calibrated). "
+        "`GET /models/{name}` lists a model's modes.",
     )
 
 

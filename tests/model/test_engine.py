@@ -1,5 +1,7 @@
 """The batched engine: exact agreement with the training forward, rolling context, goals and blends."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -108,3 +110,26 @@ def test_discrete_modes_pick_valid_actions(tmp_path):
         ctx = engine.new_context(0, action_mode=mode, seed=0)
         acts = [engine.act([ctx], [np.zeros(4)])[0] for _ in range(6)]
         assert all(isinstance(a, int) and 0 <= a < 2 for a in acts)
+
+
+def test_continuous_sample_mode_adds_the_goals_calibrated_noise():
+    ckpt = tiny_checkpoint(context_length=5)
+    assert PolicyEngine(ckpt).action_modes == ("mean",)  # uncalibrated: deterministic only
+    with pytest.raises(ValueError, match="action_mode"):
+        PolicyEngine(ckpt).new_context(0, "sample")
+    ckpt.action_noise = np.array([[0.05] * 6, [0.2] * 6, [0.4] * 6], dtype=np.float32)
+    engine = PolicyEngine(ckpt)
+    assert engine.action_modes == ("mean", "sample") and engine.default_action_mode == "sample"
+    obs = np.random.default_rng(1).normal(size=(3, 17)).astype(np.float32)
+    for goal in (0, 2):
+        a, b = engine.new_context(goal, seed=7), engine.new_context(goal, seed=7)
+        noise = np.random.default_rng(7)
+        for t in range(3):
+            # The mean action for the same history: a deterministic copy of `a` (the engine replaces arrays).
+            (m,) = engine.act([dataclasses.replace(a, action_mode="mean")], [obs[t]])
+            (x,) = engine.act([a], [obs[t]])
+            (y,) = engine.act([b], [obs[t]])
+            want = np.clip(m + ckpt.action_noise[goal] * noise.standard_normal(6), -1, 1)
+            np.testing.assert_allclose(x, want, atol=1e-6)
+            assert np.array_equal(x, y)  # same seed, same actions
+            np.testing.assert_allclose(a.actions[-1], x, atol=1e-6)  # the context holds the action taken

@@ -17,7 +17,16 @@ SMALL = {"context_length": 4, "n_layer": 1, "n_head": 1, "n_embd": 32}
 
 
 def _tc(**kw):
-    base = dict(steps=60, batch_size=16, lr=3e-3, warmup_steps=5, log_every=10, save_every=1000, seed=0)
+    base = dict(
+        steps=60,
+        batch_size=16,
+        lr=3e-3,
+        warmup_steps=5,
+        log_every=10,
+        save_every=1000,
+        seed=0,
+        calibration_batches=5,
+    )
     return TrainConfig(**{**base, **kw})
 
 
@@ -85,6 +94,17 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
         assert key in meta
     obs = np.random.default_rng(0).normal(size=(3, 17)).astype(np.float32)
     assert np.array_equal(ckpt.obs_norm(obs), loaded.obs_norm(obs))
+    assert ckpt.action_noise.shape == (3, 6) and np.array_equal(loaded.action_noise, ckpt.action_noise)
+
+
+def test_malformed_action_noise_is_refused(tmp_path):
+    ds = SyntheticDataset()
+    train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=2), SMALL, progress=False)
+    meta = json.loads((tmp_path / "c/gmt.json").read_text())
+    meta["action_noise"]["std"] = [[0.1, 0.2]]
+    (tmp_path / "c/gmt.json").write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match=r"action_noise.std must be \[3, 6\]"):
+        load_checkpoint(tmp_path / "c")
 
 
 def test_loading_refuses_pickle(tmp_path):

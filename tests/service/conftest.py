@@ -18,9 +18,11 @@ from model.fixtures import tiny_checkpoint
 
 @pytest.fixture(scope="session")
 def ckpt_root(tmp_path_factory) -> Path:
-    """checkpoints/ with tiny-gmt (HalfCheetah-v5, 3 goals, K = 5) and tiny-cartpole (discrete actions)."""
+    """checkpoints/ with tiny-gmt (HalfCheetah-v5, 3 goals, K = 5), tiny-cartpole (discrete actions) and
+    tiny-sampled (tiny-gmt's weights with a calibrated action noise: sampled actions by default)."""
     root = tmp_path_factory.mktemp("checkpoints")
     tiny_checkpoint(root / "tiny-gmt")
+    tiny_checkpoint(root / "tiny-sampled", name="tiny-sampled", calibrated=True)
     tiny_checkpoint(root / "tiny-cartpole", env_id="CartPole-v1", name="tiny-cartpole")
     return root
 

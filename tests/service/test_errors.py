@@ -229,7 +229,7 @@ def test_rest_body_too_large_without_content_length(http, rest_twins):
             {"model": "tiny-gmt", "goal": 0, "action_mode": "sample"},
             400,
             "invalid_argument",
-            "applies to discrete actions",
+            "action_mode 'sample' is not available for model 'tiny-gmt' (continuous actions); choose one of mean",
         ),
         (
             "POST",
@@ -237,7 +237,7 @@ def test_rest_body_too_large_without_content_length(http, rest_twins):
             {"model": "tiny-gmt", "goal": 0, "action_mode": "greedy"},
             400,
             "invalid_argument",
-            "action_mode: Input should be 'argmax', 'sample' or 'expert'",
+            "action_mode: Input should be 'argmax', 'sample', 'expert' or 'mean'",
         ),
         (
             "POST",

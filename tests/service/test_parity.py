@@ -44,7 +44,7 @@ def engine_actions(engine, observations, goal=0, switch=None):
 
 def test_models_describe_spaces_goals_and_context(http, stub):
     models = http.get("/models").json()["models"]
-    assert [m["name"] for m in models] == ["tiny-cartpole", "tiny-gmt"]
+    assert [m["name"] for m in models] == ["tiny-cartpole", "tiny-gmt", "tiny-sampled"]
     m = http.get("/models/tiny-gmt").json()
     assert m["env_id"] == "HalfCheetah-v5" and m["context_length"] == 5
     assert m["observation_space"]["shape"] == [17] and m["action_space"]["shape"] == [6]
@@ -56,7 +56,8 @@ def test_models_describe_spaces_goals_and_context(http, stub):
     g = stub.GetModel(pb.GetModelRequest(name="tiny-gmt"))
     assert g.env_id == "HalfCheetah-v5" and [x.name for x in g.goals] == ["low", "medium", "high"]
     assert list(g.action_space.low) == [-1.0] * 6
-    assert [x.name for x in stub.ListModels(pb.ListModelsRequest()).models] == ["tiny-cartpole", "tiny-gmt"]
+    names = [x.name for x in stub.ListModels(pb.ListModelsRequest()).models]
+    assert names == ["tiny-cartpole", "tiny-gmt", "tiny-sampled"]
 
 
 def test_same_actions_over_rest_grpc_stream_and_engine(http, stub, engine, observations):
@@ -200,3 +201,28 @@ def test_discrete_model_answers_integer_actions(http, stub):
         pb.ActRequest(session_id=s.session_id, values=pb.FloatVector(values=[0.1, 0.0, -0.1, 0.2]))
     )
     assert out.is_discrete and out.discrete_action in (0, 1) and len(out.action) == 0
+
+
+def test_calibrated_model_samples_by_default_identically_over_rest_grpc_and_engine(ckpt_root, http, stub):
+    from model.checkpoint import load_checkpoint
+    from model.engine import PolicyEngine
+
+    assert http.get("/models/tiny-sampled").json()["action_modes"] == ["sample", "mean"]
+    assert http.get("/models/tiny-gmt").json()["action_modes"] == ["mean"]
+    engine = PolicyEngine(load_checkpoint(ckpt_root / "tiny-sampled"))
+    obs = np.random.default_rng(3).normal(size=(6, 17)).astype(np.float32)
+    ctx = engine.new_context(1, seed=11)
+    want = np.stack([engine.act([ctx], [o])[0] for o in obs])
+    r = http.post("/sessions", json={"model": "tiny-sampled", "goal": 1, "seed": 11})
+    assert r.status_code == 201 and r.json()["action_mode"] == "sample", r.text
+    rest = np.stack([rest_act(http, r.json()["session_id"], o) for o in obs])
+    g = stub.CreateSession(pb.CreateSessionRequest(model="tiny-sampled", goal=pb.GoalSelector(id=1), seed=11))
+    unary = np.stack([grpc_act(stub, g.session_id, o) for o in obs])
+    np.testing.assert_array_equal(rest, want)
+    np.testing.assert_array_equal(unary, want)
+    # The mean mode is the same network without the noise.
+    m = http.post("/sessions", json={"model": "tiny-sampled", "goal": 1, "action_mode": "mean"}).json()
+    first = rest_act(http, m["session_id"], obs[0])
+    ctx_mean = engine.new_context(1, "mean")
+    np.testing.assert_array_equal(first, engine.act([ctx_mean], [obs[0]])[0])
+    assert not np.array_equal(first, want[0])
