@@ -100,3 +100,21 @@ def test_stuck_step_finds_a_runner_that_stopped():
     assert stuck_step(np.zeros(300)) is None  # never ran
     assert stuck_step(np.r_[np.zeros(100), np.full(150, 2.0)], window=100) is None  # stopped before running
     assert stuck_step(np.full(300, 0.9)) is None  # slow but steady
+
+
+def test_noise_scale_multiplies_the_behaviour_noise(tmp_path):
+    assert CollectConfig(ENV).noise_scale == 0.35 and CollectConfig("Hopper-v5").noise_scale == 1.0
+    with pytest.raises(ValueError, match="noise_scale"):
+        CollectConfig(ENV, noise_scale=-1.0)
+    beh = tmp_path / "behaviour"
+    fake_snapshot(beh, "slow", 1.0, 1)
+    pol = load_behaviour(beh / "halfcheetah" / "slow.safetensors", gym.make(ENV).action_space)
+    spread = {}
+    for scale in (0.0, 0.5, 1.0):
+        cfg = CollectConfig(
+            ENV, 1, 0, f"gmt/s{int(scale * 10)}-v0", tmp_path / "d", beh, 30, scale, include_random=False
+        )
+        ep = load_dataset(collect(cfg, progress=False).dataset_id, tmp_path / "d").episodes[0]
+        spread[scale] = float(np.std(ep.actions - pol.act(ep.observations)))
+    assert spread[0.0] < 1e-6  # no noise: the mean action (up to float32 storage)
+    assert 0.4 < spread[0.5] / spread[1.0] < 0.6  # log-std -1: std 0.37 and 0.18, far from the bounds
