@@ -18,6 +18,11 @@ from model.tokens import Windows, pad_left
 ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions
 CONTINUOUS_MODES = ("mean", "sample")  # continuous actions; sample needs a calibrated checkpoint
 DETERMINISTIC_MODES = ("argmax", "mean")
+# Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
+# with small noise (HalfCheetah: ~0.05) and sampling it reproduces their statistics; a uniform-random level's
+# spread (~0.55) is the behaviour itself, and reproducing it tipped HalfCheetah into poses that no running data
+# recovers from (6 of 15 switches out of the random goal failed uncapped; 0 of 15 capped at 0.1).
+SAMPLE_STD_CAP = 0.1
 EXPERT_QUANTILE = 0.6
 
 
@@ -81,7 +86,8 @@ class PolicyEngine:
         self.n_goals = self.cfg.n_goals
         self.obs_size = int(np.prod(self.cfg.obs_shape))
         self.discrete = self.cfg.discrete_actions
-        self.noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] or None
+        noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] or None
+        self.noise = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP)
 
     @property
     def action_modes(self) -> tuple[str, ...]:
@@ -247,7 +253,7 @@ class PolicyEngine:
         return out
 
     def _noise_std(self, goal: int, blend_to: int, weight: float) -> np.ndarray:
-        """[A] action std of a step's goal token (variances interpolated during a blend)."""
+        """[A] action std (capped) of a step's goal token (variances interpolated during a blend)."""
         var = self.noise.astype(np.float64) ** 2
         return np.sqrt((1.0 - weight) * var[goal] + weight * var[blend_to])
 

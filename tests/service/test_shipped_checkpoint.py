@@ -22,8 +22,7 @@ SWITCH, STEPS, SETTLE = 400, 800, 100
 
 @pytest.fixture(scope="module")
 def shipped_server():
-    if not (SHIPPED / "gmt.json").is_file():
-        pytest.skip(f"the default checkpoint {SHIPPED} has not been trained yet")
+    assert (SHIPPED / "gmt.json").is_file(), f"the shipped default checkpoint {SHIPPED} is missing"
     s = RunningServer(make_settings(checkpoints=[SHIPPED])).start()
     yield s
     s.stop()
