@@ -15,8 +15,8 @@ import torch
 from model.checkpoint import Checkpoint
 from model.tokens import Windows, pad_left
 
-ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions
-CONTINUOUS_MODES = ("mean", "sample")  # continuous actions; sample needs a calibrated checkpoint
+ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions, default first
+CONTINUOUS_MODES = ("sample", "mean")  # continuous actions of a calibrated checkpoint, default first
 DETERMINISTIC_MODES = ("argmax", "mean")
 # Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
 # with small noise (HalfCheetah: ~0.05) and sampling it reproduces their statistics; a uniform-random level's
@@ -86,21 +86,20 @@ class PolicyEngine:
         self.n_goals = self.cfg.n_goals
         self.obs_size = int(np.prod(self.cfg.obs_shape))
         self.discrete = self.cfg.discrete_actions
-        noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] or None
-        self.noise = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP)
-
-    @property
-    def action_modes(self) -> tuple[str, ...]:
-        """The action modes this model supports."""
+        noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] std or None
+        # [n_goals, A] variance of the capped noise `sample` adds (interpolated during a blend).
+        self.noise_var = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP).astype(np.float64) ** 2
+        # Default first: argmax for discrete actions; sample for calibrated continuous models (it reproduces
+        # the goal statistics measured under the behaviour noise), else mean.
         if self.discrete:
-            return ACTION_MODES
-        return CONTINUOUS_MODES if self.noise is not None else ("mean",)
+            self.action_modes: tuple[str, ...] = ACTION_MODES
+        else:
+            self.action_modes = CONTINUOUS_MODES if self.noise_var is not None else ("mean",)
 
     @property
     def default_action_mode(self) -> str:
-        """argmax for discrete actions; sample for calibrated continuous models (reproduces the goal
-        statistics measured under the behaviour noise), else mean."""
-        return self.action_modes[0] if self.discrete else self.action_modes[-1]
+        """The mode of a session that does not choose one."""
+        return self.action_modes[0]
 
     # ----- contexts -----------------------------------------------------------------------------------------
     def new_context(self, goal: int, action_mode: str | None = None, seed: int | None = None) -> Context:
@@ -254,8 +253,7 @@ class PolicyEngine:
 
     def _noise_std(self, goal: int, blend_to: int, weight: float) -> np.ndarray:
         """[A] action std (capped) of a step's goal token (variances interpolated during a blend)."""
-        var = self.noise.astype(np.float64) ** 2
-        return np.sqrt((1.0 - weight) * var[goal] + weight * var[blend_to])
+        return np.sqrt((1.0 - weight) * self.noise_var[goal] + weight * self.noise_var[blend_to])
 
     @staticmethod
     def _choose(logits: np.ndarray, ctx: Context) -> int:

@@ -204,7 +204,7 @@ class Core:
 
     # ----- models -------------------------------------------------------------------------------------------
     def _view_model(self, m: LoadedModel) -> ModelView:
-        c, e = m.checkpoint, m.engine
+        c = m.checkpoint
         return ModelView(
             name=m.name,
             env_id=c.env_id,
@@ -214,7 +214,7 @@ class Core:
             statistic=c.statistic,
             goals=list(c.goals),
             discrete_actions=c.config.discrete_actions,
-            action_modes=(e.default_action_mode, *(x for x in e.action_modes if x != e.default_action_mode)),
+            action_modes=m.engine.action_modes,
         )
 
     def list_models(self) -> list[ModelView]:

@@ -119,7 +119,7 @@ def test_continuous_sample_mode_adds_the_goals_calibrated_noise():
         PolicyEngine(ckpt).new_context(0, "sample")
     ckpt.action_noise = np.array([[0.05] * 6, [0.07] * 6, [0.4] * 6], dtype=np.float32)
     engine = PolicyEngine(ckpt)
-    assert engine.action_modes == ("mean", "sample") and engine.default_action_mode == "sample"
+    assert engine.action_modes == ("sample", "mean") and engine.default_action_mode == "sample"
     obs = np.random.default_rng(1).normal(size=(3, 17)).astype(np.float32)
     for goal in (0, 2):
         a, b = engine.new_context(goal, seed=7), engine.new_context(goal, seed=7)
