@@ -17,6 +17,7 @@ import torch
 from model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
 from model.data.minari_io import Episode, write_dataset
 from model.data.rollout import rollout, stuck_step
+from model.data.start_states import StatePool, build_pool
 
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
@@ -26,6 +27,11 @@ DEFAULT_EPISODES = {"halfcheetah": 150, "hopper": 100, "walker2d": 100, "ant": 6
 # their mean action and stall in ~7% of episodes; a policy that imitates the mean then overshoots every goal. At
 # 0.35 x their noise they stay diverse (per-episode speed std 0.03-0.07 m/s) and none stalled in 36 test episodes.
 DEFAULT_NOISE_SCALE = {"halfcheetah": 0.35}
+# Share of a level's episodes that start from a state another level visited (see `start_states`). HalfCheetah's
+# slow level is refined (`gmt data refine`) to brake from a sprint and to get going after random flailing; half of
+# its episodes show that, the other half start at rest.
+DEFAULT_POOL_START = {"halfcheetah": {"slow": 0.5}}
+POOL_EPISODES = 10  # episodes per other level rolled out to build a level's start-state pool
 
 
 def default_dataset_id(env_id: str) -> str:
@@ -49,9 +55,12 @@ class CollectConfig:
         include_random: Add the uniform-random policy as a level.
         drop_stuck: Replace snapshot episodes in which the agent, after running, came to a standstill
             (`rollout.stuck_step` over `stuck_window` steps): the behaviour changed mid-episode, which would
-            blur the level's speed. Counted per level; the random policy is never filtered.
+            blur the level's speed. Also replaces pool-started episodes that end standing still (a start
+            pose the level cannot leave). Counted per level; the random policy is never filtered.
         stuck_window: Steps averaged by the standstill test.
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
+        pool_start: Level -> share of its episodes that start from a state visited by the other policies
+            (None: per-env default; {} for none).
         overwrite: Replace an existing dataset with the same id.
     """
 
@@ -67,6 +76,7 @@ class CollectConfig:
     drop_stuck: bool = True
     stuck_window: int = 100
     max_attempts: int = 3
+    pool_start: dict[str, float] | None = None
     overwrite: bool = True
 
     def __post_init__(self) -> None:
@@ -77,6 +87,11 @@ class CollectConfig:
             self.noise_scale = DEFAULT_NOISE_SCALE.get(slug, 1.0)
         if not self.noise_scale >= 0:
             raise ValueError(f"noise_scale must be >= 0, got {self.noise_scale}")
+        if self.pool_start is None:
+            self.pool_start = dict(DEFAULT_POOL_START.get(slug, {}))
+        for level, share in self.pool_start.items():
+            if not 0.0 <= share <= 1.0:
+                raise ValueError(f"pool_start[{level!r}] must be in [0, 1], got {share}")
 
 
 @dataclass
@@ -92,9 +107,19 @@ class CollectResult:
 
 
 def collect_level(
-    env, name: str, policy, cfg: CollectConfig, seeds: np.random.SeedSequence, first_id: int, bar=None
+    env,
+    name: str,
+    policy,
+    cfg: CollectConfig,
+    seeds: np.random.SeedSequence,
+    first_id: int,
+    bar=None,
+    pool: StatePool | None = None,
 ) -> tuple[list[Episode], list[dict], dict]:
     """`cfg.episodes_per_level` episodes of one policy, replacing stuck ones (never for the random policy).
+
+    With a `pool`, episode i starts from a pool state when i is below `pool_start[name]` x the episode count
+    (the first share of episodes), else at the reset pose.
 
     Returns:
         The episodes, their Minari episode metadata, and a summary (counts, speed mean and std).
@@ -103,6 +128,7 @@ def collect_level(
     reset_seeds = iter(seeds.generate_state(n * cfg.max_attempts, dtype=np.uint32))
     rng = np.random.default_rng(seeds)
     filtered = cfg.drop_stuck and name != RANDOM
+    n_pool = round(cfg.pool_start.get(name, 0.0) * n) if pool is not None else 0
     episodes, metadata, dropped = [], [], 0
     while len(episodes) < n:
         reset_seed = next(reset_seeds, None)
@@ -110,19 +136,29 @@ def collect_level(
             raise RuntimeError(
                 f"{name}: {dropped} of {len(episodes) + dropped} episodes got stuck; giving up"
             )
-        ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps)
+        start, meta = None, {}
+        if len(episodes) < n_pool:
+            i = pool.sample(rng)
+            start = (pool.qpos[i], pool.qvel[i])
+            meta = {"start_from": str(pool.source[i]), "start_step": int(pool.step[i])}
+        ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
         v = ep.infos.get("x_velocity")
-        if filtered and v is not None and stuck_step(v, cfg.stuck_window) is not None:
+        # A pooled start may be a pose the level cannot get out of (on its back): standing still at the end.
+        if filtered and v is not None and (
+            stuck_step(v, cfg.stuck_window) is not None
+            or (start is not None and abs(np.mean(v[-cfg.stuck_window :])) < 0.1)
+        ):
             dropped += 1
             continue
         episodes.append(ep.to_episode(first_id + len(episodes)))
-        metadata.append({"policy": name, "reset_seed": int(reset_seed)})
+        metadata.append({"policy": name, "reset_seed": int(reset_seed), **meta})
         if bar is not None:
             bar.update(1)
             bar.set_postfix(level=name, stuck=dropped)
     speeds = [float(e.infos["x_velocity"].mean()) for e in episodes if "x_velocity" in e.infos]
     summary = {
         "episodes": n,
+        "pool_starts": n_pool,
         "stuck_dropped": dropped,
         "mean_speed": float(np.mean(speeds)) if speeds else None,
         "std_speed": float(np.std(speeds)) if speeds else None,
@@ -146,11 +182,27 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         policies[path.stem] = load_behaviour(path, env.action_space)
         policies[path.stem].noise_scale = cfg.noise_scale
     children = np.random.SeedSequence(cfg.seed).spawn(len(policies))
+    steps = cfg.max_steps or env.spec.max_episode_steps or 1000
+    pools = {
+        name: build_pool(
+            env,
+            {k: p for k, p in policies.items() if k != name},
+            POOL_EPISODES,
+            cfg.seed + 50_000,
+            skip=min(20, steps // 2),
+            every=max(1, min(10, steps // 10)),
+            max_steps=steps,
+        )
+        for name in policies
+        if cfg.pool_start.get(name, 0.0) > 0 and len(policies) > 1  # a lone policy has no one to start from
+    }
     episodes, metadata, levels = [], [], {}
     with tqdm(total=cfg.episodes_per_level * len(policies), desc=f"collect {cfg.env_id}", unit="ep",
               disable=not progress) as bar:  # fmt: skip
         for (name, policy), seeds in zip(policies.items(), children, strict=True):
-            eps, meta, levels[name] = collect_level(env, name, policy, cfg, seeds, len(episodes), bar)
+            eps, meta, levels[name] = collect_level(
+                env, name, policy, cfg, seeds, len(episodes), bar, pools.get(name)
+            )
             episodes += eps
             metadata += meta
     dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
@@ -160,6 +212,12 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         f"episodes each, seed {cfg.seed}. "
         + f"Snapshot episodes where a running agent came to a standstill were replaced ({dropped}). "
         * cfg.drop_stuck
+        + "".join(
+            f"{round(share * cfg.episodes_per_level)} {name} episodes start from states the other policies "
+            "visited (episode metadata start_from / start_step). "
+            for name, share in cfg.pool_start.items()
+            if name in pools
+        )
         + "Written by `gmt data collect`."
     )
     path = write_dataset(

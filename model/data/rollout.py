@@ -53,7 +53,12 @@ def scalar_items(info: dict) -> dict[str, float]:
 
 
 def rollout(
-    env, policy: Policy, seed: int, rng: np.random.Generator | None, max_steps: int | None = None
+    env,
+    policy: Policy,
+    seed: int,
+    rng: np.random.Generator | None,
+    max_steps: int | None = None,
+    start_state: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Rollout:
     """Step `policy` in `env` from `env.reset(seed=seed)` until the episode ends or `max_steps` is reached.
 
@@ -63,11 +68,16 @@ def rollout(
         seed: Reset seed of the episode.
         rng: Source of action noise (None for deterministic actions).
         max_steps: Optional extra cap; reaching it marks the episode truncated.
+        start_state: Optional MuJoCo (qpos, qvel) to start from instead of the reset pose.
 
     Returns:
         The episode's arrays. Info keys are those present, as numeric scalars, at every step.
     """
     obs, reset_info = env.reset(seed=seed)
+    if start_state is not None:
+        from model.data.start_states import start_from
+
+        obs = start_from(env, *start_state)
     observations, actions, rewards, infos = [obs], [], [], []
     terminated = truncated = False
     while not (terminated or truncated):

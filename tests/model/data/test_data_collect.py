@@ -30,8 +30,9 @@ def test_collects_valid_reproducible_dataset(tmp_path):
     fake_snapshot(beh, "fast", 2.0, 0)
     fake_snapshot(beh, "slow", 1.0, 1)
     cfg = CollectConfig(
-        ENV, episodes_per_level=2, seed=3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=12
-    )
+        ENV, episodes_per_level=2, seed=3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=12,
+        pool_start={},
+    )  # fmt: skip
     res = collect(cfg, progress=False)
     assert res.dataset_id == "gmt/halfcheetah/mixed-v0"
     assert list(res.levels) == ["random", "slow", "fast"]
@@ -48,9 +49,13 @@ def test_collects_valid_reproducible_dataset(tmp_path):
     assert meta["policy"] == "slow"
     obs, _ = gym.make(ENV).reset(seed=int(meta["reset_seed"]))
     np.testing.assert_array_equal(obs, ds.episodes[2].observations[0])
-    again = collect(CollectConfig(ENV, 2, 3, "gmt/other-v0", tmp_path / "d", beh, 12), progress=False)
+    again = collect(
+        CollectConfig(ENV, 2, 3, "gmt/other-v0", tmp_path / "d", beh, 12, pool_start={}), progress=False
+    )
     assert load_dataset(again.dataset_id, tmp_path / "d").fingerprint == ds.fingerprint
-    other = collect(CollectConfig(ENV, 2, 4, "gmt/other2-v0", tmp_path / "d", beh, 12), progress=False)
+    other = collect(
+        CollectConfig(ENV, 2, 4, "gmt/other2-v0", tmp_path / "d", beh, 12, pool_start={}), progress=False
+    )
     assert load_dataset(other.dataset_id, tmp_path / "d").fingerprint != ds.fingerprint
 
 
@@ -118,3 +123,31 @@ def test_noise_scale_multiplies_the_behaviour_noise(tmp_path):
         spread[scale] = float(np.std(ep.actions - pol.act(ep.observations)))
     assert spread[0.0] < 1e-6  # no noise: the mean action (up to float32 storage)
     assert 0.4 < spread[0.5] / spread[1.0] < 0.6  # log-std -1: std 0.37 and 0.18, far from the bounds
+
+
+def test_pool_starts_begin_where_another_policy_was(tmp_path):
+    beh = tmp_path / "behaviour"
+    fake_snapshot(beh, "fast", 2.0, 0)
+    fake_snapshot(beh, "slow", 1.0, 1)
+    assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Hopper-v5").pool_start == {}
+    with pytest.raises(ValueError, match="pool_start"):
+        CollectConfig(ENV, pool_start={"slow": 1.5})
+    cfg = CollectConfig(ENV, 4, 3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=40, pool_start={"slow": 0.5})
+    res = collect(cfg, progress=False)
+    assert res.levels["slow"]["pool_starts"] == 2 and res.levels["fast"]["pool_starts"] == 0
+    ds = load_dataset(res.dataset_id, tmp_path / "d")
+    env = gym.make(ENV)
+    for i, pooled in ((4, True), (5, True), (6, False), (8, False)):
+        meta = _episode_attrs(tmp_path / "d", i)
+        assert meta["policy"] == ("slow" if i < 8 else "fast")
+        rest_obs, _ = env.reset(seed=int(meta["reset_seed"]))
+        first = ds.episodes[i].observations[0]
+        if pooled:
+            assert meta["start_from"] in ("random", "fast") and 20 <= meta["start_step"] <= 40
+            assert not np.allclose(first, rest_obs)  # a pooled start is not the reset pose
+        else:
+            assert "start_from" not in meta
+            np.testing.assert_array_equal(first, rest_obs)
+    again = collect(CollectConfig(ENV, 4, 3, "gmt/again-v0", tmp_path / "d", beh, 40, pool_start={"slow": 0.5}),
+                    progress=False)  # fmt: skip
+    assert load_dataset(again.dataset_id, tmp_path / "d").fingerprint == ds.fingerprint

@@ -1,0 +1,83 @@
+"""Pools of simulator states visited by other behaviour levels, used as episode start states.
+
+A behaviour level that only ever starts from the environment's rest pose never shows how to reach its speed from
+another level's gait (braking from a sprint, standing up after a random policy's flailing). Rolling the other
+levels out and keeping their MuJoCo (qpos, qvel) lets a level be trained (`refine_behaviour`) and collected
+(`collect`) from those states too. Each episode still has one policy, hence one goal label.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class StatePool:
+    """MuJoCo states with where they came from.
+
+    Attributes:
+        qpos: [N, nq] generalised positions.
+        qvel: [N, nv] generalised velocities.
+        source: [N] name of the policy whose rollout visited the state.
+        step: [N] step of that rollout at which the state was visited.
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    source: np.ndarray
+    step: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.qpos)
+
+    def sample(self, rng: np.random.Generator) -> int:
+        """Index of a uniformly drawn state."""
+        return int(rng.integers(len(self)))
+
+
+def build_pool(
+    env, policies: dict, episodes: int, seed: int, skip: int = 20, every: int = 10, max_steps: int = 1000
+) -> StatePool:
+    """Roll out each policy (stochastically) and keep every `every`-th state after the first `skip` steps.
+
+    Args:
+        env: A MuJoCo Gymnasium environment (its `unwrapped` has `data.qpos` / `data.qvel`).
+        policies: name -> policy with `act(obs, rng)`.
+        episodes: Episodes per policy.
+        seed: Seeds the resets (seed, seed + 1, ...) and the action noise.
+        skip: Leading steps of each episode not kept (the rest pose is the env's own start).
+        every: Keep one state in this many.
+        max_steps: Steps per episode at most.
+
+    Returns:
+        The pool, ordered by policy, episode and step.
+    """
+    rng = np.random.default_rng(seed)
+    qpos, qvel, source, steps = [], [], [], []
+    sim = env.unwrapped
+    for name, policy in policies.items():
+        for ep in range(episodes):
+            obs, _ = env.reset(seed=seed + ep)
+            for t in range(max_steps):
+                obs, _, terminated, truncated, _ = env.step(policy.act(obs, rng))
+                if terminated:
+                    break
+                if t >= skip and (t - skip) % every == 0:
+                    qpos.append(sim.data.qpos.copy())
+                    qvel.append(sim.data.qvel.copy())
+                    source.append(name)
+                    steps.append(t + 1)
+                if truncated:
+                    break
+    if not qpos:
+        raise ValueError("no states collected: every episode ended before `skip` steps")
+    return StatePool(np.asarray(qpos), np.asarray(qvel), np.asarray(source), np.asarray(steps))
+
+
+def start_from(env, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """Put a freshly reset MuJoCo env into state (qpos, qvel) and return its observation there."""
+    sim = env.unwrapped
+    sim.set_state(qpos, qvel)
+    return sim._get_obs()
