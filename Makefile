@@ -38,7 +38,7 @@ data: $(STAMP)
 	$(BIN)/gmt data collect --env Walker2d-v5
 	$(BIN)/gmt data collect --env Ant-v5 --no-random  # see behaviour/ant/TRAINED_WITH.md
 
-# The exact command behind the shipped checkpoint (about 40 minutes on one core; see its PROVENANCE.md).
+# The exact command behind the shipped checkpoint (about 31 minutes on one core; see its PROVENANCE.md).
 train: $(STAMP)
 	$(BIN)/gmt train --dataset gmt/halfcheetah/mixed-v0 --out $(CHECKPOINT) --steps 20000 --lr 5e-4 \
 		--warmup 1000 --threads 1 --seed 0

@@ -132,7 +132,12 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
     assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Hopper-v5").pool_start == {}
     with pytest.raises(ValueError, match="pool_start"):
         CollectConfig(ENV, pool_start={"slow": 1.5})
+    # These random-weight snapshots barely move: pool-started episodes that end standing still are replaced
+    # (from-rest ones, which never ran, are kept), a failed pooled start is retried from another pool state, and here every try fails.
     cfg = CollectConfig(ENV, 4, 3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=40, pool_start={"slow": 0.5})
+    with pytest.raises(RuntimeError, match="slow: 12 of 12 episodes got stuck"):
+        collect(cfg, progress=False)
+    cfg.drop_stuck = False
     res = collect(cfg, progress=False)
     assert res.levels["slow"]["pool_starts"] == 2 and res.levels["fast"]["pool_starts"] == 0
     ds = load_dataset(res.dataset_id, tmp_path / "d")
@@ -148,6 +153,6 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
         else:
             assert "start_from" not in meta
             np.testing.assert_array_equal(first, rest_obs)
-    again = collect(CollectConfig(ENV, 4, 3, "gmt/again-v0", tmp_path / "d", beh, 40, pool_start={"slow": 0.5}),
-                    progress=False)  # fmt: skip
+    again = collect(CollectConfig(ENV, 4, 3, "gmt/again-v0", tmp_path / "d", beh, 40, pool_start={"slow": 0.5},
+                                  drop_stuck=False), progress=False)  # fmt: skip
     assert load_dataset(again.dataset_id, tmp_path / "d").fingerprint == ds.fingerprint
