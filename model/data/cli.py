@@ -75,7 +75,9 @@ def refine(
     critic_warmup: int = typer.Option(20_000, help="Steps that train only the new critic."),
     pool_fraction: float = typer.Option(0.5, help="Share of episodes starting from other levels' states."),
     pool_episodes: int = typer.Option(10, help="Episodes per other level rolled out for the state pool."),
-    noise_scale: float = typer.Option(0.35, help="Action-noise multiplier of pool rollouts and measurements."),
+    noise_scale: float = typer.Option(
+        0.35, help="Action-noise multiplier of pool rollouts and measurements."
+    ),
     eval_every: int = typer.Option(10_000, help="Steps between snapshot measurements."),
     eval_episodes: int = typer.Option(8, help="Episodes from rest and from pool states per measurement."),
     seed: int = typer.Option(0, help="Seed of PPO, the pool and the measurements."),
@@ -116,7 +118,8 @@ def collect(
     ),
     max_steps: int = typer.Option(None, help="Cap episode length (for quick checks)."),
     noise_scale: float = typer.Option(
-        None, help="Multiplier of the snapshots' action-noise std (default per env: HalfCheetah 0.35, else 1)."
+        None,
+        help="Multiplier of the snapshots' action-noise std (default per env: HalfCheetah 0.35, else 1).",
     ),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
     keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),

@@ -144,9 +144,13 @@ def collect_level(
         ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
         v = ep.infos.get("x_velocity")
         # A pooled start may be a pose the level cannot get out of (on its back): standing still at the end.
-        if filtered and v is not None and (
-            stuck_step(v, cfg.stuck_window) is not None
-            or (start is not None and abs(np.mean(v[-cfg.stuck_window :])) < 0.1)
+        if (
+            filtered
+            and v is not None
+            and (
+                stuck_step(v, cfg.stuck_window) is not None
+                or (start is not None and abs(np.mean(v[-cfg.stuck_window :])) < 0.1)
+            )
         ):
             dropped += 1
             continue
@@ -182,6 +186,9 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         policies[path.stem] = load_behaviour(path, env.action_space)
         policies[path.stem].noise_scale = cfg.noise_scale
     children = np.random.SeedSequence(cfg.seed).spawn(len(policies))
+    unknown = sorted(set(cfg.pool_start) - set(policies))
+    if unknown:
+        raise ValueError(f"pool_start names unknown levels {unknown}; the levels are {list(policies)}")
     steps = cfg.max_steps or env.spec.max_episode_steps or 1000
     pools = {
         name: build_pool(

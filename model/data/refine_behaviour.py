@@ -35,7 +35,7 @@ from model.data.behaviour import (
     save_behaviour,
 )
 from model.data.start_states import StatePool, build_pool, start_from
-from model.data.train_behaviour import PPOPreset, PRESETS
+from model.data.train_behaviour import PRESETS, PPOPreset
 
 
 @dataclass
@@ -82,7 +82,9 @@ class RefineConfig:
         slug = env_slug(self.env_id)
         self.behaviour_dir = Path(self.behaviour_dir or BEHAVIOUR_DIR)
         self.out_dir = Path(self.out_dir or self.behaviour_dir / slug)
-        self.work_dir = Path(self.work_dir or Path("runs") / "refine" / slug / f"{self.level}-seed{self.seed}")
+        self.work_dir = Path(
+            self.work_dir or Path("runs") / "refine" / slug / f"{self.level}-seed{self.seed}"
+        )
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
         if not 0.0 <= self.pool_fraction <= 1.0:
             raise ValueError(f"pool_fraction must be in [0, 1], got {self.pool_fraction}")
@@ -188,7 +190,9 @@ def refine(cfg: RefineConfig) -> dict:
     env = gym.make(cfg.env_id)
     init = load_behaviour(level_path, env.action_space)
     if list(init.meta.hidden_sizes) != list(p.hidden_sizes) or init.meta.activation != p.activation:
-        raise ValueError(f"{level_path}: network {init.meta.hidden_sizes}/{init.meta.activation} differs from the preset")
+        raise ValueError(
+            f"{level_path}: network {init.meta.hidden_sizes}/{init.meta.activation} differs from the preset"
+        )
     train_pool, eval_pool = _pool(cfg, env, 0), _pool(cfg, env, 10_000)
     cfg.work_dir.mkdir(parents=True, exist_ok=True)
 
@@ -210,14 +214,20 @@ def refine(cfg: RefineConfig) -> dict:
         ),
     )  # fmt: skip
     policy = model.policy
-    actor = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)] + [policy.action_net]
+    actor = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)] + [
+        policy.action_net
+    ]
     init_linears = [m for m in init.mean_net if isinstance(m, torch.nn.Linear)]
     with torch.no_grad():
         for dst, src in zip(actor, init_linears, strict=True):
             dst.weight.copy_(src.weight)
             dst.bias.copy_(src.bias)
         policy.log_std.copy_(init.log_std)
-    actor_params = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters(), policy.log_std]
+    actor_params = [
+        *policy.mlp_extractor.policy_net.parameters(),
+        *policy.action_net.parameters(),
+        policy.log_std,
+    ]
     for prm in actor_params:
         prm.requires_grad_(False)
 
@@ -235,7 +245,10 @@ def refine(cfg: RefineConfig) -> dict:
     def record(step: int) -> None:
         snap = export(step)
         snap.noise_scale = cfg.noise_scale
-        rec = {"step": step, **measure_refined(env, snap, eval_pool, cfg.target_speed, cfg.eval_episodes, 30_000)}
+        rec = {
+            "step": step,
+            **measure_refined(env, snap, eval_pool, cfg.target_speed, cfg.eval_episodes, 30_000),
+        }
         records.append(rec)
         (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
         print(
@@ -312,8 +325,8 @@ with {cfg.pool_fraction:.0%} of the episodes starting from states that the other
 visited, the snapshot's observation normalisation frozen, and only the new critic trained for the first
 {cfg.critic_warmup} steps. Every {cfg.eval_every} steps the actor was measured ({cfg.noise_scale} x noise,
 {cfg.eval_episodes} episodes from rest and {cfg.eval_episodes} from other states); the best score was step
-{best['step']}: from rest {best['rest_mean']:.3f} +- {best['rest_std']:.3f} m/s, from other levels' states
-{best['pool_mean']:.3f} +- {best['pool_std']:.3f} m/s, {best['fails']} episodes off by more than 0.4 m/s.
+{best["step"]}: from rest {best["rest_mean"]:.3f} +- {best["rest_std"]:.3f} m/s, from other levels' states
+{best["pool_mean"]:.3f} +- {best["pool_std"]:.3f} m/s, {best["fails"]} episodes off by more than 0.4 m/s.
 Snapshots and measurements: `{cfg.work_dir}/` (not committed).
 {end}
 """

@@ -134,7 +134,13 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
         CollectConfig(ENV, pool_start={"slow": 1.5})
     # These random-weight snapshots barely move: pool-started episodes that end standing still are replaced
     # (from-rest ones, which never ran, are kept), a failed pooled start is retried from another pool state, and here every try fails.
-    cfg = CollectConfig(ENV, 4, 3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=40, pool_start={"slow": 0.5})
+    with pytest.raises(ValueError, match=r"unknown levels \['slwo'\]"):
+        collect(
+            CollectConfig(ENV, 4, 3, data_dir=tmp_path / "d", behaviour_dir=beh, pool_start={"slwo": 0.5})
+        )
+    cfg = CollectConfig(
+        ENV, 4, 3, data_dir=tmp_path / "d", behaviour_dir=beh, max_steps=40, pool_start={"slow": 0.5}
+    )
     with pytest.raises(RuntimeError, match="slow: 12 of 12 episodes got stuck"):
         collect(cfg, progress=False)
     cfg.drop_stuck = False

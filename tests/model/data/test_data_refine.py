@@ -19,7 +19,9 @@ ENV = "HalfCheetah-v5"
 
 def test_start_from_puts_the_simulator_in_a_pooled_state():
     env = gym.make(ENV)
-    pool = build_pool(env, {"random": RandomPolicy(env.action_space)}, episodes=2, seed=0, skip=5, every=5, max_steps=30)
+    pool = build_pool(
+        env, {"random": RandomPolicy(env.action_space)}, episodes=2, seed=0, skip=5, every=5, max_steps=30
+    )
     assert len(pool) == 2 * 5 and set(pool.source) == {"random"} and pool.step.min() == 6
     i = 7
     env.reset(seed=123)
@@ -27,13 +29,17 @@ def test_start_from_puts_the_simulator_in_a_pooled_state():
     np.testing.assert_array_equal(env.unwrapped.data.qpos, pool.qpos[i])
     np.testing.assert_array_equal(obs[:8], pool.qpos[i][1:])  # HalfCheetah's observation drops x
     np.testing.assert_array_equal(obs[8:], pool.qvel[i])
-    again = build_pool(env, {"random": RandomPolicy(env.action_space)}, episodes=2, seed=0, skip=5, every=5, max_steps=30)
+    again = build_pool(
+        env, {"random": RandomPolicy(env.action_space)}, episodes=2, seed=0, skip=5, every=5, max_steps=30
+    )
     np.testing.assert_array_equal(again.qvel, pool.qvel)
 
 
 def test_wrappers_reward_the_target_speed_and_start_from_the_pool():
     env = gym.make(ENV)
-    pool = build_pool(env, {"random": RandomPolicy(env.action_space)}, episodes=1, seed=0, skip=5, every=5, max_steps=30)
+    pool = build_pool(
+        env, {"random": RandomPolicy(env.action_space)}, episodes=1, seed=0, skip=5, every=5, max_steps=30
+    )
     wrapped = TargetSpeedReward(gym.make(ENV), target=1.5)
     wrapped.reset(seed=0)
     _, reward, _, _, info = wrapped.step(np.full(6, 0.5, dtype=np.float32))
@@ -50,7 +56,9 @@ def test_wrappers_reward_the_target_speed_and_start_from_the_pool():
 
 def _snapshot(folder, level: str, speed: float, seed: int) -> None:
     torch.manual_seed(seed)
-    meta = BehaviourMeta(ENV, level, [256, 256], "relu", [0.5] * 17, [2.0] * 17, mean_speed=speed, train_step=7)
+    meta = BehaviourMeta(
+        ENV, level, [256, 256], "relu", [0.5] * 17, [2.0] * 17, mean_speed=speed, train_step=7
+    )
     sizes = [17, 256, 256, 6]
     state = {"log_std": torch.full((6,), -1.0)}
     for i in range(3):
@@ -77,7 +85,8 @@ def test_refine_starts_from_the_level_and_writes_a_snapshot_with_provenance(tmp_
     wrapped = FixedObsNorm(gym.make(ENV), init)
     np.testing.assert_array_equal(wrapped.observation(obs[0]), init.normalise(obs[0]).numpy())
     out = load_behaviour(tmp_path / "out" / "slow", env.action_space)
-    assert out.meta.level == "slow" and out.meta.extra["refined"]["refine_step"] == best["step"] in (0, 512, 1024)
+    assert best["step"] in (0, 512, 1024)
+    assert out.meta.level == "slow" and out.meta.extra["refined"]["refine_step"] == best["step"]
     assert out.meta.train_step == 7 + best["step"]
     path = write_provenance(cfg, best, 12.0)
     write_provenance(cfg, best, 12.0)
