@@ -34,8 +34,9 @@ from model.data.behaviour import (
     load_behaviour,
     save_behaviour,
 )
+from model.data.rollout import rollout
 from model.data.start_states import StatePool, build_pool, start_from
-from model.data.train_behaviour import PRESETS, PPOPreset
+from model.data.train_behaviour import PRESETS, PPOPreset, actor_linears, actor_state
 
 
 @dataclass
@@ -138,17 +139,12 @@ def measure_refined(env, policy, pool: StatePool, target: float, episodes: int, 
     out: dict[str, list[float]] = {"rest": [], "pool": []}
     for case, steps in (("rest", 1000), ("pool", 400)):
         for e in range(episodes):
-            obs, _ = env.reset(seed=seed + e)
+            start = None
             if case == "pool":
                 i = pool.sample(rng)
-                obs = start_from(env, pool.qpos[i], pool.qvel[i])
-            v = []
-            for _ in range(steps):
-                obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
-                v.append(float(info["x_velocity"]))
-                if terminated:
-                    break
-            out[case].append(float(np.mean(v[100:])))
+                start = (pool.qpos[i], pool.qvel[i])
+            ep = rollout(env, policy, seed=seed + e, rng=rng, max_steps=steps, start_state=start)
+            out[case].append(float(np.mean(ep.infos["x_velocity"][100:])))
     speeds = np.asarray(out["rest"] + out["pool"])
     fails = int((np.abs(speeds - target) > 0.4).sum())
     return {
@@ -214,9 +210,7 @@ def refine(cfg: RefineConfig) -> dict:
         ),
     )  # fmt: skip
     policy = model.policy
-    actor = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)] + [
-        policy.action_net
-    ]
+    actor = actor_linears(policy)
     init_linears = [m for m in init.mean_net if isinstance(m, torch.nn.Linear)]
     with torch.no_grad():
         for dst, src in zip(actor, init_linears, strict=True):
@@ -232,9 +226,7 @@ def refine(cfg: RefineConfig) -> dict:
         prm.requires_grad_(False)
 
     def export(step: int) -> BehaviourPolicy:
-        state = {f"mean_net.{2 * i}.{k}": getattr(lin, k).detach().clone() for i, lin in enumerate(actor)
-                 for k in ("weight", "bias")}  # fmt: skip
-        state["log_std"] = policy.log_std.detach().clone()
+        state = actor_state(policy)
         meta = init.meta.__class__(**{**asdict(init.meta), "train_step": step})
         save_behaviour(cfg.work_dir / f"step_{step:08d}", state, meta)
         return load_behaviour(cfg.work_dir / f"step_{step:08d}", env.action_space)

@@ -8,6 +8,7 @@ from typing import Protocol
 import numpy as np
 
 from model.data.minari_io import Episode
+from model.data.start_states import start_from
 
 
 class Policy(Protocol):
@@ -75,8 +76,6 @@ def rollout(
     """
     obs, reset_info = env.reset(seed=seed)
     if start_state is not None:
-        from model.data.start_states import start_from
-
         obs = start_from(env, *start_state)
     observations, actions, rewards, infos = [obs], [], [], []
     terminated = truncated = False

@@ -151,16 +151,25 @@ def make_train_env(env_id: str, preset: PPOPreset):
     return Monitor(env)
 
 
-def export_actor(model, vec_normalize, env_id: str, level: str, hidden_sizes: list[int], activation: str):
-    """The SB3 PPO actor as (state dict, meta): mean network, log-std, observation normalisation."""
-    policy = model.policy
+def actor_linears(policy) -> list[torch.nn.Linear]:
+    """The Linear layers of an SB3 actor's mean network, in order (they map to `mean_net.0, .2, ...`)."""
     linears = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)]
-    linears.append(policy.action_net)
+    return [*linears, policy.action_net]
+
+
+def actor_state(policy) -> dict[str, torch.Tensor]:
+    """An SB3 actor's weights under `BehaviourPolicy`'s names: mean network and log-std."""
     state = {}
-    for i, lin in enumerate(linears):
+    for i, lin in enumerate(actor_linears(policy)):
         state[f"mean_net.{2 * i}.weight"] = lin.weight.detach().cpu().clone()
         state[f"mean_net.{2 * i}.bias"] = lin.bias.detach().cpu().clone()
     state["log_std"] = policy.log_std.detach().cpu().clone()
+    return state
+
+
+def export_actor(model, vec_normalize, env_id: str, level: str, hidden_sizes: list[int], activation: str):
+    """The SB3 PPO actor as (state dict, meta): mean network, log-std, observation normalisation."""
+    state = actor_state(model.policy)
     rms = vec_normalize.obs_rms
     meta = BehaviourMeta(
         env_id=env_id,
