@@ -28,6 +28,12 @@ def train_command(
     n_layer: int = typer.Option(3, help="Transformer blocks."),
     n_embd: int = typer.Option(128, help="Embedding width."),
     n_head: int = typer.Option(1, help="Attention heads."),
+    attention: str = typer.Option(
+        "full", help="full (the paper's K-step windows) or window (banded attention, exact KV-cached serving)."
+    ),
+    sequence_length: int = typer.Option(
+        0, help="Timesteps per training sequence (0 = K for full attention, 2K for window attention)."
+    ),
     seed: int = typer.Option(0, help="Seed of weights, sampling and masks (and of k's sampling)."),
     threads: int = typer.Option(
         2, help="torch threads (match the free cores: oversubscription is 3x slower)."
@@ -71,8 +77,15 @@ def train_command(
         save_every=save_every,
         statistic=rel.statistic,
         k=len(goals),
+        sequence_length=sequence_length,
     )
-    overrides = {"context_length": context_length, "n_layer": n_layer, "n_embd": n_embd, "n_head": n_head}
+    overrides = {
+        "context_length": context_length,
+        "n_layer": n_layer,
+        "n_embd": n_embd,
+        "n_head": n_head,
+        "attention": attention,
+    }
     command = "gmt train " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     ckpt = train(
         ds,

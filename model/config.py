@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 MaskingMode = Literal["token", "trajectory", "none"]
+AttentionSpan = Literal["full", "window"]
 
 
 @dataclass(frozen=True)
@@ -23,6 +24,9 @@ class GMTConfig:
         n_embd: Width of every token embedding.
         max_timestep: Size of the timestep embedding table; later timesteps are clamped to the last row.
         dropout: Dropout probability (0 by default: it costs a third of a CPU step for little gain here).
+        attention: `full`: every token sees its whole K-step window (the paper's setting; serving recomputes
+            the window every step). `window`: banded causal attention, each token sees the tokens of its own
+            last K timesteps, so a per-layer key/value cache reproduces the reference forward exactly.
     """
 
     obs_shape: tuple[int, ...]
@@ -35,6 +39,7 @@ class GMTConfig:
     n_embd: int = 128
     max_timestep: int = 1024
     dropout: float = 0.0
+    attention: AttentionSpan = "full"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "obs_shape", tuple(int(s) for s in self.obs_shape))
@@ -46,6 +51,18 @@ class GMTConfig:
             raise ValueError(f"n_embd={self.n_embd} is not divisible by n_head={self.n_head}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.attention not in ("full", "window"):
+            raise ValueError(f"attention must be full or window, got {self.attention!r}")
+
+    @property
+    def history_steps(self) -> int:
+        """Steps of history that determine the action at a step (the reference forward's input).
+
+        K for `full` attention; the receptive field n_layer * (K - 1) + 1 for `window` attention.
+        """
+        if self.attention == "full":
+            return self.context_length
+        return self.n_layer * (self.context_length - 1) + 1
 
     @property
     def is_image(self) -> bool:
@@ -65,8 +82,8 @@ class GMTConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> GMTConfig:
-        """Inverse of `to_dict`."""
-        return cls(**{**d, "obs_shape": tuple(d["obs_shape"])})
+        """Inverse of `to_dict`; configs written before `attention` existed read as `full`."""
+        return cls(**{"attention": "full", **d, "obs_shape": tuple(d["obs_shape"])})
 
 
 @dataclass
@@ -93,6 +110,8 @@ class TrainConfig:
         calibration_batches: Batches of windows scored after training to measure the per-goal action noise
             of continuous-action models (`model.calibrate`).
         bf16: Run matrix products under bfloat16 autocast (AMX on this CPU).
+        sequence_length: Timesteps per training sequence; 0 = K for `full` attention and 2K for `window`
+            attention (a window model must learn from sequences longer than its span).
     """
 
     steps: int = 20000
@@ -113,6 +132,7 @@ class TrainConfig:
     k: int | None = None
     calibration_batches: int = 200
     bf16: bool = False
+    sequence_length: int = 0
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -124,5 +144,15 @@ class TrainConfig:
             raise ValueError("steps and batch_size must be positive")
         if self.calibration_batches < 1:
             raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
+        if self.sequence_length < 0:
+            raise ValueError(f"sequence_length must be >= 0, got {self.sequence_length}")
         if self.warmup_steps < 0 or self.lr <= 0:
             raise ValueError("warmup_steps must be >= 0 and lr > 0")
+
+    def sequence_steps(self, cfg: GMTConfig) -> int:
+        """Timesteps per training sequence for the model `cfg`."""
+        if self.sequence_length:
+            if cfg.attention == "full" and self.sequence_length != cfg.context_length:
+                raise ValueError("a full-attention model trains on sequences of exactly K steps")
+            return self.sequence_length
+        return cfg.context_length if cfg.attention == "full" else 2 * cfg.context_length

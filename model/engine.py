@@ -1,84 +1,144 @@
-"""Batched inference over many rolling contexts: one forward pass answers a batch of sessions.
+"""Batched inference over many sessions: one forward pass answers a batch, with no loop over sessions.
 
-Evaluation and the server both use this engine. A `Context` is one episode's last K steps plus its goal state;
-it holds only NumPy arrays and plain values, so a session store can persist it without pickle.
+Every session's state lives in one slot of a `SessionPool`: its goal state, its last `history_steps` steps in a
+ring, and (for `window` models) its key/value cache. An act gathers the batch's slots, runs either
+
+- the **incremental** path (`window` models): only the newest tokens of each session, the action taken at the
+  previous step, the goal and the state, go through the network, attending over the key/value cache; or
+- the **recompute** path (the reference, and the only exact path for `full` models): the whole history window
+  through the network, heads at the last position only,
+
+then samples actions for all rows at once and commits the rows that succeeded. Both paths give the same actions
+(fp32, to rounding); `gmt serve --naive` uses the recompute path one request at a time as the exactness oracle.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import secrets
 
 import numpy as np
 import torch
 
 from model.checkpoint import Checkpoint
-from model.tokens import Windows, pad_left
+from model.context import Context, StoredContext
+from model.kv_cache import KVCache
+from model.runtime import InvalidObservation, PolicyRuntime, RuntimeInfo, StepFailed
+
+__all__ = ["InvalidObservation", "PolicyEngine", "SessionPool", "StepFailed"]
 
 ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions, default first
 CONTINUOUS_MODES = ("sample", "mean")  # continuous actions of a calibrated checkpoint, default first
 DETERMINISTIC_MODES = ("argmax", "mean")
+MODES = ("argmax", "sample", "expert", "mean")  # index stored per slot
 # Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
 # with small noise (HalfCheetah: ~0.05) and sampling it reproduces their statistics; a uniform-random level's
 # spread (~0.55) is the behaviour itself, and reproducing it tipped HalfCheetah into poses that no running data
 # recovers from (6 of 15 switches out of the random goal failed uncapped; 0 of 15 capped at 0.1).
 SAMPLE_STD_CAP = 0.1
 EXPERT_QUANTILE = 0.6
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
-class InvalidObservation(ValueError):
-    """An observation has the wrong size, dtype or non-finite values."""
+def _mix(x: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser on uint64 arrays (wrapping arithmetic)."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
 
 
-@dataclass
-class Context:
-    """One episode's rolling context and goal state.
+def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
+    """[B, n] uniforms in (0, 1), a pure function of (seed, step, stream): sampling needs no stored RNG state."""
+    with np.errstate(over="ignore"):
+        key = _mix(seed.astype(np.uint64) * _GOLDEN + _mix(step.astype(np.uint64) + np.uint64(stream) * _GOLDEN))
+        bits = _mix(key[:, None] + (np.arange(1, n + 1, dtype=np.uint64) * _GOLDEN)[None, :])
+    return ((bits >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0**53
+
+
+def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
+    """[B, n] standard normals from (seed, step) by Box-Muller."""
+    u1, u2 = uniforms(seed, step, n, 1), uniforms(seed, step, n, 2)
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * math.pi * u2)
+
+
+class SessionPool:
+    """Arrays of every live session of one engine, indexed by slot; grows by doubling.
 
     Attributes:
-        goal: The goal the session is asked to pursue (reported with every action).
-        step: Timestep of the next observation.
-        blend_from: Goal being faded out during a gradual switch.
-        blend_steps: Length of the current gradual switch (0 = none).
-        blend_done: Steps of the gradual switch already taken.
-        action_mode: Discrete actions: argmax, sample or expert; continuous: mean or sample.
-        rng: Generator for sampled actions.
-        goals: [n] goal token of each step (the faded-out goal during a blend).
-        blend_to: [n] second goal of each step's token.
-        blend_w: [n] weight of `blend_to` in each step's token (0 = plain goal).
-        states: [n, *obs_shape] normalised states.
-        actions: [n, A] model-space actions ([n] ids for discrete).
-        timesteps: [n] timesteps.
+        H: Steps of history kept per slot (a ring indexed by timestep mod H).
+        modes: Names of the mode indices stored in `mode`.
+        goal, step, blend_from, blend_steps, blend_done, mode, seed, version: [S] per-slot scalars.
+        h_goal, h_blend_to: [S, H] goal tokens; h_blend_w: [S, H] blend weights.
+        h_state: [S, H, *obs_shape] normalised states; h_action: [S, H, A] (or [S, H] ids) actions taken.
+        cache: the key/value cache (incremental path only).
     """
 
-    goal: int
-    step: int = 0
-    blend_from: int = 0
-    blend_steps: int = 0
-    blend_done: int = 0
-    action_mode: str = "argmax"
-    rng: np.random.Generator = field(default_factory=np.random.default_rng)
-    goals: np.ndarray | None = None
-    blend_to: np.ndarray | None = None
-    blend_w: np.ndarray | None = None
-    states: np.ndarray | None = None
-    actions: np.ndarray | None = None
-    timesteps: np.ndarray | None = None
+    SCALARS = ("goal", "step", "blend_from", "blend_steps", "blend_done", "mode", "seed", "version")
+
+    def __init__(self, engine: PolicyEngine, n_slots: int = 16) -> None:
+        cfg = engine.cfg
+        self.H = cfg.history_steps
+        self.modes = MODES
+        state_dtype = np.uint8 if cfg.is_image else np.float32
+        act_shape, act_dtype = ((), np.int64) if cfg.discrete_actions else ((cfg.act_dim,), np.float32)
+        self._layout = {
+            **{name: ((), np.uint64 if name == "seed" else np.int64) for name in self.SCALARS},
+            "h_goal": ((self.H,), np.int64),
+            "h_blend_to": ((self.H,), np.int64),
+            "h_blend_w": ((self.H,), np.float32),
+            "h_state": ((self.H, *cfg.obs_shape), state_dtype),
+            "h_action": ((self.H, *act_shape), act_dtype),
+        }
+        for name, (shape, dtype) in self._layout.items():
+            setattr(self, name, np.zeros((n_slots, *shape), dtype=dtype))
+        self.cache = KVCache(cfg, n_slots) if engine.incremental else None
+        self.free = list(range(n_slots - 1, -1, -1))
+        self.keys: dict[str, int] = {}
 
     @property
-    def size(self) -> int:
-        """Number of steps held (at most K)."""
-        return 0 if self.goals is None else len(self.goals)
+    def n_slots(self) -> int:
+        """Slots allocated."""
+        return len(self.step)
 
     @property
-    def blend_remaining(self) -> int:
-        """Steps left in the current gradual switch."""
-        return max(self.blend_steps - self.blend_done, 0)
+    def live(self) -> int:
+        """Slots in use."""
+        return self.n_slots - len(self.free)
+
+    def allocate(self) -> int:
+        """A free slot, growing the pool when none is left."""
+        if not self.free:
+            n = self.n_slots
+            for name, (shape, dtype) in self._layout.items():
+                setattr(self, name, np.concatenate([getattr(self, name), np.zeros((n, *shape), dtype)]))
+            if self.cache is not None:
+                self.cache.grow(2 * n)
+            self.free = list(range(2 * n - 1, n - 1, -1))
+        return self.free.pop()
+
+    def release(self, slot: int) -> None:
+        """Return a slot to the free list."""
+        self.free.append(slot)
+
+    def bytes_per_slot(self) -> int:
+        """Memory one session's slot takes (history, scalars and cache)."""
+        n = sum(getattr(self, name).nbytes for name in self._layout) // self.n_slots
+        if self.cache is not None:
+            n += (self.cache.k.nbytes + self.cache.v.nbytes + self.cache.tok.nbytes) // self.n_slots
+        return n
 
 
-class PolicyEngine:
-    """Answers batches of (context, observation) with actions; owns one loaded checkpoint."""
+class PolicyEngine(PolicyRuntime):
+    """Answers batches of (context, observation) with actions; owns one loaded checkpoint.
 
-    def __init__(self, checkpoint: Checkpoint) -> None:
+    Args:
+        checkpoint: The loaded checkpoint.
+        incremental: Use the key/value-cache path (None = whenever the model has `window` attention);
+            False forces the reference recompute.
+        n_slots: Initial pool size (it grows as sessions arrive).
+    """
+
+    def __init__(self, checkpoint: Checkpoint, incremental: bool | None = None, n_slots: int = 16) -> None:
         self.ckpt = checkpoint
         self.model = checkpoint.model.eval()
         self.cfg = checkpoint.config
@@ -86,6 +146,10 @@ class PolicyEngine:
         self.n_goals = self.cfg.n_goals
         self.obs_size = int(np.prod(self.cfg.obs_shape))
         self.discrete = self.cfg.discrete_actions
+        window = self.cfg.attention == "window"
+        if incremental and not window:
+            raise ValueError("the incremental path is exact only for attention='window' models")
+        self.incremental = window if incremental is None else incremental
         noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] std or None
         # [n_goals, A] variance of the capped noise `sample` adds (interpolated during a blend).
         self.noise_var = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP).astype(np.float64) ** 2
@@ -95,61 +159,164 @@ class PolicyEngine:
             self.action_modes: tuple[str, ...] = ACTION_MODES
         else:
             self.action_modes = CONTINUOUS_MODES if self.noise_var is not None else ("mean",)
+        self.pool = SessionPool(self, n_slots)
+        self._arange_h = np.arange(self.pool.H)
+
+    def describe(self) -> RuntimeInfo:
+        return RuntimeInfo(
+            action_modes=self.action_modes,
+            history_steps=self.pool.H,
+            path="incremental" if self.incremental else "recompute",
+            batching=True,
+        )
 
     @property
     def default_action_mode(self) -> str:
-        """The mode of a session that does not choose one."""
         return self.action_modes[0]
 
     # ----- contexts -----------------------------------------------------------------------------------------
-    def new_context(self, goal: int, action_mode: str | None = None, seed: int | None = None) -> Context:
-        """An empty context for a new episode (`action_mode` None = the model's default)."""
-        self.check_goal(goal)
+    def check_goal(self, goal: int) -> None:
+        """Raise ValueError for a goal id outside the goal table."""
+        if isinstance(goal, bool) or not isinstance(goal, int | np.integer) or not 0 <= int(goal) < self.n_goals:
+            raise ValueError(f"goal {goal!r} is not a goal id of this model (0..{self.n_goals - 1})")
+
+    def _check_mode(self, action_mode: str | None) -> str:
         action_mode = action_mode or self.default_action_mode
         if action_mode not in self.action_modes:
-            raise ValueError(
-                f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}"
-            )
-        return Context(goal=goal, blend_from=goal, action_mode=action_mode, rng=np.random.default_rng(seed))
+            raise ValueError(f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}")
+        return action_mode
+
+    def _slot_for(self, key: str | None) -> int:
+        p = self.pool
+        if key is not None and key in p.keys:
+            return p.keys[key]
+        slot = p.allocate()
+        if key is not None:
+            p.keys[key] = slot
+        return slot
+
+    def new_context(
+        self, goal: int, action_mode: str | None = None, seed: int | None = None, key: str | None = None
+    ) -> Context:
+        self.check_goal(goal)
+        mode = self._check_mode(action_mode)
+        if seed is None:
+            seed = secrets.randbits(63)
+        slot = self._slot_for(key)
+        p = self.pool
+        p.goal[slot] = p.blend_from[slot] = goal
+        p.step[slot] = p.blend_steps[slot] = p.blend_done[slot] = p.version[slot] = 0
+        p.mode[slot], p.seed[slot] = MODES.index(mode), int(seed)
+        if p.cache is not None:
+            p.cache.clear(torch.tensor([slot]))
+        return Context(p, slot, key)
+
+    def release(self, ctx: Context) -> None:
+        p = self.pool
+        if ctx.key is not None and p.keys.get(ctx.key) == ctx.slot:
+            del p.keys[ctx.key]
+        p.release(ctx.slot)
+
+    def forget(self, key: str) -> None:
+        """Release the slot registered under `key`, if any."""
+        slot = self.pool.keys.get(key)
+        if slot is not None:
+            self.release(Context(self.pool, slot, key))
+
+    def handle(self, key: str) -> Context | None:
+        """The live context registered under `key`, if this engine holds one."""
+        slot = self.pool.keys.get(key)
+        return None if slot is None else Context(self.pool, slot, key)
 
     def reset(self, ctx: Context, goal: int | None = None) -> None:
-        """Forget the episode; keep (or replace) the goal."""
+        p, s = self.pool, ctx.slot
         if goal is not None:
             self.check_goal(goal)
-            ctx.goal = goal
-        ctx.step, ctx.blend_from, ctx.blend_steps, ctx.blend_done = 0, ctx.goal, 0, 0
-        ctx.goals = ctx.blend_to = ctx.blend_w = ctx.states = ctx.actions = ctx.timesteps = None
+            p.goal[s] = goal
+        p.step[s] = p.blend_steps[s] = p.blend_done[s] = 0
+        p.blend_from[s] = p.goal[s]
+        p.version[s] += 1
+        if p.cache is not None:
+            p.cache.clear(torch.tensor([s]))
 
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
-        """Condition tokens from the next step on `goal`; fade it in over `blend_steps` steps if > 0."""
         self.check_goal(goal)
         if blend_steps < 0:
             raise ValueError(f"blend_steps must be >= 0, got {blend_steps}")
-        if blend_steps > 0 and goal != ctx.goal:
-            ctx.blend_from = self._token_goal(ctx)[0] if ctx.blend_remaining == 0 else ctx.blend_from
-            ctx.blend_steps, ctx.blend_done = blend_steps, 0
+        p, s = self.pool, ctx.slot
+        if blend_steps > 0 and goal != p.goal[s]:
+            if ctx.blend_remaining == 0:
+                p.blend_from[s] = p.goal[s]
+            p.blend_steps[s], p.blend_done[s] = blend_steps, 0
         else:
-            ctx.blend_from, ctx.blend_steps, ctx.blend_done = goal, 0, 0
-        ctx.goal = goal
+            p.blend_from[s], p.blend_steps[s], p.blend_done[s] = goal, 0, 0
+        p.goal[s] = goal
+        p.version[s] += 1
 
-    def check_goal(self, goal: int) -> None:
-        """Raise ValueError for a goal id outside the goal table."""
-        if not isinstance(goal, int | np.integer) or not 0 <= int(goal) < self.n_goals:
-            raise ValueError(f"goal {goal!r} is not a goal id of this model (0..{self.n_goals - 1})")
+    def from_stored(self, stored: StoredContext, key: str | None = None) -> Context:
+        p = self.pool
+        if key is not None and key in p.keys and p.version[p.keys[key]] == stored.version:
+            slot = p.keys[key]
+            if p.step[slot] == stored.step:
+                return Context(p, slot, key)
+        self.check_goal(stored.goal)
+        self.check_goal(stored.blend_from)
+        mode = self._check_mode(stored.action_mode)
+        n = stored.size
+        if n != min(stored.step, p.H) or len(stored.states) != n or len(stored.actions) != n:
+            raise ValueError(f"stored context holds {n} steps; step {stored.step} needs {min(stored.step, p.H)}")
+        slot = self._slot_for(key)
+        for name in ("goal", "step", "blend_from", "blend_steps", "blend_done", "seed", "version"):
+            getattr(p, name)[slot] = getattr(stored, name)
+        p.mode[slot] = MODES.index(mode)
+        pos = np.arange(stored.step - n, stored.step) % p.H
+        p.h_goal[slot, pos] = stored.goals
+        p.h_blend_to[slot, pos] = stored.blend_to
+        p.h_blend_w[slot, pos] = stored.blend_w
+        p.h_state[slot, pos] = stored.states.reshape(n, *self.cfg.obs_shape)
+        p.h_action[slot, pos] = stored.actions
+        if p.cache is not None:
+            self._rebuild_cache(slot)
+        return Context(p, slot, key)
 
-    @staticmethod
-    def _token_goal(ctx: Context) -> tuple[int, int, float]:
-        """(goal, blend_to, weight) of the next step's goal token, without advancing the blend."""
-        if ctx.blend_remaining == 0:
-            return ctx.goal, ctx.goal, 0.0
-        return ctx.blend_from, ctx.goal, (ctx.blend_done + 1) / ctx.blend_steps
+    @torch.inference_mode()
+    def _rebuild_cache(self, slot: int) -> None:
+        """Recompute a slot's key/value cache from its history (a session adopted from a store)."""
+        p, cache = self.pool, self.pool.cache
+        sl = torch.tensor([slot])
+        cache.clear(sl)
+        t = int(p.step[slot])
+        n = min(t, p.H)
+        if n == 0:
+            return
+        pos = np.arange(t - n, t) % p.H
+        kv: list = []
+        self.model(
+            torch.from_numpy(p.h_goal[slot, pos][None]),
+            torch.from_numpy(p.h_state[slot, pos][None]),
+            torch.from_numpy(p.h_action[slot, pos][None]),
+            torch.arange(t - n, t)[None],
+            torch.ones(1, n, dtype=torch.bool),
+            torch.from_numpy(p.h_blend_to[slot, pos][None]),
+            torch.from_numpy(p.h_blend_w[slot, pos][None]),
+            last_only=True,
+            kv_out=kv,
+        )
+        keep = min(n, self.K + 1) * 3  # tokens of the last K + 1 steps
+        tok = torch.arange(3 * (t - n), 3 * t)[-keep:]  # [keep] token indices
+        ring = tok % cache.width
+        for layer, (k, v) in enumerate(kv):
+            cache.k[layer, slot, ring] = k[0, -keep:]
+            cache.v[layer, slot, ring] = v[0, -keep:]
+        cache.tok[slot, ring] = tok
 
     # ----- observations -------------------------------------------------------------------------------------
     def prepare_observation(self, obs: np.ndarray | list) -> np.ndarray:
         """Validate one raw observation and return it normalised in the model's shape.
 
         Raises:
-            InvalidObservation: wrong number of values or non-finite values.
+            InvalidObservation: wrong number of values, non-numeric or non-finite values (also after
+                normalisation, which can overflow float32).
         """
         try:
             x = np.asarray(obs)
@@ -164,104 +331,153 @@ class PolicyEngine:
         if np.issubdtype(x.dtype, np.floating) and not np.isfinite(x).all():
             bad = int(np.flatnonzero(~np.isfinite(x.ravel()))[0])
             raise InvalidObservation(f"observation has a non-finite value (NaN or Inf) at index {bad}")
-        return self.ckpt.obs_norm(x.reshape(self.cfg.obs_shape))
+        with np.errstate(over="ignore", invalid="ignore"):
+            state = self.ckpt.obs_norm(x.reshape(self.cfg.obs_shape))
+        if state.dtype.kind == "f" and not np.isfinite(state).all():
+            bad = int(np.flatnonzero(~np.isfinite(state.ravel()))[0])
+            raise InvalidObservation(f"observation value at index {bad} is too large: its normalised value overflows")
+        return state
 
     # ----- inference ----------------------------------------------------------------------------------------
-    def _grown(self, ctx: Context, state: np.ndarray) -> tuple[np.ndarray, ...]:
-        g, b, w = self._token_goal(ctx)
-        zero_a = np.zeros(
-            () if self.discrete else (self.cfg.act_dim,), dtype=np.int64 if self.discrete else np.float32
-        )
-
-        def push(arr: np.ndarray | None, item) -> np.ndarray:
-            item = np.asarray(item)[None]
-            return (
-                item
-                if arr is None
-                else np.concatenate([arr[-(self.K - 1) :] if self.K > 1 else arr[:0], item])
-            )
-
-        return (
-            push(ctx.goals, np.int64(g)),
-            push(ctx.blend_to, np.int64(b)),
-            push(ctx.blend_w, np.float32(w)),
-            push(ctx.states, state),
-            push(ctx.actions, zero_a),
-            push(ctx.timesteps, np.int64(ctx.step)),
-        )
-
-    @torch.inference_mode()
-    def forward(
-        self, windows: Windows, blend_to: torch.Tensor | None = None, blend_w: torch.Tensor | None = None
-    ):
-        """Action predictions [B, K, A] of the network for a batch of windows (reference, fp32)."""
-        pred, _ = self.model(*windows.model_inputs(), blend_to=blend_to, blend_w=blend_w)
-        return pred
-
-    def act(self, contexts: list[Context], observations: list) -> list[np.ndarray | int]:
-        """One step for each context: append the observation, predict, append the action.
-
-        Contexts are changed only when the whole batch succeeded.
+    def act(
+        self, contexts: list[Context], observations: list, prepared: bool = False
+    ) -> list[np.ndarray | int | Exception]:
+        """One step for each context: predict from the history plus the observation, then commit.
 
         Args:
             contexts: The sessions' contexts (each at most once in a batch).
-            observations: One raw observation per context.
+            observations: One observation per context: raw, or the output of `prepare_observation`.
+            prepared: Whether `observations` are already prepared.
 
         Returns:
-            Environment actions: float32 arrays (continuous, clipped) or ints (discrete).
+            Per context: a float32 action (continuous, clipped to the space), an int (discrete), or the
+            exception (InvalidObservation, StepFailed) that failed that item alone, whose context is unchanged.
         """
         if len(contexts) != len(observations):
             raise ValueError("one observation per context is required")
         if not contexts:
             return []
-        states = [self.prepare_observation(o) for o in observations]
-        grown = [self._grown(c, s) for c, s in zip(contexts, states, strict=True)]
-        windows = pad_left(
-            [x[0] for x in grown], [x[3] for x in grown], [x[4] for x in grown], [x[5] for x in grown], self.K
-        )
-        blend = any(float(x[2][-1]) > 0.0 or (x[2] > 0).any() for x in grown)
-        blend_to = blend_w = None
-        if blend:
-            bw = pad_left(
-                [x[1] for x in grown],
-                [x[2][:, None] for x in grown],
-                [x[4] for x in grown],
-                [x[5] for x in grown],
-                self.K,
+        out: list = [None] * len(contexts)
+        rows, states = [], []
+        for i, o in enumerate(observations):
+            if prepared:
+                rows.append(i)
+                states.append(o)
+                continue
+            try:
+                states.append(self.prepare_observation(o))
+                rows.append(i)
+            except InvalidObservation as e:
+                out[i] = e
+        if not rows:
+            return out
+        if len(rows) < len(contexts):
+            contexts = [contexts[i] for i in rows]
+        slots = np.fromiter((c.slot for c in contexts), dtype=np.int64, count=len(contexts))
+        if len(np.unique(slots)) != len(slots):
+            raise ValueError("a context may appear once per batch")
+        actions, ok = self._step(slots, np.stack(states))
+        for j, i in enumerate(rows):
+            out[i] = actions[j] if ok[j] else StepFailed(
+                "the model produced a non-finite action for this observation; the session is unchanged"
             )
-            blend_to, blend_w = bw.goals, bw.states[..., 0]
-        pred = self.forward(windows, blend_to, blend_w)[:, -1]  # [B, A]
-        pred_np = pred.float().numpy()
-        out: list[np.ndarray | int] = []
-        for ctx, row, (g, b, w, s, a, t) in zip(contexts, pred_np, grown, strict=True):
-            if self.discrete:
-                act = self._choose(row, ctx)
-                a[-1] = act
-                out.append(int(act))
-            else:
-                if ctx.action_mode == "sample":
-                    row = row + self._noise_std(g[-1], b[-1], w[-1]) * ctx.rng.standard_normal(row.shape)
-                a[-1] = np.clip(row, -1.0, 1.0)
-                out.append(self.ckpt.action_codec.decode(a[-1]))
-            ctx.goals, ctx.blend_to, ctx.blend_w, ctx.states, ctx.actions, ctx.timesteps = g, b, w, s, a, t
-            if ctx.blend_remaining > 0:
-                ctx.blend_done += 1
-                if ctx.blend_remaining == 0:
-                    ctx.blend_from, ctx.blend_steps, ctx.blend_done = ctx.goal, 0, 0
-            ctx.step += 1
         return out
 
-    def _noise_std(self, goal: int, blend_to: int, weight: float) -> np.ndarray:
-        """[A] action std (capped) of a step's goal token (variances interpolated during a blend)."""
-        return np.sqrt((1.0 - weight) * self.noise_var[goal] + weight * self.noise_var[blend_to])
+    @torch.inference_mode()
+    def _step(self, slots: np.ndarray, states: np.ndarray) -> tuple[list, np.ndarray]:
+        p = self.pool
+        t = p.step[slots]  # [B]
+        blending = p.blend_steps[slots] > p.blend_done[slots]  # [B]
+        goal = p.goal[slots]
+        g = np.where(blending, p.blend_from[slots], goal)  # [B] goal token
+        w = np.where(blending, (p.blend_done[slots] + 1) / np.maximum(p.blend_steps[slots], 1), 0.0).astype(
+            np.float32
+        )  # [B] weight of `goal` in the token
+        if self.incremental:
+            pred = self._predict_incremental(slots, t, g, goal, w, states)
+        else:
+            pred = self._predict_recompute(slots, t, g, goal, w, states)
+        pred = pred.float().numpy()  # [B, A]
+        ok = np.isfinite(pred).all(axis=1)  # [B]
+        if not ok.all():
+            pred = np.where(ok[:, None], pred, 0.0)
+        taken, env_actions = self._choose(pred, slots, t, g, goal, w)
+        # Commit the rows that succeeded.
+        c = slots[ok]
+        pos = t[ok] % p.H
+        p.h_goal[c, pos], p.h_blend_to[c, pos], p.h_blend_w[c, pos] = g[ok], goal[ok], w[ok]
+        p.h_state[c, pos], p.h_action[c, pos] = states[ok], taken[ok]
+        p.step[c] += 1
+        p.version[c] += 1
+        p.blend_done[c] += blending[ok]
+        done = c[blending[ok] & (p.blend_done[c] >= p.blend_steps[c])]
+        p.blend_from[done], p.blend_steps[done], p.blend_done[done] = p.goal[done], 0, 0
+        return env_actions, ok
 
-    @staticmethod
-    def _choose(logits: np.ndarray, ctx: Context) -> int:
-        if ctx.action_mode == "argmax":
-            return int(np.argmax(logits))
-        z = logits.astype(np.float64)
-        if ctx.action_mode == "expert":
-            z = np.where(z >= np.quantile(z, EXPERT_QUANTILE), z, -math.inf)
-        p = np.exp(z - z.max())
-        p /= p.sum()
-        return int(ctx.rng.choice(len(p), p=p))
+    def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
+        p = self.pool
+        prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
+        prev[t == 0] = 0
+        blend = bool((w > 0).any())
+        return self.model.step(
+            torch.from_numpy(prev),
+            torch.from_numpy(g),
+            torch.from_numpy(states),
+            torch.from_numpy(t),
+            p.cache,
+            torch.from_numpy(slots),
+            torch.from_numpy(goal) if blend else None,
+            torch.from_numpy(w) if blend else None,
+        )
+
+    def _predict_recompute(self, slots, t, g, goal, w, states) -> torch.Tensor:
+        p, H = self.pool, self.pool.H
+        idx = t[:, None] - H + 1 + self._arange_h[None, :]  # [B, H] timesteps of the window
+        valid = idx >= 0  # [B, H]
+        pos = idx % H
+        rows = slots[:, None]
+        goals, blend_to, blend_w = p.h_goal[rows, pos], p.h_blend_to[rows, pos], p.h_blend_w[rows, pos]
+        st, ac = p.h_state[rows, pos], p.h_action[rows, pos]  # [B, H, *obs], [B, H, A]
+        goals[:, -1], blend_to[:, -1], blend_w[:, -1], st[:, -1], ac[:, -1] = g, goal, w, states, 0
+        pad = ~valid
+        goals[pad], blend_to[pad], blend_w[pad], st[pad], ac[pad] = 0, 0, 0, 0, 0
+        blend = bool((blend_w > 0).any())
+        pred, _ = self.model(
+            torch.from_numpy(goals),
+            torch.from_numpy(st),
+            torch.from_numpy(ac),
+            torch.from_numpy(np.where(valid, idx, 0)),
+            torch.from_numpy(valid),
+            torch.from_numpy(blend_to) if blend else None,
+            torch.from_numpy(blend_w) if blend else None,
+            last_only=True,
+        )
+        return pred[:, 0]  # [B, A]
+
+    def _choose(self, pred: np.ndarray, slots, t, g, goal, w) -> tuple[np.ndarray, list]:
+        """Actions of every row at once: (model-space actions to store [B, A] or ids [B], env actions)."""
+        p = self.pool
+        mode = p.mode[slots]
+        seed = p.seed[slots]
+        if self.discrete:
+            z = pred.astype(np.float64)  # [B, n] logits
+            ids = z.argmax(axis=1)
+            stoch = mode != MODES.index("argmax")
+            if stoch.any():
+                expert = (mode == MODES.index("expert"))[:, None]
+                thr = np.quantile(z, EXPERT_QUANTILE, axis=1, keepdims=True)
+                z = np.where(expert & (z < thr), -math.inf, z)
+                prob = np.exp(z - z.max(axis=1, keepdims=True))
+                cdf = np.cumsum(prob / prob.sum(axis=1, keepdims=True), axis=1)
+                u = uniforms(seed, t, 1)  # [B, 1]
+                drawn = np.minimum((cdf < u).sum(axis=1), z.shape[1] - 1)
+                ids = np.where(stoch, drawn, ids)
+            return ids, [int(a) for a in ids]
+        a = pred
+        sample = mode == MODES.index("sample")
+        if sample.any():
+            var = (1.0 - w[:, None]) * self.noise_var[g] + w[:, None] * self.noise_var[goal]  # [B, A]
+            noise = np.sqrt(var) * normals(seed, t, a.shape[1])
+            a = np.where(sample[:, None], a + noise, a)
+        a = np.clip(a, -1.0, 1.0).astype(np.float32)  # [B, A]
+        return a, list(self.ckpt.action_codec.decode(a))

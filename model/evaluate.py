@@ -209,6 +209,9 @@ def evaluate(
             if g != ctxs[i].goal:
                 engine.set_goal(ctxs[i], g)
         actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
+        failed = [a for a in actions if isinstance(a, Exception)]
+        if failed:
+            raise failed[0]
         for i, a in zip(idx, actions, strict=True):
             o, r, term, trunc, info = envs[i].step(a)
             obs[i] = o

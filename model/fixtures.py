@@ -25,6 +25,8 @@ def tiny_checkpoint(
     seed: int = 0,
     name: str = "tiny-gmt",
     calibrated: bool = False,
+    attention: str = "full",
+    n_layer: int = 2,
 ) -> Checkpoint:
     """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
 
@@ -42,9 +44,10 @@ def tiny_checkpoint(
         discrete_actions=discrete,
         n_goals=n_goals,
         context_length=context_length,
-        n_layer=2,
+        n_layer=n_layer,
         n_head=2,
         n_embd=32,
+        attention=attention,
     )
     torch.manual_seed(seed)
     model = GMT(cfg).eval()

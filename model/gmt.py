@@ -21,19 +21,51 @@ class CausalSelfAttention(nn.Module):
         self.proj = nn.Linear(cfg.n_embd, cfg.n_embd)
         self.dropout = cfg.dropout
 
-    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+    def _heads(self, x: torch.Tensor) -> torch.Tensor:
         B, L, C = x.shape
-        q, k, v = self.qkv(x).split(C, dim=2)  # 3 x [B, L, C]
-        q = q.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
-        k = k.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
-        v = v.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
-        att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(q.shape[-1]))  # [B, h, L, L]
-        att = att.masked_fill(~attn_mask, float("-inf")).softmax(dim=-1)  # [B, h, L, L]
-        if self.training and self.dropout > 0:
-            att = F.dropout(att, self.dropout)
-        y = att @ v  # [B, h, L, C/h]
-        y = y.transpose(1, 2).reshape(B, L, C)  # [B, L, C]
-        return self.proj(y)
+        return x.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
+
+    def _attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+        B, Lq, C = q.shape
+        q, k, v = self._heads(q), self._heads(k), self._heads(v)  # [B, h, L, C/h]
+        if torch.is_grad_enabled():  # training: the explicit form's backward is 2x faster on CPU than SDPA's
+            att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(q.shape[-1]))  # [B, h, Lq, Lk]
+            att = att.masked_fill(~attn_mask, float("-inf")).softmax(dim=-1)
+            if self.training and self.dropout > 0:
+                att = F.dropout(att, self.dropout)
+            y = att @ v  # [B, h, Lq, C/h]
+        else:
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)  # [B, h, Lq, C/h]
+        return self.proj(y.transpose(1, 2).reshape(B, Lq, C))  # [B, Lq, C]
+
+    def forward(
+        self, x: torch.Tensor, attn_mask: torch.Tensor, kv_out: list | None = None
+    ) -> torch.Tensor:
+        """Attend over `x` [B, L, C]; appends this layer's (keys, values) [B, L, C] to `kv_out` if given."""
+        q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, L, C]
+        if kv_out is not None:
+            kv_out.append((k, v))
+        return self._attend(q, k, v, attn_mask)
+
+    def forward_cached(
+        self,
+        x: torch.Tensor,
+        attn_mask: torch.Tensor,
+        k_cache: torch.Tensor,
+        v_cache: torch.Tensor,
+        slots: torch.Tensor,
+        pos: torch.Tensor,
+    ) -> torch.Tensor:
+        """Attend from new tokens `x` [B, n, C] over the cached tokens of their slots.
+
+        The new keys and values are first written to ring positions `pos` [B, n] of `slots` [B] in the
+        caches [n_slots, W, C]; `attn_mask` [B, 1, n, W] says which ring positions each new token sees.
+        """
+        q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, n, C]
+        rows = slots[:, None].expand_as(pos)  # [B, n]
+        k_cache[rows, pos] = k
+        v_cache[rows, pos] = v
+        return self._attend(q, k_cache[slots], v_cache[slots], attn_mask)  # keys, values [B, W, C]
 
 
 class Block(nn.Module):
@@ -48,10 +80,18 @@ class Block(nn.Module):
         self.out = nn.Linear(4 * cfg.n_embd, cfg.n_embd)
         self.drop = nn.Dropout(cfg.dropout) if cfg.dropout > 0 else nn.Identity()
 
-    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
-        x = x + self.drop(self.attn(self.ln1(x), attn_mask))
-        x = x + self.drop(self.out(F.gelu(self.fc(self.ln2(x)), approximate="tanh")))
-        return x
+    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor, kv_out: list | None = None) -> torch.Tensor:
+        x = x + self.drop(self.attn(self.ln1(x), attn_mask, kv_out))
+        return x + self.drop(self.mlp(x))
+
+    def mlp(self, x: torch.Tensor) -> torch.Tensor:
+        """The feed-forward half (pre-norm included)."""
+        return self.out(F.gelu(self.fc(self.ln2(x)), approximate="tanh"))
+
+    def forward_cached(self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos) -> torch.Tensor:
+        """`forward` for new tokens attending over a key/value cache (see `CausalSelfAttention.forward_cached`)."""
+        x = x + self.attn.forward_cached(self.ln1(x), attn_mask, k_cache, v_cache, slots, pos)
+        return x + self.mlp(x)
 
 
 class ImageEncoder(nn.Module):
@@ -132,8 +172,10 @@ class GMT(nn.Module):
         valid: torch.Tensor,
         blend_to: torch.Tensor | None = None,
         blend_w: torch.Tensor | None = None,
+        last_only: bool = False,
+        kv_out: list | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Score a batch of left-padded windows.
+        """Score a batch of left-padded sequences (the reference forward).
 
         Args:
             goals: [B, T] goal ids (n_goals = [mask]).
@@ -143,6 +185,8 @@ class GMT(nn.Module):
             valid: [B, T] True for real steps, False for left padding.
             blend_to: optional [B, T] second goal of a gradual switch.
             blend_w: optional [B, T] weight of `blend_to`.
+            last_only: apply the heads at the last step only (serving): outputs are [B, 1, ...].
+            kv_out: if a list, each layer's (keys, values) [B, 3T, C] are appended to it.
 
         Returns:
             action predictions [B, T, act_dim] (tanh-squashed for continuous, logits for discrete) and
@@ -158,17 +202,21 @@ class GMT(nn.Module):
         x = self.ln_in(x)
         attn_mask = self.attention_mask(valid)  # [B, 1, 3T, 3T]
         for block in self.blocks:
-            x = block(x, attn_mask)
-        x = self.ln_f(x).view(B, T, 3, C)  # [B, T, 3, C]
-        action_out = self.action_head(x[:, :, 1])  # [B, T, act_dim] from state tokens
-        if not self.cfg.discrete_actions:
-            action_out = torch.tanh(action_out)
-        goal_logits = self.goal_head(x[:, :, 2])  # [B, T, n_goals] from action tokens
-        return action_out, goal_logits
+            x = block(x, attn_mask, kv_out)
+        if last_only:
+            x = x[:, -3:]  # [B, 3, C]: the last step's tokens
+        x = self.ln_f(x).view(B, -1, 3, C)  # [B, T or 1, 3, C]
+        return self._action_head(x[:, :, 1]), self.goal_head(x[:, :, 2])
 
-    @staticmethod
-    def attention_mask(valid: torch.Tensor) -> torch.Tensor:
-        """Causal mask that hides padded keys; every token may see itself, so no row is empty.
+    def _action_head(self, x: torch.Tensor) -> torch.Tensor:
+        """Action predictions from state-token outputs [..., C]: tanh for continuous, logits for discrete."""
+        out = self.action_head(x)
+        return out if self.cfg.discrete_actions else torch.tanh(out)
+
+    def attention_mask(self, valid: torch.Tensor) -> torch.Tensor:
+        """Causal mask that hides padded keys (and, for `window` attention, keys older than K timesteps).
+
+        Every token may see itself, so no row is empty.
 
         Args:
             valid: [B, T] True for real steps.
@@ -180,8 +228,63 @@ class GMT(nn.Module):
         L = 3 * T
         key_ok = valid.repeat_interleave(3, dim=1)  # [B, 3T]
         causal = torch.ones(L, L, dtype=torch.bool, device=valid.device).tril()  # [3T, 3T]
+        if self.cfg.attention == "window":
+            step = torch.arange(L, device=valid.device) // 3  # [3T] timestep of each token
+            causal &= (step[:, None] - step[None, :]) < self.cfg.context_length
         eye = torch.eye(L, dtype=torch.bool, device=valid.device)  # [3T, 3T]
         return (causal & key_ok[:, None, :] | eye).unsqueeze(1)  # [B, 1, 3T, 3T]
+
+    def step(
+        self,
+        prev_actions: torch.Tensor,
+        goals: torch.Tensor,
+        states: torch.Tensor,
+        timesteps: torch.Tensor,
+        cache,
+        slots: torch.Tensor,
+        blend_to: torch.Tensor | None = None,
+        blend_w: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """One incremental step of a `window` model: only the newest tokens go through the network.
+
+        The new tokens of each row are the action taken at the previous step (a dummy at timestep 0), the goal
+        and the state; their keys and values join the row's slot of `cache` (`model.kv_cache.KVCache`).
+
+        Args:
+            prev_actions: [B, act_dim] (or [B] ids) action taken at timestep t - 1.
+            goals: [B] goal ids of timestep t.
+            states: [B, *obs_shape] normalised states of timestep t.
+            timesteps: [B] t.
+            cache: the key/value pool.
+            slots: [B] distinct slot of each row.
+            blend_to: optional [B] second goal of a gradual switch.
+            blend_w: optional [B] weight of `blend_to`.
+
+        Returns:
+            [B, act_dim] action predictions at the state token (as `forward`).
+        """
+        B, C, W = goals.shape[0], self.cfg.n_embd, cache.width
+        t = timesteps
+        t_emb = self.time_emb(t.clamp(0, self.cfg.max_timestep - 1))  # [B, C]
+        tp_emb = self.time_emb((t - 1).clamp(0, self.cfg.max_timestep - 1))  # [B, C]
+        a = self.action_emb(prev_actions) + tp_emb  # [B, C]
+        bt = None if blend_to is None else blend_to[:, None]
+        bw = None if blend_w is None else blend_w[:, None]
+        g = self.embed_goals(goals[:, None], bt, bw)[:, 0] + t_emb  # [B, C]
+        s = self.state_emb(states[:, None])[:, 0] + t_emb  # [B, C]
+        x = self.ln_in(torch.stack((a, g, s), dim=1))  # [B, 3, C]: a_{t-1} g_t s_t
+        idx = torch.stack((3 * t - 1, 3 * t, 3 * t + 1), dim=1)  # [B, 3] token indices
+        pos = idx % W  # [B, 3] ring positions
+        cache.tok[slots[:, None].expand_as(pos), pos] = idx.masked_fill(idx < 0, -1)
+        key = cache.tok[slots]  # [B, W] token index at each ring position
+        kstep = torch.div(key, 3, rounding_mode="floor")[:, None, :]  # [B, 1, W]
+        qstep = torch.div(idx, 3, rounding_mode="floor")[:, :, None]  # [B, 3, 1]
+        see = (key[:, None, :] >= 0) & (key[:, None, :] <= idx[:, :, None]) & (qstep - kstep < self.cfg.context_length)
+        see |= torch.arange(W)[None, None, :] == pos[:, :, None]  # every token sees itself: no empty row
+        attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
+        for layer, block in enumerate(self.blocks):
+            x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos)
+        return self._action_head(self.ln_f(x[:, 2]))  # [B, act_dim] from the state token
 
     def num_params(self) -> int:
         """Number of parameters."""

@@ -44,9 +44,9 @@ def model_config_for(dataset, n_goals: int, **overrides) -> GMTConfig:
 
 
 def build_sampler(
-    dataset, labels: list[int], cfg: GMTConfig
+    dataset, labels: list[int], cfg: GMTConfig, sequence_steps: int | None = None
 ) -> tuple[WindowSampler, ObsNormalizer, ActionCodec]:
-    """Normalise a dataset's episodes and wrap them in a window sampler."""
+    """Normalise a dataset's episodes and wrap them in a sampler of `sequence_steps`-step sequences (default K)."""
     import gymnasium as gym
 
     obs = [ep.observations.reshape(len(ep.observations), *cfg.obs_shape) for ep in dataset.episodes]
@@ -59,7 +59,7 @@ def build_sampler(
     )
     states = [norm(o) for o in obs]
     actions = [codec.encode(ep.actions) for ep in dataset.episodes]
-    return WindowSampler(states, actions, labels, cfg.context_length), norm, codec
+    return WindowSampler(states, actions, labels, sequence_steps or cfg.context_length), norm, codec
 
 
 def lr_at(step: int, tc: TrainConfig) -> float:
@@ -137,7 +137,7 @@ def train(
         torch.set_num_threads(tc.threads)
     torch.manual_seed(tc.seed)
     cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
-    sampler, norm, codec = build_sampler(dataset, labels, cfg)
+    sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
     model = GMT(cfg)
     opt = make_optimizer(model, tc)
     gen = torch.Generator().manual_seed(tc.seed)

@@ -1,0 +1,50 @@
+"""Per-layer key/value ring buffers for incremental stepping of `window` models (pure tensors, no I/O).
+
+Slot s holds the tokens of one episode's last K + 1 timesteps: token n (3 per step: goal, state, action) lives
+at ring position n mod W, W = 3 (K + 1), and `tok[s, p]` records which token is there (-1 = empty). One extra
+step beyond the span K is kept because the action token of step t - 1, which only becomes known at step t, still
+attends to the tokens of step t - K.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from model.config import GMTConfig
+
+
+class KVCache:
+    """A pool of ring buffers, one slot per session.
+
+    Attributes:
+        k: [n_layer, n_slots, W, C] keys.
+        v: [n_layer, n_slots, W, C] values.
+        tok: [n_slots, W] token index held at each ring position (-1 = empty).
+    """
+
+    def __init__(self, cfg: GMTConfig, n_slots: int) -> None:
+        if cfg.attention != "window":
+            raise ValueError("a key/value cache is exact only for attention='window' models")
+        self.width = 3 * (cfg.context_length + 1)
+        self.k = torch.zeros(cfg.n_layer, n_slots, self.width, cfg.n_embd)
+        self.v = torch.zeros_like(self.k)
+        self.tok = torch.full((n_slots, self.width), -1, dtype=torch.int64)
+
+    @property
+    def n_slots(self) -> int:
+        """Number of slots."""
+        return self.tok.shape[0]
+
+    def grow(self, n_slots: int) -> None:
+        """Enlarge the pool to `n_slots` slots, keeping every slot's contents."""
+        extra = n_slots - self.n_slots
+        if extra <= 0:
+            return
+        L, _, W, C = self.k.shape
+        self.k = torch.cat([self.k, torch.zeros(L, extra, W, C)], dim=1)
+        self.v = torch.cat([self.v, torch.zeros(L, extra, W, C)], dim=1)
+        self.tok = torch.cat([self.tok, torch.full((extra, W), -1, dtype=torch.int64)])
+
+    def clear(self, slots: torch.Tensor) -> None:
+        """Forget everything held in `slots` ([B] int64)."""
+        self.tok[slots] = -1
