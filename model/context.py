@@ -65,6 +65,11 @@ class StoredContext:
         """Steps of history held."""
         return len(self.goals)
 
+    @property
+    def blend_remaining(self) -> int:
+        """Steps left in the current gradual switch."""
+        return max(self.blend_steps - self.blend_done, 0)
+
     def to_fields(self, prefix: str = "") -> dict[str, bytes]:
         """`<prefix>ctx` (JSON of the scalars and array layouts) and one `<prefix>arr:<name>` per array."""
         scalars, arrays, out = {}, {}, {}

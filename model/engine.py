@@ -415,6 +415,11 @@ class PolicyEngine(PolicyRuntime):
         return env_actions, ok
 
     def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
+        if len(slots) == 1:
+            # A lone row is run twice (same slot, same values): a one-row matrix product takes a GEMV path
+            # whose last bit differs from the batched GEMM, and batched == unbatched must hold exactly.
+            two = [np.repeat(x, 2, axis=0) for x in (slots, t, g, goal, w, states)]
+            return self._predict_incremental(*two)[:1]
         p = self.pool
         prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
         prev[t == 0] = 0

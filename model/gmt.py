@@ -26,16 +26,16 @@ class CausalSelfAttention(nn.Module):
         return x.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
 
     def _attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+        # Explicit attention rather than F.scaled_dot_product_attention: on CPU SDPA's result depends on the
+        # batch size in the last bit (batched and unbatched serving must agree exactly), and its backward is
+        # 2x slower here.
         B, Lq, C = q.shape
         q, k, v = self._heads(q), self._heads(k), self._heads(v)  # [B, h, L, C/h]
-        if torch.is_grad_enabled():  # training: the explicit form's backward is 2x faster on CPU than SDPA's
-            att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(q.shape[-1]))  # [B, h, Lq, Lk]
-            att = att.masked_fill(~attn_mask, float("-inf")).softmax(dim=-1)
-            if self.training and self.dropout > 0:
-                att = F.dropout(att, self.dropout)
-            y = att @ v  # [B, h, Lq, C/h]
-        else:
-            y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)  # [B, h, Lq, C/h]
+        att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(q.shape[-1]))  # [B, h, Lq, Lk]
+        att = att.masked_fill(~attn_mask, float("-inf")).softmax(dim=-1)
+        if self.training and self.dropout > 0:
+            att = F.dropout(att, self.dropout)
+        y = att @ v  # [B, h, Lq, C/h]
         return self.proj(y.transpose(1, 2).reshape(B, Lq, C))  # [B, Lq, C]
 
     def forward(
@@ -204,8 +204,11 @@ class GMT(nn.Module):
         for block in self.blocks:
             x = block(x, attn_mask, kv_out)
         if last_only:
-            x = x[:, -3:]  # [B, 3, C]: the last step's tokens
-        x = self.ln_f(x).view(B, -1, 3, C)  # [B, T or 1, 3, C]
+            # Heads over the last step's 3 tokens, not only its state token: a one-row product would take a
+            # GEMV path whose last bit differs from the batched GEMM (batched == unbatched must hold exactly).
+            x = self.ln_f(x[:, -3:])  # [B, 3, C]
+            return self._action_head(x)[:, None, 1], self.goal_head(x)[:, None, 2]  # [B, 1, A], [B, 1, G]
+        x = self.ln_f(x).view(B, T, 3, C)  # [B, T, 3, C]
         return self._action_head(x[:, :, 1]), self.goal_head(x[:, :, 2])
 
     def _action_head(self, x: torch.Tensor) -> torch.Tensor:
@@ -284,7 +287,7 @@ class GMT(nn.Module):
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
         for layer, block in enumerate(self.blocks):
             x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos)
-        return self._action_head(self.ln_f(x[:, 2]))  # [B, act_dim] from the state token
+        return self._action_head(self.ln_f(x))[:, 2]  # [B, act_dim] from the state token (3 rows: see forward)
 
     def num_params(self) -> int:
         """Number of parameters."""

@@ -84,6 +84,10 @@ class PolicyRuntime(abc.ABC):
         """Free the context's resources; the handle must not be used afterwards."""
 
     @abc.abstractmethod
+    def forget(self, key: str) -> None:
+        """Release the context registered under `key`, if this engine holds one."""
+
+    @abc.abstractmethod
     def from_stored(self, stored: StoredContext, key: str | None = None) -> Context:
         """Adopt a stored context (reusing this engine's copy of `key` when it is at the same version)."""
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.engine import Context, PolicyEngine
+from model.context import Context
+from model.runtime import PolicyRuntime
 
 
 @dataclass
@@ -31,7 +32,7 @@ class MicroBatcher:
 
     Args:
         engine: The model's engine.
-        executor: Runs `engine.act` off the event loop.
+        executor: Runs `engine.act` off the event loop (None: on the loop itself, for the naive server).
         max_batch: Most requests in one forward pass.
         max_wait_s: Longest time the first request of a batch waits for others.
         expected: Number of sessions that could have a request queued (waiting stops when all have).
@@ -40,8 +41,8 @@ class MicroBatcher:
 
     def __init__(
         self,
-        engine: PolicyEngine,
-        executor: Executor,
+        engine: PolicyRuntime,
+        executor: Executor | None,
         max_batch: int,
         max_wait_s: float,
         expected: Callable[[], int] | None = None,
@@ -72,7 +73,9 @@ class MicroBatcher:
         self._pending.clear()
 
     async def act(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
-        """The action for one validated observation; `ctx` is advanced by the engine.
+        """The action for one prepared observation (`engine.prepare_observation`); `ctx` is advanced by the engine.
+
+        Raises the item's own error (an engine `StepFailed`) when its row alone failed.
 
         Cancelling the caller before the batch runs drops the request; after, the result is discarded.
         """
@@ -122,10 +125,12 @@ class MicroBatcher:
                 continue
             t0 = time.perf_counter()
             self._running = batch
+            ctxs, obs = [it.ctx for it in batch], [it.obs for it in batch]
             try:
-                actions = await loop.run_in_executor(
-                    self.executor, self.engine.act, [it.ctx for it in batch], [it.obs for it in batch]
-                )
+                if self.executor is None:
+                    actions = self.engine.act(ctxs, obs, True)
+                else:
+                    actions = await loop.run_in_executor(self.executor, self.engine.act, ctxs, obs, True)
             except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
                 for it in batch:
                     if not it.future.done():
@@ -136,5 +141,9 @@ class MicroBatcher:
             if self.observe is not None:
                 self.observe(len(batch), time.perf_counter() - t0)
             for it, a in zip(batch, actions, strict=True):
-                if not it.future.done():
+                if it.future.done():
+                    continue
+                if isinstance(a, Exception):
+                    it.future.set_exception(a)
+                else:
                     it.future.set_result(a)

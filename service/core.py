@@ -14,13 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from model.checkpoint import Goal
-from model.engine import InvalidObservation
+from model.context import Context
+from model.runtime import InvalidObservation, StepFailed
 from service.batcher import MicroBatcher
 from service.errors import FailedPrecondition, InvalidArgument, NotFound, ServiceError, Unavailable
 from service.metrics import Metrics
 from service.observations import to_array
 from service.registry import LoadedModel, ModelRegistry
-from service.sessions import Clock, MemorySessionStore, Session, SessionStore, clone_context
+from service.sessions import Clock, MemorySessionStore, Session, SessionStore
 from service.settings import Settings
 
 log = logging.getLogger("gmt.core")
@@ -121,7 +122,7 @@ class Core:
             missing = [str(p) for p in s.checkpoints if not p.exists()]
             if missing:
                 log.warning("checkpoint path does not exist", extra={"paths": missing})
-            self.registry = await asyncio.to_thread(ModelRegistry.load, list(s.checkpoints))
+            self.registry = await asyncio.to_thread(ModelRegistry.load, list(s.checkpoints), s.naive)
         if not self.registry.models:
             log.warning(
                 "no model loaded: no checkpoint directory (one with gmt.json) under the checkpoint paths; "
@@ -136,13 +137,15 @@ class Core:
                 await self.store.ping()
             else:
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
-        self._executor = ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
+        self.store.on_remove = self._dropped
+        # The naive server is the reference: one request at a time, computed on the event loop.
+        self._executor = None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
         for name, m in self.registry.models.items():
             b = MicroBatcher(
                 m.engine,
                 self._executor,
-                max_batch=s.max_batch,
-                max_wait_s=s.batch_wait_ms / 1000.0,
+                max_batch=1 if s.naive else s.max_batch,
+                max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
                 expected=lambda n=name: self.store.local_count(n),
                 observe=lambda size, sec, n=name: self.metrics.observe_batch(n, size, sec),
             )
@@ -197,6 +200,7 @@ class Core:
         """Remove idle sessions now; returns how many expired."""
         gone = await self.store.sweep()
         for s in gone:
+            self._dropped(s.id, s.model)
             log.info("session expired", extra={"session_id": s.id, "model": s.model})
         self.metrics.sessions_expired.inc(len(gone))
         self.metrics.live_sessions.set(await self.store.count())
@@ -214,7 +218,7 @@ class Core:
             statistic=c.statistic,
             goals=list(c.goals),
             discrete_actions=c.config.discrete_actions,
-            action_modes=m.engine.action_modes,
+            action_modes=m.engine.describe().action_modes,
         )
 
     def list_models(self) -> list[ModelView]:
@@ -260,6 +264,23 @@ class Core:
         if lock is None:
             lock = self._locks[sid] = asyncio.Lock()
         return lock
+
+    def _dropped(self, sid: str, model: str) -> None:
+        """Free what this process holds for a session that is gone (closed, expired or swept)."""
+        m = self.registry.models.get(model) if self.registry else None
+        if m is not None:
+            m.engine.forget(sid)
+
+    @staticmethod
+    def _live(m: LoadedModel, s: Session) -> Context:
+        """The session's live context in the model's engine (adopting a stored one, cache rebuilt if needed)."""
+        if isinstance(s.ctx, Context):
+            return s.ctx
+        try:
+            s.ctx = m.engine.from_stored(s.ctx, key=s.id)
+        except ValueError as e:
+            raise FailedPrecondition(f"session {s.id!r} cannot be continued by this server: {e}") from None
+        return s.ctx
 
     def _check_serving(self) -> None:
         if self.closing or not self.started:
@@ -310,18 +331,24 @@ class Core:
         self._check_serving()
         m = self.registry.resolve(model)
         g = self.resolve_goal(m, goal, target)
-        mode = action_mode or m.engine.default_action_mode
-        if mode not in m.engine.action_modes:
+        modes = m.engine.describe().action_modes
+        mode = action_mode or modes[0]
+        if mode not in modes:
             kind = "discrete" if m.checkpoint.config.discrete_actions else "continuous"
             raise InvalidArgument(
                 f"action_mode {mode!r} is not available for model {m.name!r} ({kind} actions); "
-                f"choose one of {', '.join(m.engine.action_modes)}"
+                f"choose one of {', '.join(modes)}"
             )
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
         now = self.clock()
-        s = Session(uuid.uuid4().hex, m.name, m.engine.new_context(g, mode, seed), now, now)
-        await self.store.create(s)
+        sid = uuid.uuid4().hex
+        s = Session(sid, m.name, m.engine.new_context(g, mode, seed, key=sid), now, now)
+        try:
+            await self.store.create(s)
+        except BaseException:
+            m.engine.forget(sid)
+            raise
         self.metrics.sessions_created.labels(m.name).inc()
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session created", extra={"session_id": s.id, "model": m.name, "goal": g})
@@ -333,20 +360,19 @@ class Core:
             return self._view_session(await self.store.get(sid))
 
     def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
-        """The raw observation as an array the engine accepts.
+        """The raw observation checked and normalised, once, into what the engine consumes.
 
         Raises:
             InvalidArgument: wrong size, non-numeric, NaN/Inf, out of range.
         """
         x = to_array(observation)
-        try:
-            m.engine.prepare_observation(x)
-        except InvalidObservation as e:
-            raise InvalidArgument(str(e)) from None
-        if m.checkpoint.observation_space.get("dtype") == "uint8" and x.dtype != np.uint8:
+        if m.checkpoint.observation_space.get("dtype") == "uint8" and x.dtype != np.uint8 and x.size:
             if not np.all((x >= 0) & (x <= 255) & (x == np.round(x))):
                 raise InvalidArgument("image observation values must be integers in 0..255")
-        return x
+        try:
+            return m.engine.prepare_observation(x)
+        except InvalidObservation as e:
+            raise InvalidArgument(str(e)) from None
 
     async def act(self, sid: str, observation: object) -> ActResult:
         """Append the observation to the session's context and answer the action (batched with others).
@@ -360,10 +386,13 @@ class Core:
             s = await self.store.get(sid)
             m = self._model_of(s)
             x = self.validate_observation(m, observation)
-            work = clone_context(s.ctx)
-            step, goal = work.step, work.goal
-            action = await self._batchers[m.name].act(work, x)
-            s.ctx, s.last_used = work, self.clock()
+            ctx = self._live(m, s)
+            step, goal = ctx.step, ctx.goal
+            try:
+                action = await self._batchers[m.name].act(ctx, x)
+            except StepFailed as e:
+                raise InvalidArgument(str(e)) from None
+            s.last_used = self.clock()
             await self.store.save(s)
         if m.checkpoint.config.discrete_actions:
             return ActResult(sid, None, int(action), step, goal)
@@ -391,9 +420,8 @@ class Core:
             s = await self.store.get(sid)
             m = self._model_of(s)
             g = self.resolve_goal(m, goal, target)
-            work = clone_context(s.ctx)
-            m.engine.set_goal(work, g, blend_steps)
-            s.ctx, s.last_used = work, self.clock()
+            m.engine.set_goal(self._live(m, s), g, blend_steps)
+            s.last_used = self.clock()
             await self.store.save(s)
             log.info("goal set", extra={"session_id": sid, "goal": g, "blend_steps": blend_steps})
             return self._view_session(s)
@@ -410,9 +438,8 @@ class Core:
             s = await self.store.get(sid)
             m = self._model_of(s)
             g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
-            work = clone_context(s.ctx)
-            m.engine.reset(work, g)
-            s.ctx, s.last_used = work, self.clock()
+            m.engine.reset(self._live(m, s), g)
+            s.last_used = self.clock()
             await self.store.save(s)
             return self._view_session(s)
 

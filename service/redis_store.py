@@ -87,7 +87,12 @@ class RedisSessionStore(SessionStore):
         async with self.redis.pipeline(transaction=True) as p:
             p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"1", ex=TOMBSTONE_TTL_S)
             await self._call(p.execute())
-        self._seen.pop(sid, None)
+        self._forget(sid)
+
+    def _forget(self, sid: str) -> None:
+        seen = self._seen.pop(sid, None)
+        if seen is not None:
+            self.on_remove(sid, seen[0])
 
     @staticmethod
     def _decode(sid: str, fields: dict) -> Session:
@@ -99,7 +104,7 @@ class RedisSessionStore(SessionStore):
     async def get(self, sid: str) -> Session:
         fields = await self._call(self.redis.hgetall(self._key(sid)))
         if not fields:
-            self._seen.pop(sid, None)
+            self._forget(sid)
             if await self._call(self.redis.exists(self._tomb(sid))):
                 raise SessionExpired(expired_message(sid, self.idle_timeout_s))
             raise NotFound(not_found_message(sid))
@@ -123,7 +128,7 @@ class RedisSessionStore(SessionStore):
         async with self.redis.pipeline(transaction=True) as p:
             p.delete(self._key(sid)).zrem(self._live, sid)
             await self._call(p.execute())
-        self._seen.pop(sid, None)
+        self._forget(sid)
 
     async def count(self) -> int:
         low = self.clock() - self.idle_timeout_s
@@ -142,7 +147,8 @@ class RedisSessionStore(SessionStore):
                     continue
                 gone.append(s)
             await self._expire(sid)
-        self._seen = {k: v for k, v in self._seen.items() if v[1] >= low}
+        for k in [k for k, v in self._seen.items() if v[1] < low]:
+            self._forget(k)
         return gone
 
     def local_count(self, model: str) -> int:

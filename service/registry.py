@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from model.checkpoint import META, Checkpoint, CheckpointError, load_checkpoint
-from model.engine import PolicyEngine
+from model.runtime import PolicyRuntime, load_runtime
 from service.errors import InvalidArgument, NotFound, Unavailable
 
 log = logging.getLogger("gmt.registry")
@@ -32,13 +32,13 @@ class LoadedModel:
         name: Model name clients use (the checkpoint directory's name).
         path: Checkpoint directory.
         checkpoint: The loaded checkpoint.
-        engine: Batched inference over it.
+        engine: The runtime answering its acts (incremental for `window` models, recompute otherwise).
     """
 
     name: str
     path: Path
     checkpoint: Checkpoint
-    engine: PolicyEngine
+    engine: PolicyRuntime
 
 
 @dataclass
@@ -49,8 +49,11 @@ class ModelRegistry:
     errors: dict[str, str] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, paths: list[Path]) -> ModelRegistry:
-        """Load every checkpoint found under `paths`; a broken one is logged and skipped."""
+    def load(cls, paths: list[Path], naive: bool = False) -> ModelRegistry:
+        """Load every checkpoint found under `paths`; a broken one is logged and skipped.
+
+        `naive` serves every model by the reference recompute (the exactness oracle and benchmark baseline).
+        """
         reg = cls()
         for d in discover(paths):
             name = d.name
@@ -66,19 +69,27 @@ class ModelRegistry:
                 reg.errors[str(d)] = str(e)
                 log.error("checkpoint failed to load", extra={"path": str(d), "error": str(e)})
                 continue
-            reg.models[name] = LoadedModel(name, d, ckpt, PolicyEngine(ckpt))
+            engine = load_runtime(ckpt, naive=naive)
+            reg.models[name] = LoadedModel(name, d, ckpt, engine)
             log.info(
                 "model loaded",
-                extra={"model": name, "path": str(d), "env_id": ckpt.env_id, "goals": len(ckpt.goals)},
+                extra={
+                    "model": name,
+                    "path": str(d),
+                    "env_id": ckpt.env_id,
+                    "goals": len(ckpt.goals),
+                    "attention": ckpt.config.attention,
+                    "engine": engine.describe().path,
+                },
             )
         return reg
 
     @classmethod
-    def of(cls, *checkpoints: Checkpoint) -> ModelRegistry:
+    def of(cls, *checkpoints: Checkpoint, naive: bool = False) -> ModelRegistry:
         """A registry of already-loaded checkpoints (tests, notebooks)."""
         reg = cls()
         for c in checkpoints:
-            reg.models[c.name] = LoadedModel(c.name, Path("."), c, PolicyEngine(c))
+            reg.models[c.name] = LoadedModel(c.name, Path("."), c, load_runtime(c, naive=naive))
         return reg
 
     def get(self, name: str) -> LoadedModel:

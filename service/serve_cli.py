@@ -42,6 +42,12 @@ def serve_command(
     ),
     log_format: str = typer.Option(None, help="json or kv. Default json [GMT_LOG_FORMAT]"),
     log_level: str = typer.Option(None, help="Default INFO [GMT_LOG_LEVEL]"),
+    naive: bool = typer.Option(
+        None,
+        "--naive/--no-naive",
+        help="Reference path: full recompute, one request at a time, no batching (exactness oracle and "
+        "benchmark baseline). [GMT_NAIVE]",
+    ),
 ) -> None:
     """Serve every checkpoint under checkpoints/ over REST (OpenAPI at /docs) and gRPC."""
     import asyncio
@@ -67,6 +73,7 @@ def serve_command(
         "redis_url": redis_url,
         "log_format": log_format,
         "log_level": log_level,
+        "naive": naive,
     }
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})

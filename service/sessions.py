@@ -7,13 +7,11 @@ number of live sessions (`ResourceExhausted`). It does not order calls: the core
 from __future__ import annotations
 
 import abc
-import copy
-import dataclasses
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from model.engine import DETERMINISTIC_MODES, Context
+from model.context import Context, StoredContext
 from service.errors import NotFound, ResourceExhausted, SessionExpired
 
 Clock = Callable[[], float]
@@ -27,24 +25,17 @@ class Session:
     Attributes:
         id: Session id (opaque string).
         model: Name of the model it runs on.
-        ctx: The engine context (rolling window and goal state).
+        ctx: The engine's live context, or its stored form as read back from a shared store (the core turns
+            it into a live context of the model's engine before use).
         created_at: Clock time of creation (seconds).
         last_used: Clock time of the last act / set_goal / reset.
     """
 
     id: str
     model: str
-    ctx: Context
+    ctx: Context | StoredContext
     created_at: float
     last_used: float
-
-
-def clone_context(ctx: Context) -> Context:
-    """A copy the engine may change without touching `ctx` (the engine replaces arrays, never edits them)."""
-    out = dataclasses.replace(ctx)
-    if ctx.action_mode not in DETERMINISTIC_MODES:
-        out.rng = copy.deepcopy(ctx.rng)
-    return out
 
 
 def expired_message(sid: str, idle_timeout_s: float) -> str:
@@ -70,6 +61,8 @@ class SessionStore(abc.ABC):
         self.idle_timeout_s = idle_timeout_s
         self.max_sessions = max_sessions
         self.clock = clock
+        # Told (session id, model) of every session this store drops, so the engine can free its slot.
+        self.on_remove: Callable[[str, str], None] = lambda sid, model: None
 
     def is_idle(self, session: Session) -> bool:
         """Whether `session` has been unused for longer than the idle timeout."""
@@ -155,6 +148,7 @@ class MemorySessionStore(SessionStore):
     def _remove(self, s: Session, expired: bool) -> None:
         del self._sessions[s.id]
         self._per_model[s.model] -= 1
+        self.on_remove(s.id, s.model)
         if expired:
             self._expired[s.id] = None
             while len(self._expired) > TOMBSTONES:

@@ -29,6 +29,8 @@ class Settings(BaseSettings):
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
+        naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
+            oracle and the baseline of every benchmark).
     """
 
     model_config = SettingsConfigDict(env_prefix="GMT_", extra="ignore")
@@ -48,6 +50,7 @@ class Settings(BaseSettings):
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
+    naive: bool = False
 
     @field_validator("checkpoints", mode="before")
     @classmethod

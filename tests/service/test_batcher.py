@@ -19,7 +19,7 @@ class RecordingEngine:
         self.entered = threading.Event()
         self.fail = False
 
-    def act(self, contexts, observations):
+    def act(self, contexts, observations, prepared=False):
         self.entered.set()
         self.gate.wait(30)
         self.batches.append(list(observations))
