@@ -29,7 +29,8 @@ def train_command(
     n_embd: int = typer.Option(128, help="Embedding width."),
     n_head: int = typer.Option(1, help="Attention heads."),
     attention: str = typer.Option(
-        "full", help="full (the paper's K-step windows) or window (banded attention, exact KV-cached serving)."
+        "full",
+        help="full (the paper's K-step windows) or window (banded attention, exact KV-cached serving).",
     ),
     sequence_length: int = typer.Option(
         0, help="Timesteps per training sequence (0 = K for full attention, 2K for window attention)."

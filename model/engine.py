@@ -50,7 +50,9 @@ def _mix(x: np.ndarray) -> np.ndarray:
 def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
     """[B, n] uniforms in (0, 1), a pure function of (seed, step, stream): sampling needs no stored RNG state."""
     with np.errstate(over="ignore"):
-        key = _mix(seed.astype(np.uint64) * _GOLDEN + _mix(step.astype(np.uint64) + np.uint64(stream) * _GOLDEN))
+        key = _mix(
+            seed.astype(np.uint64) * _GOLDEN + _mix(step.astype(np.uint64) + np.uint64(stream) * _GOLDEN)
+        )
         bits = _mix(key[:, None] + (np.arange(1, n + 1, dtype=np.uint64) * _GOLDEN)[None, :])
     return ((bits >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0**53
 
@@ -177,13 +179,19 @@ class PolicyEngine(PolicyRuntime):
     # ----- contexts -----------------------------------------------------------------------------------------
     def check_goal(self, goal: int) -> None:
         """Raise ValueError for a goal id outside the goal table."""
-        if isinstance(goal, bool) or not isinstance(goal, int | np.integer) or not 0 <= int(goal) < self.n_goals:
+        if (
+            isinstance(goal, bool)
+            or not isinstance(goal, int | np.integer)
+            or not 0 <= int(goal) < self.n_goals
+        ):
             raise ValueError(f"goal {goal!r} is not a goal id of this model (0..{self.n_goals - 1})")
 
     def _check_mode(self, action_mode: str | None) -> str:
         action_mode = action_mode or self.default_action_mode
         if action_mode not in self.action_modes:
-            raise ValueError(f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}")
+            raise ValueError(
+                f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}"
+            )
         return action_mode
 
     def _slot_for(self, key: str | None) -> int:
@@ -264,7 +272,9 @@ class PolicyEngine(PolicyRuntime):
         mode = self._check_mode(stored.action_mode)
         n = stored.size
         if n != min(stored.step, p.H) or len(stored.states) != n or len(stored.actions) != n:
-            raise ValueError(f"stored context holds {n} steps; step {stored.step} needs {min(stored.step, p.H)}")
+            raise ValueError(
+                f"stored context holds {n} steps; step {stored.step} needs {min(stored.step, p.H)}"
+            )
         slot = self._slot_for(key)
         for name in ("goal", "step", "blend_from", "blend_steps", "blend_done", "seed", "version"):
             getattr(p, name)[slot] = getattr(stored, name)
@@ -335,7 +345,9 @@ class PolicyEngine(PolicyRuntime):
             state = self.ckpt.obs_norm(x.reshape(self.cfg.obs_shape))
         if state.dtype.kind == "f" and not np.isfinite(state).all():
             bad = int(np.flatnonzero(~np.isfinite(state.ravel()))[0])
-            raise InvalidObservation(f"observation value at index {bad} is too large: its normalised value overflows")
+            raise InvalidObservation(
+                f"observation value at index {bad} is too large: its normalised value overflows"
+            )
         return state
 
     # ----- inference ----------------------------------------------------------------------------------------
@@ -378,8 +390,12 @@ class PolicyEngine(PolicyRuntime):
             raise ValueError("a context may appear once per batch")
         actions, ok = self._step(slots, np.stack(states))
         for j, i in enumerate(rows):
-            out[i] = actions[j] if ok[j] else StepFailed(
-                "the model produced a non-finite action for this observation; the session is unchanged"
+            out[i] = (
+                actions[j]
+                if ok[j]
+                else StepFailed(
+                    "the model produced a non-finite action for this observation; the session is unchanged"
+                )
             )
         return out
 

@@ -25,7 +25,9 @@ class CausalSelfAttention(nn.Module):
         B, L, C = x.shape
         return x.view(B, L, self.n_head, C // self.n_head).transpose(1, 2)  # [B, h, L, C/h]
 
-    def _attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor) -> torch.Tensor:
+    def _attend(
+        self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor
+    ) -> torch.Tensor:
         # Explicit attention rather than F.scaled_dot_product_attention: on CPU SDPA's result depends on the
         # batch size in the last bit (batched and unbatched serving must agree exactly), and its backward is
         # 2x slower here.
@@ -38,9 +40,7 @@ class CausalSelfAttention(nn.Module):
         y = att @ v  # [B, h, Lq, C/h]
         return self.proj(y.transpose(1, 2).reshape(B, Lq, C))  # [B, Lq, C]
 
-    def forward(
-        self, x: torch.Tensor, attn_mask: torch.Tensor, kv_out: list | None = None
-    ) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor, kv_out: list | None = None) -> torch.Tensor:
         """Attend over `x` [B, L, C]; appends this layer's (keys, values) [B, L, C] to `kv_out` if given."""
         q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, L, C]
         if kv_out is not None:
@@ -88,7 +88,9 @@ class Block(nn.Module):
         """The feed-forward half (pre-norm included)."""
         return self.out(F.gelu(self.fc(self.ln2(x)), approximate="tanh"))
 
-    def forward_cached(self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos) -> torch.Tensor:
+    def forward_cached(
+        self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos
+    ) -> torch.Tensor:
         """`forward` for new tokens attending over a key/value cache (see `CausalSelfAttention.forward_cached`)."""
         x = x + self.attn.forward_cached(self.ln1(x), attn_mask, k_cache, v_cache, slots, pos)
         return x + self.mlp(x)
@@ -266,7 +268,7 @@ class GMT(nn.Module):
         Returns:
             [B, act_dim] action predictions at the state token (as `forward`).
         """
-        B, C, W = goals.shape[0], self.cfg.n_embd, cache.width
+        W = cache.width
         t = timesteps
         t_emb = self.time_emb(t.clamp(0, self.cfg.max_timestep - 1))  # [B, C]
         tp_emb = self.time_emb((t - 1).clamp(0, self.cfg.max_timestep - 1))  # [B, C]
@@ -282,12 +284,18 @@ class GMT(nn.Module):
         key = cache.tok[slots]  # [B, W] token index at each ring position
         kstep = torch.div(key, 3, rounding_mode="floor")[:, None, :]  # [B, 1, W]
         qstep = torch.div(idx, 3, rounding_mode="floor")[:, :, None]  # [B, 3, 1]
-        see = (key[:, None, :] >= 0) & (key[:, None, :] <= idx[:, :, None]) & (qstep - kstep < self.cfg.context_length)
+        see = (
+            (key[:, None, :] >= 0)
+            & (key[:, None, :] <= idx[:, :, None])
+            & (qstep - kstep < self.cfg.context_length)
+        )
         see |= torch.arange(W)[None, None, :] == pos[:, :, None]  # every token sees itself: no empty row
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
         for layer, block in enumerate(self.blocks):
             x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos)
-        return self._action_head(self.ln_f(x))[:, 2]  # [B, act_dim] from the state token (3 rows: see forward)
+        return self._action_head(self.ln_f(x))[
+            :, 2
+        ]  # [B, act_dim] from the state token (3 rows: see forward)
 
     def num_params(self) -> int:
         """Number of parameters."""

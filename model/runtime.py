@@ -96,7 +96,9 @@ class PolicyRuntime(abc.ABC):
         return ctx.to_stored()
 
 
-def load_runtime(path: str | Path | Checkpoint, naive: bool = False, name: str | None = None) -> PolicyRuntime:
+def load_runtime(
+    path: str | Path | Checkpoint, naive: bool = False, name: str | None = None
+) -> PolicyRuntime:
     """The engine for a checkpoint: incremental for `window` models, recompute otherwise or when `naive`."""
     from model.checkpoint import load_checkpoint
     from model.engine import PolicyEngine

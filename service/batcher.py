@@ -25,6 +25,7 @@ class _Item:
     ctx: Context
     obs: np.ndarray
     future: asyncio.Future
+    group: int = 0  # items of one many-session call (> 0) go through one forward pass together
 
 
 class MicroBatcher:
@@ -58,6 +59,7 @@ class MicroBatcher:
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
         self._running: list[_Item] = []
+        self._groups = 0
 
     def start(self) -> None:
         """Start the batching task on the running loop."""
@@ -85,6 +87,20 @@ class MicroBatcher:
         self._pending.append(_Item(ctx, obs, fut))
         self._wake.set()
         return await fut
+
+    async def act_many(self, ctxs: list[Context], obs: list[np.ndarray]) -> list:
+        """Actions for many sessions at once, in one forward pass (never split by `max_batch`).
+
+        Returns per item the action or the exception that failed that item alone.
+        """
+        if self._task is None or self._task.done():
+            raise RuntimeError("batcher is not running")
+        loop = asyncio.get_running_loop()
+        self._groups += 1
+        items = [_Item(c, o, loop.create_future(), self._groups) for c, o in zip(ctxs, obs, strict=True)]
+        self._pending.extend(items)
+        self._wake.set()
+        return await asyncio.gather(*(it.future for it in items), return_exceptions=True)
 
     def _live(self) -> int:
         while self._pending and self._pending[0].future.done():
@@ -117,7 +133,9 @@ class MicroBatcher:
                 continue
             await self._gather()
             batch: list[_Item] = []
-            while self._pending and len(batch) < self.max_batch:
+            while self._pending and (
+                len(batch) < self.max_batch or (batch[-1].group and self._pending[0].group == batch[-1].group)
+            ):
                 item = self._pending.popleft()
                 if not item.future.done():
                     batch.append(item)

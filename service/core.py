@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -139,7 +140,9 @@ class Core:
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
         self.store.on_remove = self._dropped
         # The naive server is the reference: one request at a time, computed on the event loop.
-        self._executor = None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
+        self._executor = (
+            None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
+        )
         for name, m in self.registry.models.items():
             b = MicroBatcher(
                 m.engine,
@@ -394,6 +397,63 @@ class Core:
                 raise InvalidArgument(str(e)) from None
             s.last_used = self.clock()
             await self.store.save(s)
+        return self._result(m, sid, action, step, goal)
+
+    async def act_many(self, items: list[tuple[str, object]]) -> list[ActResult | ServiceError]:
+        """One step for each (session id, observation), all in one forward pass; a bad item fails alone.
+
+        A session may appear once per call; a repeat fails as invalid_argument.
+
+        Returns:
+            In request order: the item's ActResult, or the ServiceError that failed it.
+        """
+        self._check_serving()
+        out: list[ActResult | ServiceError | None] = [None] * len(items)
+        seen: set[str] = set()
+        order: list[int] = []
+        for i, (sid, _) in enumerate(items):
+            if sid in seen:
+                out[i] = InvalidArgument(f"session {sid!r} appears more than once in this call")
+            else:
+                seen.add(sid)
+                order.append(i)
+        order.sort(key=lambda i: items[i][0])  # locks in one global order: two calls never deadlock
+        async with contextlib.AsyncExitStack() as stack:
+            ready: list[tuple[int, Session, LoadedModel, Context, np.ndarray]] = []
+            for i in order:
+                sid, observation = items[i]
+                await stack.enter_async_context(self._lock(sid))
+                try:
+                    s = await self.store.get(sid)
+                    m = self._model_of(s)
+                    x = self.validate_observation(m, observation)
+                    ready.append((i, s, m, self._live(m, s), x))
+                except ServiceError as e:
+                    out[i] = e
+            by_model: dict[str, list] = {}
+            for r in ready:
+                by_model.setdefault(r[2].name, []).append(r)
+            for name, rows in by_model.items():
+                steps = [(r[3].step, r[3].goal) for r in rows]
+                actions = await self._batchers[name].act_many([r[3] for r in rows], [r[4] for r in rows])
+                now = self.clock()
+                for (i, s, m, _, _), (step, goal), a in zip(rows, steps, actions, strict=True):
+                    if isinstance(a, StepFailed):
+                        out[i] = InvalidArgument(str(a))
+                        continue
+                    if isinstance(a, BaseException):
+                        raise a
+                    s.last_used = now
+                    try:
+                        await self.store.save(s)
+                    except ServiceError as e:
+                        out[i] = e
+                        continue
+                    out[i] = self._result(m, s.id, a, step, goal)
+        return out
+
+    @staticmethod
+    def _result(m: LoadedModel, sid: str, action, step: int, goal: int) -> ActResult:
         if m.checkpoint.config.discrete_actions:
             return ActResult(sid, None, int(action), step, goal)
         return ActResult(sid, np.asarray(action, dtype=np.float32).tolist(), None, step, goal)

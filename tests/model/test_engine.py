@@ -205,7 +205,11 @@ def test_continuous_sample_mode_adds_the_goals_calibrated_noise():
     assert engine.action_modes == ("sample", "mean") and engine.default_action_mode == "sample"
     obs = np.random.default_rng(1).normal(size=(3, 17)).astype(np.float32)
     for goal in (0, 2):
-        a, b, m = engine.new_context(goal, seed=7), engine.new_context(goal, seed=7), engine.new_context(goal, "mean")
+        a, b, m = (
+            engine.new_context(goal, seed=7),
+            engine.new_context(goal, seed=7),
+            engine.new_context(goal, "mean"),
+        )
         for t in range(3):
             (x,) = engine.act([a], [obs[t]])
             (y,) = engine.act([b], [obs[t]])

@@ -92,7 +92,9 @@ def test_codec_round_trip_keeps_every_field_and_the_actions_exact(cartpole):
 def test_codec_refuses_foreign_data():
     with pytest.raises(session_codec.CodecError):
         session_codec.decode({b"meta": b"\x80\x04K\x01."})  # a pickle
-    meta = json.dumps({"v": session_codec.FORMAT_VERSION, "id": "x", "model": "m", "created_at": 0, "last_used": 0})
+    meta = json.dumps(
+        {"v": session_codec.FORMAT_VERSION, "id": "x", "model": "m", "created_at": 0, "last_used": 0}
+    )
     bad = {"v": 2, "scalars": {"goal": 0}, "arrays": {}}
     with pytest.raises(session_codec.CodecError, match="do not match"):
         session_codec.decode({b"meta": meta.encode(), b"ctx": json.dumps(bad).encode()})
