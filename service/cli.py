@@ -6,6 +6,8 @@ happen inside commands so that `gmt --help` stays fast.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from model.data.cli import app as data_app
@@ -49,6 +51,36 @@ def _register() -> None:
     from clients.cli import run_command
 
     app.command("run")(run_command)
+    app.command("bench")(bench_command)
+
+
+def bench_command(
+    checkpoint: Path = typer.Option(
+        None, help="Checkpoint to serve (default: a random-weight window model of the default size)."
+    ),
+    sections: str = typer.Option(
+        "engine,serving,training,alternatives",
+        help="Comma-separated: engine, serving, training, alternatives.",
+    ),
+    seconds: float = typer.Option(8.0, help="Load duration per serving measurement point."),
+    sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),
+    out: Path = typer.Option(None, help="Also write the JSON here."),
+) -> None:
+    """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run."""
+    import json
+
+    from service.bench import run
+
+    result = run(
+        checkpoint,
+        tuple(x.strip() for x in sections.split(",") if x.strip()),
+        seconds,
+        tuple(int(x) for x in sessions.split(",")),
+    )
+    text = json.dumps(result, indent=2)
+    typer.echo(text)
+    if out:
+        out.write_text(text + "\n")
 
 
 _register()

@@ -80,4 +80,9 @@ def serve_command(
     except ValidationError as e:
         raise typer.BadParameter(str(e)) from None
     logs.configure(settings.log_format, settings.log_level)
-    asyncio.run(serve(settings))
+    if settings.event_loop == "uvloop":
+        import uvloop
+
+        uvloop.run(serve(settings))
+    else:
+        asyncio.run(serve(settings))

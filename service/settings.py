@@ -29,6 +29,7 @@ class Settings(BaseSettings):
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
+        event_loop: `uvloop` (the default: a faster loop for both transports) or `asyncio`.
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
     """
@@ -50,6 +51,7 @@ class Settings(BaseSettings):
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
+    event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
 
     @field_validator("checkpoints", mode="before")

@@ -1,0 +1,423 @@
+"""`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
+
+Schema (top level): `machine` {cpu, cores, torch, platform}, `engine`, `serving`, `training`, `alternatives`.
+
+- `engine`: [{K, path ("incremental" | "recompute"), batch, ms_per_step, acts_per_s}] for a random-weight
+  `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread.
+- `serving`: {model, servers: {naive | default: {rest | rest_batch | grpc_unary | grpc_stream: [{sessions,
+  acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {bytes_per_slot, rss_per_session_bytes}}. REST load comes
+  from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
+  observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
+- `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
+- `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+SESSIONS = (1, 16, 64, 256)
+OBS_DIM, ACT_DIM = 17, 6
+
+
+# ----- checkpoints ------------------------------------------------------------------------------------------
+def default_size_checkpoint(directory: Path, K: int = 20, attention: str = "window", name: str = "bench-gmt"):
+    """A random-weight checkpoint of the default training size with HalfCheetah-v5 shapes."""
+    import torch
+
+    from model.checkpoint import save_checkpoint
+    from model.config import GMTConfig
+    from model.fixtures import tiny_checkpoint
+    from model.gmt import GMT
+
+    ckpt = tiny_checkpoint(calibrated=True)
+    torch.manual_seed(0)
+    cfg = GMTConfig(
+        obs_shape=(OBS_DIM,),
+        act_dim=ACT_DIM,
+        discrete_actions=False,
+        n_goals=3,
+        context_length=K,
+        attention=attention,
+    )
+    ckpt.model, ckpt.name = GMT(cfg).eval(), name
+    if directory is not None:
+        save_checkpoint(ckpt, directory)
+    return ckpt
+
+
+# ----- engine -----------------------------------------------------------------------------------------------
+def bench_engine(Ks=(10, 20, 50, 100), batches=(1, 64), steps: int = 60) -> list[dict]:
+    """ms per act step on the incremental and the recompute path, after a full history of warm-up."""
+    import torch
+
+    from model.engine import PolicyEngine
+
+    torch.set_num_threads(1)
+    rows = []
+    for K in Ks:
+        ckpt = default_size_checkpoint(None, K=K)
+        for path, incremental in (("incremental", True), ("recompute", False)):
+            for B in batches:
+                engine = PolicyEngine(ckpt, incremental=incremental)
+                ctxs = [engine.new_context(i % 3, seed=i) for i in range(B)]
+                obs = np.random.default_rng(0).normal(size=(B, OBS_DIM)).astype(np.float32)
+                states = [engine.prepare_observation(o) for o in obs]
+                warm = ckpt.config.history_steps + 2
+                n = max(5, steps // (1 + (B * K) // 640)) if not incremental else steps
+                for _ in range(warm):  # fill the history: the cost at a full window is what counts
+                    engine.act(ctxs, states, prepared=True)
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    engine.act(ctxs, states, prepared=True)
+                ms = (time.perf_counter() - t0) / n * 1000
+                rows.append(
+                    {
+                        "K": K,
+                        "path": path,
+                        "batch": B,
+                        "ms_per_step": round(ms, 3),
+                        "acts_per_s": round(B / ms * 1000),
+                    }
+                )
+    return rows
+
+
+# ----- serving ----------------------------------------------------------------------------------------------
+def start_server(checkpoint: Path, naive: bool, max_batch: int = 256) -> tuple[subprocess.Popen, dict]:
+    """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record)."""
+    exe = Path(sys.executable).parent / "gmt"
+    args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
+    args += ["--log-level", "WARNING", "--max-batch", str(max_batch), "--max-sessions", "4096"]
+    args += ["--naive"] if naive else []
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env["GMT_LOG_LEVEL"] = "INFO"
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
+    for line in proc.stderr:
+        rec = json.loads(line) if line.startswith("{") else {}
+        if rec.get("msg") == "serving":
+            threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()
+            return proc, rec
+    raise RuntimeError("gmt serve exited before serving")
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident memory of a process."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+_WRK_DONE = """
+done = function(summary, latency, requests)
+  local e = summary.errors
+  io.write(string.format('WRK {"requests":%d,"duration_us":%d,"errors":%d,"non2xx":%d,"p50_us":%d,"p99_us":%d}\\n',
+    summary.requests, summary.duration, e.connect + e.read + e.write + e.timeout, e.status,
+    latency:percentile(50), latency:percentile(99)))
+end
+"""
+
+
+def wrk(url: str, script: str, connections: int, seconds: float) -> dict:
+    """Run wrk (one thread) with a Lua script; returns its figures."""
+    with tempfile.NamedTemporaryFile("w", suffix=".lua", delete=False) as f:
+        f.write(script + _WRK_DONE)
+    try:
+        out = subprocess.run(
+            [
+                "wrk",
+                "-t",
+                "1",
+                "-c",
+                str(connections),
+                "-d",
+                f"{seconds}s",
+                "--timeout",
+                "10s",
+                "-s",
+                f.name,
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    finally:
+        os.unlink(f.name)
+    rec = json.loads(next(line[4:] for line in out.splitlines() if line.startswith("WRK ")))
+    return rec
+
+
+def _sessions(url: str, model: str, n: int) -> list[str]:
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=30) as c:
+        return [
+            c.post("/sessions", json={"model": model, "goal": i % 3, "seed": i}).json()["session_id"]
+            for i in range(n)
+        ]
+
+
+def _close(url: str, sids: list[str]) -> None:
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=30) as c:
+        for s in sids:
+            c.delete(f"/sessions/{s}")
+
+
+def _obs_json() -> str:
+    return json.dumps([round(float(x), 4) for x in np.random.default_rng(0).normal(size=OBS_DIM) * 0.1])
+
+
+def bench_rest(url: str, sids: list[str], seconds: float) -> dict:
+    """One call per act, one connection per session."""
+    ids = ",".join(f'"{s}"' for s in sids)
+    script = f"""
+local ids = {{{ids}}}
+local body = '{{"observation": {_obs_json()}}}'
+local i = 0
+request = function()
+  i = i + 1
+  return wrk.format("POST", "/sessions/" .. ids[(i % #ids) + 1] .. "/act", {{["Content-Type"] = "application/json"}}, body)
+end
+"""
+    r = wrk(url, script, len(sids), seconds)
+    return {
+        "sessions": len(sids),
+        "acts_per_s": round(r["requests"] / (r["duration_us"] / 1e6), 1),
+        "p50_ms": r["p50_us"] / 1000,
+        "p99_ms": r["p99_us"] / 1000,
+        "errors": r["errors"] + r["non2xx"],
+    }
+
+
+def bench_rest_batch(url: str, sids: list[str], seconds: float) -> dict:
+    """Every session's observation in one `POST /act` call, one connection."""
+    obs = _obs_json()
+    body = json.dumps({"requests": [{"session_id": s, "observation": json.loads(obs)} for s in sids]})
+    script = f"""
+local body = '{body}'
+request = function()
+  return wrk.format("POST", "/act", {{["Content-Type"] = "application/json"}}, body)
+end
+"""
+    r = wrk(url, script, 1, seconds)
+    calls = r["requests"] / (r["duration_us"] / 1e6)
+    return {
+        "sessions": len(sids),
+        "acts_per_s": round(calls * len(sids), 1),
+        "p50_ms": r["p50_us"] / 1000,
+        "p99_ms": r["p99_us"] / 1000,
+        "errors": r["errors"] + r["non2xx"],
+    }
+
+
+def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict:
+    """Run in a separate process: one concurrent caller per session (unary Act or one Control stream each)."""
+    import grpc
+    from gmt.v1 import policy_pb2 as pb
+    from gmt.v1 import policy_pb2_grpc
+
+    obs = json.loads(_obs_json())
+
+    async def main():
+        lat: list[float] = []
+        errors = 0
+        async with grpc.aio.insecure_channel(target) as ch:
+            stub = policy_pb2_grpc.PolicyServiceStub(ch)
+            stop = time.perf_counter() + seconds
+
+            async def unary(sid):
+                nonlocal errors
+                req = pb.ActRequest(session_id=sid, values=pb.FloatVector(values=obs))
+                while time.perf_counter() < stop:
+                    t = time.perf_counter()
+                    try:
+                        await stub.Act(req, metadata=(("x-session-id", sid),))
+                    except grpc.RpcError:
+                        errors += 1
+                    lat.append(time.perf_counter() - t)
+
+            async def stream(sid):
+                nonlocal errors
+                req = pb.ControlRequest(act=pb.ActRequest(session_id=sid, values=pb.FloatVector(values=obs)))
+                call = stub.Control(metadata=(("x-session-id", sid),))
+                while time.perf_counter() < stop:
+                    t = time.perf_counter()
+                    await call.write(req)
+                    r = await call.read()
+                    if r.WhichOneof("result") != "act":
+                        errors += 1
+                    lat.append(time.perf_counter() - t)
+                await call.done_writing()
+
+            t0 = time.perf_counter()
+            await asyncio.gather(*((unary if mode == "unary" else stream)(s) for s in sids))
+            wall = time.perf_counter() - t0
+        ms = np.asarray(lat[len(lat) // 10 :]) * 1000  # drop the first tenth (warm-up)
+        return {
+            "sessions": len(sids),
+            "acts_per_s": round(len(lat) / wall, 1),
+            "p50_ms": round(float(np.percentile(ms, 50)), 3),
+            "p99_ms": round(float(np.percentile(ms, 99)), 3),
+            "errors": errors,
+        }
+
+    return asyncio.run(main())
+
+
+def _grpc_in_process(target: str, sids: list[str], seconds: float, mode: str) -> dict:
+    code = (
+        "import json,sys; from service.bench import grpc_client; "
+        "a=json.loads(sys.argv[1]); print(json.dumps(grpc_client(a['t'], a['s'], a['d'], a['m'])))"
+    )
+    arg = json.dumps({"t": target, "s": sids, "d": seconds, "m": mode})
+    out = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def bench_serving(
+    checkpoint: Path, sessions=SESSIONS, seconds: float = 8.0, servers=("naive", "default")
+) -> dict:
+    """Throughput and latency over every transport, for the naive and the default server, same checkpoint."""
+    out: dict = {"model": str(checkpoint), "seconds_per_point": seconds, "servers": {}}
+    for kind in servers:
+        proc, info = start_server(checkpoint, naive=kind == "naive")
+        try:
+            url = f"http://127.0.0.1:{info['rest_port']}"
+            target = f"127.0.0.1:{info['grpc_port']}"
+            model = info["models"][0]
+            res: dict = {"rest": [], "rest_batch": [], "grpc_unary": [], "grpc_stream": []}
+            for n in sessions:
+                before = rss_bytes(proc.pid)
+                sids = _sessions(url, model, n)
+                res["rest"].append(bench_rest(url, sids, seconds))
+                if n == max(sessions) and kind == "default":
+                    out["memory"] = {"rss_per_session_bytes": (rss_bytes(proc.pid) - before) // n}
+                res["rest_batch"].append(bench_rest_batch(url, sids, seconds))
+                res["grpc_unary"].append(_grpc_in_process(target, sids, seconds, "unary"))
+                res["grpc_stream"].append(_grpc_in_process(target, sids, seconds, "stream"))
+                _close(url, sids)
+                print(
+                    f"[bench] {kind} {n} sessions: "
+                    + ", ".join(f"{k} {v[-1]['acts_per_s']}/s" for k, v in res.items()),
+                    file=sys.stderr,
+                )
+            out["servers"][kind] = res
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    return out
+
+
+# ----- training ---------------------------------------------------------------------------------------------
+def gemm_gflops(dtype) -> float:
+    """Measured matrix-product rate of one thread (1024 x 1024 x 1024)."""
+    import torch
+
+    a, b = torch.randn(1024, 1024, dtype=dtype), torch.randn(1024, 1024, dtype=dtype)
+    for _ in range(3):
+        a @ b
+    n, t0 = 10, time.perf_counter()
+    for _ in range(n):
+        a @ b
+    return round(2 * 1024**3 * n / (time.perf_counter() - t0) / 1e9, 1)
+
+
+def bench_training(steps: int = 20) -> dict:
+    """Optimiser steps/s of the default model and batch (K = 20, batch 64) on one thread, and GFLOP/s."""
+    import torch
+
+    from model.config import GMTConfig
+    from model.gmt import GMT
+
+    torch.set_num_threads(1)
+    cfg = GMTConfig(obs_shape=(OBS_DIM,), act_dim=ACT_DIM, discrete_actions=False, n_goals=4)
+    model = GMT(cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    B, T = 64, cfg.context_length
+    g = torch.randint(0, 4, (B, T))
+    s, a = torch.randn(B, T, OBS_DIM), torch.rand(B, T, ACT_DIM) * 2 - 1
+    ts, v = torch.arange(T).repeat(B, 1), torch.ones(B, T, dtype=torch.bool)
+    for i in range(steps + 3):
+        if i == 3:
+            t0 = time.perf_counter()
+        pred, gl = model(g, s, a, ts, v)
+        loss = (pred - a).pow(2).mean() + gl.logsumexp(-1).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    sps = steps / (time.perf_counter() - t0)
+    matmul_params = sum(p.numel() for n, p in model.named_parameters() if p.dim() == 2 and "emb" not in n)
+    flops = 6 * matmul_params * B * 3 * T  # forward + backward of every token's matrix products
+    return {
+        "steps_per_s": round(sps, 2),
+        "gflops_achieved": round(flops * sps / 1e9, 1),
+        "gemm_gflops": {"fp32": gemm_gflops(torch.float32), "bf16": gemm_gflops(torch.bfloat16)},
+        "note": "achieved counts only the matrix products (6 x params x tokens), not attention",
+    }
+
+
+def bench_alternatives() -> dict:
+    """Ray Serve and Hugging Face's DecisionTransformerModel, when installed (the `bench` extra)."""
+    out = {}
+    for name, module in (("ray_serve", "ray.serve"), ("hf_decision_transformer", "transformers")):
+        try:
+            __import__(module)
+        except ImportError:
+            out[name] = {"skipped": f"{module} is not installed (pip install '.[bench]')"}
+        else:
+            out[name] = {"skipped": "installed, but not measured by this version of gmt bench"}
+    return out
+
+
+def machine() -> dict:
+    import torch
+
+    cpu = platform.processor()
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "platform": platform.platform()}
+
+
+def run(
+    checkpoint: Path | None, sections: tuple[str, ...], seconds: float, sessions: tuple[int, ...] = SESSIONS
+) -> dict:
+    """Every requested section; a temporary default-size `window` checkpoint when none is given."""
+    result: dict = {"machine": machine()}
+    tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-"))
+    try:
+        if "engine" in sections:
+            result["engine"] = bench_engine()
+        if "serving" in sections:
+            if checkpoint is None:
+                checkpoint = tmp / "bench-gmt"
+                default_size_checkpoint(checkpoint)
+            if shutil.which("wrk") is None:
+                result["serving"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
+            else:
+                result["serving"] = bench_serving(checkpoint, sessions, seconds)
+        if "training" in sections:
+            result["training"] = bench_training()
+        if "alternatives" in sections:
+            result["alternatives"] = bench_alternatives()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return result

@@ -1,0 +1,73 @@
+"""`gmt serve --naive` is the exactness oracle of the default server; `gmt bench` measures what it says."""
+
+import shutil
+
+import httpx
+import numpy as np
+import pytest
+from service_harness import RunningServer, ServeProcess, make_settings
+
+from model.fixtures import tiny_checkpoint
+from service.bench import bench_engine, bench_serving
+
+
+@pytest.fixture(scope="module")
+def window_ckpt(tmp_path_factory):
+    d = tmp_path_factory.mktemp("window") / "tiny-window"
+    tiny_checkpoint(d, name="tiny-window", attention="window", calibrated=True, context_length=4, n_layer=3)
+    return d
+
+
+def _episode(url: str, obs: np.ndarray) -> np.ndarray:
+    with httpx.Client(base_url=url, timeout=30) as http:
+        sid = http.post("/sessions", json={"goal": 0, "seed": 5}).json()["session_id"]
+        out = []
+        for t, o in enumerate(obs):
+            if t == 20:
+                assert (
+                    http.put(f"/sessions/{sid}/goal", json={"goal": 2, "blend_steps": 5}).status_code == 200
+                )
+            r = http.post(f"/sessions/{sid}/act", json={"observation": o.tolist()})
+            assert r.status_code == 200, r.text
+            out.append(r.json()["action"])
+    return np.asarray(out)
+
+
+def test_naive_server_and_incremental_server_give_the_same_actions(window_ckpt):
+    obs = np.random.default_rng(0).normal(size=(40, 17)).astype(np.float32)
+    naive = ServeProcess("--checkpoints", str(window_ckpt), "--naive")
+    try:
+        info = naive.wait_serving()
+        assert info["models"] == ["tiny-window"]
+        loaded = next(r for r in naive.lines if r.get("msg") == "model loaded")
+        assert loaded["engine"] == "recompute" and loaded["attention"] == "window"
+        reference = _episode(naive.url, obs)
+    finally:
+        naive.kill()
+    fast = RunningServer(make_settings(checkpoints=[window_ckpt])).start()
+    try:
+        assert fast.core.registry.get("tiny-window").engine.describe().path == "incremental"
+        got = _episode(fast.url, obs)
+    finally:
+        fast.stop()
+    np.testing.assert_allclose(got, reference, atol=1e-5, rtol=0)
+
+
+def test_engine_section_times_both_paths_for_every_K_and_batch():
+    rows = bench_engine(Ks=(4, 8), batches=(1, 3), steps=3)
+    assert {(r["K"], r["path"], r["batch"]) for r in rows} == {
+        (K, p, B) for K in (4, 8) for p in ("incremental", "recompute") for B in (1, 3)
+    }
+    assert all(r["ms_per_step"] > 0 and r["acts_per_s"] > 0 for r in rows)
+
+
+@pytest.mark.skipif(shutil.which("wrk") is None, reason="wrk is not installed (apt-get install wrk)")
+def test_serving_section_drives_every_transport_without_errors(window_ckpt):
+    res = bench_serving(window_ckpt, sessions=(1, 3), seconds=1.0, servers=("default",))
+    points = res["servers"]["default"]
+    assert set(points) == {"rest", "rest_batch", "grpc_unary", "grpc_stream"}
+    for transport, rows in points.items():
+        assert [r["sessions"] for r in rows] == [1, 3], transport
+        for r in rows:
+            assert r["errors"] == 0 and r["acts_per_s"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"], (transport, r)
+    assert res["memory"]["rss_per_session_bytes"] >= 0
