@@ -47,10 +47,10 @@ eval: $(STAMP)
 	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 1 --json $(CHECKPOINT)/eval.json \
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
 
-# Figures as JSON: training steps/s and engine throughput; act latency over REST, gRPC unary and stream.
+# Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
+# transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_model.py
-	$(BIN)/python benchmarks/bench_serve.py
+	$(BIN)/gmt bench --out bench.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
