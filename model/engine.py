@@ -236,6 +236,15 @@ class PolicyEngine(PolicyRuntime):
         slot = self.pool.keys.get(key)
         return None if slot is None else Context(self.pool, slot, key)
 
+    def last_answer(self, ctx: Context) -> tuple[np.ndarray | int, int]:
+        p, s = self.pool, ctx.slot
+        if p.step[s] == 0:
+            raise ValueError("the context has not acted yet")
+        pos = (p.step[s] - 1) % p.H
+        a = p.h_action[s, pos]
+        action = int(a) if self.discrete else self.ckpt.action_codec.decode(a[None])[0]
+        return action, int(p.h_blend_to[s, pos])
+
     def reset(self, ctx: Context, goal: int | None = None) -> None:
         p, s = self.pool, ctx.slot
         if goal is not None:

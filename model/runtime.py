@@ -72,6 +72,10 @@ class PolicyRuntime(abc.ABC):
         """One step for each context; a failed item is an exception in its place and leaves its context as it was."""
 
     @abc.abstractmethod
+    def last_answer(self, ctx: Context) -> tuple[np.ndarray | int, int]:
+        """(action, goal) the context's last act answered, rebuilt from its history (for idempotent retries)."""
+
+    @abc.abstractmethod
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
         """Condition tokens from the next step on `goal`, faded in over `blend_steps` steps if > 0."""
 

@@ -377,26 +377,46 @@ class Core:
         except InvalidObservation as e:
             raise InvalidArgument(str(e)) from None
 
-    async def act(self, sid: str, observation: object) -> ActResult:
+    async def act(self, sid: str, observation: object, step: int | None = None) -> ActResult:
         """Append the observation to the session's context and answer the action (batched with others).
+
+        Args:
+            sid: Session id.
+            observation: The raw observation.
+            step: The step the client expects to act at (the index the answer reports; None = don't check).
+                A repeat of the last answered step returns that answer again without stepping (a safe retry).
 
         Raises:
             InvalidArgument: bad observation (the session is unchanged).
+            FailedPrecondition: `step` is neither the session's next step nor a repeat of its last one.
             NotFound / SessionExpired: no such session.
+            Aborted: another replica changed the session meanwhile (retry).
         """
         self._check_serving()
+        if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
+            raise InvalidArgument(f"step must be an integer >= 0, got {step!r}")
         async with self._lock(sid):
             s = await self.store.get(sid)
             m = self._model_of(s)
             x = self.validate_observation(m, observation)
             ctx = self._live(m, s)
-            step, goal = ctx.step, ctx.goal
+            if step is not None and step != ctx.step:
+                if step == ctx.step - 1:
+                    action, goal = m.engine.last_answer(ctx)
+                    return self._result(m, sid, action, step, goal)
+                raise FailedPrecondition(
+                    f"session {sid!r} is at step {ctx.step}; this act is for step {step} "
+                    f"(only step {ctx.step}, or {ctx.step - 1} to repeat the last answer, is accepted)"
+                    if ctx.step
+                    else f"session {sid!r} is at step 0; this act is for step {step}"
+                )
+            step, goal, version = ctx.step, ctx.goal, ctx.version
             try:
                 action = await self._batchers[m.name].act(ctx, x)
             except StepFailed as e:
                 raise InvalidArgument(str(e)) from None
             s.last_used = self.clock()
-            await self.store.save(s)
+            await self._save(m, s, version)
         return self._result(m, sid, action, step, goal)
 
     async def act_many(self, items: list[tuple[str, object]]) -> list[ActResult | ServiceError]:
@@ -434,10 +454,10 @@ class Core:
             for r in ready:
                 by_model.setdefault(r[2].name, []).append(r)
             for name, rows in by_model.items():
-                steps = [(r[3].step, r[3].goal) for r in rows]
+                steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]
                 actions = await self._batchers[name].act_many([r[3] for r in rows], [r[4] for r in rows])
                 now = self.clock()
-                for (i, s, m, _, _), (step, goal), a in zip(rows, steps, actions, strict=True):
+                for (i, s, m, _, _), (step, goal, version), a in zip(rows, steps, actions, strict=True):
                     if isinstance(a, StepFailed):
                         out[i] = InvalidArgument(str(a))
                         continue
@@ -445,12 +465,20 @@ class Core:
                         raise a
                     s.last_used = now
                     try:
-                        await self.store.save(s)
+                        await self._save(m, s, version)
                     except ServiceError as e:
                         out[i] = e
                         continue
                     out[i] = self._result(m, s.id, a, step, goal)
         return out
+
+    async def _save(self, m: LoadedModel, s: Session, read_version: int) -> None:
+        """Write the session back (compare-and-set on the version read); a lost race drops this replica's copy."""
+        try:
+            await self.store.save(s, read_version)
+        except ServiceError:
+            m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh on the next request
+            raise
 
     @staticmethod
     def _result(m: LoadedModel, sid: str, action, step: int, goal: int) -> ActResult:
@@ -480,9 +508,11 @@ class Core:
             s = await self.store.get(sid)
             m = self._model_of(s)
             g = self.resolve_goal(m, goal, target)
-            m.engine.set_goal(self._live(m, s), g, blend_steps)
+            ctx = self._live(m, s)
+            version = ctx.version
+            m.engine.set_goal(ctx, g, blend_steps)
             s.last_used = self.clock()
-            await self.store.save(s)
+            await self._save(m, s, version)
             log.info("goal set", extra={"session_id": sid, "goal": g, "blend_steps": blend_steps})
             return self._view_session(s)
 
@@ -498,9 +528,11 @@ class Core:
             s = await self.store.get(sid)
             m = self._model_of(s)
             g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
-            m.engine.reset(self._live(m, s), g)
+            ctx = self._live(m, s)
+            version = ctx.version
+            m.engine.reset(ctx, g)
             s.last_used = self.clock()
-            await self.store.save(s)
+            await self._save(m, s, version)
             return self._view_session(s)
 
     async def close_session(self, sid: str) -> None:

@@ -54,6 +54,12 @@ class FailedPrecondition(ServiceError):
     code, http_status, grpc_code = "failed_precondition", 409, "FAILED_PRECONDITION"
 
 
+class Aborted(ServiceError):
+    """Another replica changed the session between this request's read and its write; retrying is safe."""
+
+    code, http_status, grpc_code = "aborted", 409, "ABORTED"
+
+
 class PayloadTooLarge(ServiceError):
     """The request body or message is larger than the configured limit."""
 

@@ -9,7 +9,7 @@ Expiry follows the store's clock; Redis key TTLs only collect sessions nobody to
 from __future__ import annotations
 
 from service import session_codec
-from service.errors import Internal, NotFound, ResourceExhausted, SessionExpired, Unavailable
+from service.errors import Aborted, Internal, NotFound, ResourceExhausted, SessionExpired, Unavailable
 from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
 
 TOMBSTONE_TTL_S = 86_400
@@ -24,6 +24,20 @@ redis.call('DEL', KEYS[2])
 redis.call('HSET', KEYS[2], unpack(ARGV, 6))
 redis.call('PEXPIRE', KEYS[2], ARGV[5])
 return -1
+"""
+
+
+# KEYS: live, session hash. ARGV: read version ('' = any), last use, key TTL ms, id, then field/value pairs.
+# Returns 0 when written, -1 when the session is gone (never revived), -2 when another writer came first.
+_SAVE = """
+local cur = redis.call('HGET', KEYS[2], 'ver')
+if not cur then return -1 end
+if ARGV[1] ~= '' and cur ~= ARGV[1] then return -2 end
+redis.call('DEL', KEYS[2])
+redis.call('HSET', KEYS[2], unpack(ARGV, 5))
+redis.call('PEXPIRE', KEYS[2], ARGV[3])
+redis.call('ZADD', KEYS[1], ARGV[2], ARGV[4])
+return 0
 """
 
 
@@ -49,6 +63,7 @@ class RedisSessionStore(SessionStore):
         self.prefix = prefix
         self._live = f"{prefix}live"
         self._create = self.redis.register_script(_CREATE)
+        self._save = self.redis.register_script(_SAVE)
         self._seen: dict[str, tuple[str, float]] = {}  # id -> (model, last use here) of sessions touched here
 
     def _key(self, sid: str) -> str:
@@ -115,12 +130,21 @@ class RedisSessionStore(SessionStore):
         self._seen[sid] = (s.model, s.last_used)
         return s
 
-    async def save(self, session: Session) -> None:
-        key = self._key(session.id)
-        async with self.redis.pipeline(transaction=True) as p:
-            p.delete(key).hset(key, mapping=session_codec.encode(session)).pexpire(key, self._ttl_ms)
-            p.zadd(self._live, {session.id: session.last_used})
-            await self._call(p.execute())
+    async def save(self, session: Session, read_version: int | None = None) -> None:
+        flat: list[bytes | str] = []
+        for k, v in session_codec.encode(session).items():
+            flat += [k, v]
+        expect = "" if read_version is None else str(read_version)
+        args = [expect, repr(session.last_used), self._ttl_ms, session.id]
+        n = await self._call(self._save(keys=[self._live, self._key(session.id)], args=args + flat))
+        if n == -1:
+            self._forget(session.id)
+            raise NotFound(f"session {session.id!r} was closed or expired while this request ran")
+        if n == -2:
+            raise Aborted(
+                f"session {session.id!r} was changed by another replica while this request ran; "
+                "retry the request (with the same step: a repeat is answered without stepping twice)"
+            )
         self._seen[session.id] = (session.model, session.last_used)
 
     async def delete(self, sid: str) -> None:

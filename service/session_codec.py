@@ -15,7 +15,8 @@ class CodecError(ValueError):
 
 
 def encode(session: Session) -> dict[str, bytes]:
-    """Hash fields: `meta` (JSON: id, model, times) plus the context's fields (`StoredContext.to_fields`)."""
+    """Hash fields: `meta` (JSON: id, model, times), `ver` (the context's version as decimal text) and the
+    context's own fields (`StoredContext.to_fields`)."""
     ctx = session.ctx
     stored = ctx.to_stored() if isinstance(ctx, Context) else ctx
     meta = {
@@ -25,7 +26,11 @@ def encode(session: Session) -> dict[str, bytes]:
         "created_at": session.created_at,
         "last_used": session.last_used,
     }
-    return {"meta": json.dumps(meta, separators=(",", ":")).encode(), **stored.to_fields()}
+    return {
+        "meta": json.dumps(meta, separators=(",", ":")).encode(),
+        "ver": str(stored.version).encode(),  # what a compare-and-set write checks
+        **stored.to_fields(),
+    }
 
 
 def decode(fields: dict[bytes | str, bytes]) -> Session:

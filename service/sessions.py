@@ -86,8 +86,18 @@ class SessionStore(abc.ABC):
         """
 
     @abc.abstractmethod
-    async def save(self, session: Session) -> None:
-        """Persist the session's context and `last_used`."""
+    async def save(self, session: Session, read_version: int | None = None) -> None:
+        """Persist the session's context and `last_used`; never brings back a removed session.
+
+        Args:
+            session: The session as changed by this request.
+            read_version: The context version this request read; a shared store writes only if the stored
+                version is still that one (compare-and-set).
+
+        Raises:
+            Aborted: another replica wrote the session since it was read (retry the request).
+            NotFound: the session was closed or expired meanwhile.
+        """
 
     @abc.abstractmethod
     async def delete(self, sid: str) -> None:
@@ -157,8 +167,10 @@ class MemorySessionStore(SessionStore):
     async def get(self, sid: str) -> Session:
         return self._lookup(sid)
 
-    async def save(self, session: Session) -> None:
-        if session.id in self._sessions:  # never resurrect a session the sweeper removed meanwhile
+    async def save(self, session: Session, read_version: int | None = None) -> None:
+        # One process, one lock per session in the core: no other writer can interleave. A session the sweeper
+        # removed meanwhile is not resurrected.
+        if session.id in self._sessions:
             self._sessions[session.id] = session
 
     async def delete(self, sid: str) -> None:

@@ -15,7 +15,7 @@ from service_harness import RunningServer, ServeProcess, make_settings
 from model.checkpoint import load_checkpoint
 from model.engine import PolicyEngine
 from service import session_codec
-from service.errors import NotFound, ResourceExhausted, SessionExpired
+from service.errors import Aborted, NotFound, ResourceExhausted, SessionExpired
 from service.sessions import Session
 
 
@@ -114,18 +114,28 @@ def test_redis_store_semantics(redis_clean, engine, clock):
                 await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
             assert await a.count() == await b.count() == 2
             got = await b.get("one")
+            read = got.ctx.version
+            got.ctx = engine.from_stored(got.ctx, key="one")
             engine.act([got.ctx], [np.zeros(17, np.float32)])
             clock.advance(6)
             got.last_used = clock()
-            await b.save(got)
+            await b.save(got, read)
             again = await a.get("one")
             assert again.ctx.step == 1 and np.array_equal(again.ctx.states, got.ctx.states)
+            # Compare-and-set: a replica that read the old version loses the race instead of overwriting.
+            stale = Session("one", "tiny-gmt", engine.new_context(1), clock(), clock())
+            with pytest.raises(Aborted, match="changed by another replica"):
+                await a.save(stale, read)
+            assert (await b.get("one")).ctx.goal == 0
             clock.advance(6)  # "two" is now idle for 12 s, "one" for 6 s
             assert [s.id for s in await a.sweep()] == ["two"]
             with pytest.raises(SessionExpired, match="session 'two' expired"):
                 await b.get("two")
             await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
+            three = await b.get("three")
             await a.delete("three")
+            with pytest.raises(NotFound, match="closed or expired"):  # a write never revives it
+                await b.save(three, three.ctx.version)
             with pytest.raises(NotFound, match="session 'three' not found"):
                 await b.get("three")
             clock.advance(20)
