@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import abc
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import numpy as np
 
-from clients.errors import ConnectionFailed
+from clients.errors import ConnectionFailed, ServiceError
 
 T = TypeVar("T")
 
@@ -238,6 +238,22 @@ class PolicyClient(abc.ABC):
     @abc.abstractmethod
     def act(self, session_id: str, observation: Any) -> ActResult:
         """One step: observation in, action out."""
+
+    @abc.abstractmethod
+    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
+        """One step for each of many sessions in one call (one forward pass on the server).
+
+        Args:
+            items: (session id, observation) pairs; a session may appear once per call.
+
+        Returns:
+            One entry per item, in order: the `ActResult` that `act` would return, or, for an item that failed
+            alone (bad observation, unknown or repeated session), the `ServiceError` subclass instance that `act`
+            would have raised (returned, not raised; that session is unchanged).
+
+        Raises:
+            ServiceError: the whole call failed (e.g. too many items, bad token, server unreachable).
+        """
 
     @abc.abstractmethod
     def set_goal(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import queue
 import threading
+from collections.abc import Sequence
 from typing import Any
 
 import grpc
@@ -105,6 +106,15 @@ def act_from_proto(r: pb.ActResponse) -> ActResult:
     return ActResult(action=action, step=int(r.step), goal=int(r.goal))
 
 
+def act_batch_item_from_proto(r: pb.ActBatchResult) -> ActResult | ServiceError:
+    """One item of an `ActBatchResponse`: an `ActResult`, or the `ServiceError` that failed the item."""
+    if r.WhichOneof("outcome") == "error":
+        return error_for(r.error.code, r.error.message)
+    if r.WhichOneof("outcome") != "action":
+        raise ProtocolError(f"ActBatch result for session {r.session_id!r} has neither action nor error")
+    return act_from_proto(r.action)
+
+
 def goal_proto(goal: int | str | None, target: float | None) -> pb.GoalSelector | None:
     """The `GoalSelector` for a goal id, name or target (None when neither is given)."""
     sel = goal_selector(goal, target)
@@ -202,6 +212,13 @@ class GrpcClient(PolicyClient):
 
     def act(self, session_id: str, observation: Any) -> ActResult:
         return act_from_proto(self._call("Act", act_request(session_id, observation)))
+
+    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
+        req = pb.ActBatchRequest(requests=[act_request(sid, o) for sid, o in items])
+        results = self._call("ActBatch", req).results
+        if len(results) != len(items):
+            raise ProtocolError(f"ActBatch answered {len(results)} results for {len(items)} requests")
+        return [act_batch_item_from_proto(r) for r in results]
 
     def set_goal(
         self,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+from collections.abc import Sequence
 from typing import Any
 
 import httpx
@@ -55,6 +56,14 @@ def act_from_json(d: dict) -> ActResult:
     a = d["action"]
     action = np.asarray(a, dtype=np.float32) if isinstance(a, list) else int(a)
     return ActResult(action=action, step=int(d["step"]), goal=int(d["goal"]))
+
+
+def act_item_from_json(d: dict) -> ActResult | ServiceError:
+    """One item of a `POST /act` answer: an `ActResult`, or the `ServiceError` that failed the item."""
+    err = d.get("error")
+    if isinstance(err, dict):
+        return error_for(str(err.get("code", "")), str(err.get("message", "")))
+    return act_from_json(d)
 
 
 def encode_observation(obs: Any) -> list | dict:
@@ -169,6 +178,13 @@ class RestClient(PolicyClient):
     def act(self, session_id: str, observation: Any) -> ActResult:
         body = {"observation": encode_observation(observation)}
         return act_from_json(self._request("POST", f"/sessions/{session_id}/act", body))
+
+    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
+        body = {"requests": [{"session_id": sid, "observation": encode_observation(o)} for sid, o in items]}
+        results = self._request("POST", "/act", body).get("results")
+        if not isinstance(results, list) or len(results) != len(items):
+            raise ProtocolError(f"POST /act answered {results!r:.200} for {len(items)} requests")
+        return [act_item_from_json(d) for d in results]
 
     def set_goal(
         self,

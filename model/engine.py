@@ -341,12 +341,17 @@ class PolicyEngine(PolicyRuntime):
             x = np.asarray(obs)
         except (ValueError, TypeError) as e:
             raise InvalidObservation(f"observation is not a rectangular numeric array: {e}") from e
-        if x.dtype == object or not (np.issubdtype(x.dtype, np.number) or x.dtype == bool):
+        if x.dtype == bool:
+            raise InvalidObservation("observation must hold numbers, got booleans")
+        if x.dtype == object or not np.issubdtype(x.dtype, np.number):
             raise InvalidObservation(f"observation must be numeric, got dtype {x.dtype}")
         if x.size != self.obs_size:
             raise InvalidObservation(
                 f"observation has {x.size} values, expected {self.obs_size} (shape {list(self.cfg.obs_shape)})"
             )
+        shape = self.cfg.obs_shape
+        if x.shape != shape and not (len(shape) == 3 and shape[0] == 1 and x.shape == shape[1:]):
+            raise InvalidObservation(f"observation has shape {list(x.shape)}, expected {list(shape)}")
         if np.issubdtype(x.dtype, np.floating) and not np.isfinite(x).all():
             bad = int(np.flatnonzero(~np.isfinite(x.ravel()))[0])
             raise InvalidObservation(f"observation has a non-finite value (NaN or Inf) at index {bad}")

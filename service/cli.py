@@ -65,11 +65,12 @@ def bench_command(
     seconds: float = typer.Option(8.0, help="Load duration per serving measurement point."),
     sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),
     out: Path = typer.Option(None, help="Also write the JSON here."),
+    markdown: Path = typer.Option(None, help="Also write the tables (as in docs/performance.md) here."),
 ) -> None:
     """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run."""
     import json
 
-    from service.bench import run
+    from service.bench import run, to_markdown
 
     result = run(
         checkpoint,
@@ -81,6 +82,8 @@ def bench_command(
     typer.echo(text)
     if out:
         out.write_text(text + "\n")
+    if markdown:
+        markdown.write_text(to_markdown(result) + "\n")
 
 
 _register()

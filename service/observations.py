@@ -25,6 +25,17 @@ DTYPES = (
     "float64",
 )
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
+
+
+def check_act_items(n: int) -> None:
+    """Reject a many-session act call with more than MAX_ACT_ITEMS items (the whole call fails).
+
+    Raises:
+        InvalidArgument: too many items.
+    """
+    if n > MAX_ACT_ITEMS:
+        raise InvalidArgument(f"a call may act for at most {MAX_ACT_ITEMS} sessions, got {n} requests")
 
 
 def decode_base64(data: str) -> bytes:

@@ -9,7 +9,7 @@ import numpy as np
 from gmt.v1 import policy_pb2 as pb
 
 from service.core import ActResult, GoalRef, ModelView, SessionView
-from service.errors import InvalidArgument
+from service.errors import InvalidArgument, ServiceError
 from service.observations import decode_tensor
 
 
@@ -71,6 +71,15 @@ def act_response(r: ActResult) -> pb.ActResponse:
             session_id=r.session_id,
         )
     return pb.ActResponse(action=r.action, step=r.step, goal=r.goal, session_id=r.session_id)
+
+
+def act_batch_result(session_id: str, r: ActResult | ServiceError) -> pb.ActBatchResult:
+    """One item of an ActBatchResponse: the action, or the error (its code and message) that failed it."""
+    if isinstance(r, ServiceError):
+        return pb.ActBatchResult(
+            session_id=session_id, error=pb.ActBatchError(code=r.code, message=r.message)
+        )
+    return pb.ActBatchResult(session_id=session_id, action=act_response(r))
 
 
 def goal(sel: pb.GoalSelector | None) -> tuple[GoalRef, float | None]:

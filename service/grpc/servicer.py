@@ -14,6 +14,7 @@ from gmt.v1 import policy_pb2_grpc
 from service.core import Core
 from service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from service.grpc import convert
+from service.observations import check_act_items
 
 T = TypeVar("T")
 
@@ -80,6 +81,24 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
     async def _act(self, request: pb.ActRequest) -> pb.ActResponse:
         return convert.act_response(await self.core.act(request.session_id, convert.observation(request)))
 
+    async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
+        check_act_items(len(request.requests))
+        out: list = [None] * len(request.requests)
+        good: list[tuple[int, tuple[str, object]]] = []
+        for i, r in enumerate(request.requests):
+            try:
+                good.append((i, (r.session_id, convert.observation(r))))
+            except ServiceError as e:  # an undecodable observation fails its item alone
+                out[i] = e
+        results = await self.core.act_many([item for _, item in good])
+        for (i, _), res in zip(good, results, strict=True):
+            out[i] = res
+        return pb.ActBatchResponse(
+            results=[
+                convert.act_batch_result(r.session_id, o) for r, o in zip(request.requests, out, strict=True)
+            ]
+        )
+
     async def _set_goal(self, request: pb.SetGoalRequest) -> pb.SessionInfo:
         if not request.HasField("goal"):
             raise InvalidArgument("goal is required: set id, name or target")
@@ -94,6 +113,9 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def Act(self, request: pb.ActRequest, context) -> pb.ActResponse:
         return await self._unary("Act", context, lambda: self._act(request))
+
+    async def ActBatch(self, request: pb.ActBatchRequest, context) -> pb.ActBatchResponse:
+        return await self._unary("ActBatch", context, lambda: self._act_batch(request))
 
     async def SetGoal(self, request: pb.SetGoalRequest, context) -> pb.SessionInfo:
         return await self._unary("SetGoal", context, lambda: self._set_goal(request))

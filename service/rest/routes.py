@@ -10,8 +10,8 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.core import Core
-from service.errors import Unauthenticated
-from service.observations import decode_base64, decode_tensor
+from service.errors import ServiceError, Unauthenticated
+from service.observations import check_act_items, decode_base64, decode_tensor
 from service.rest import schemas as S
 
 SESSION_HEADER = "X-Session-Id"
@@ -96,14 +96,39 @@ async def get_session(session_id: str, core: CoreDep, response: Response) -> S.S
     return S.SessionOut.of(await core.get_session(session_id))
 
 
-@api.post("/sessions/{session_id}/act", response_model=S.ActOut, tags=["sessions"])
-async def act(session_id: str, body: S.Act, core: CoreDep, response: Response) -> S.ActOut:
-    """One step: the observation in, the action out."""
+def _observation(body: S.Act) -> object:
     obs = body.observation
     if isinstance(obs, S.Tensor):
         obs = decode_tensor(decode_base64(obs.data), obs.dtype, obs.shape)
+    return obs
+
+
+@api.post("/sessions/{session_id}/act", response_model=S.ActOut, tags=["sessions"])
+async def act(session_id: str, body: S.Act, core: CoreDep, response: Response) -> S.ActOut:
+    """One step: the observation in, the action out."""
+    obs = _observation(body)
     response.headers[SESSION_HEADER] = session_id
     return S.ActOut.of(await core.act(session_id, obs))
+
+
+@api.post("/act", response_model=S.ActManyOut, response_model_exclude_none=True, tags=["sessions"])
+async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
+    """One step for each of many sessions in one forward pass; results in request order, a bad item fails alone
+    (HTTP 200 for the call). A session may appear once per call."""
+    check_act_items(len(body.requests))
+    out: list = [None] * len(body.requests)
+    good: list[tuple[int, tuple[str, object]]] = []
+    for i, r in enumerate(body.requests):
+        try:
+            good.append((i, (r.session_id, _observation(r))))
+        except ServiceError as e:  # an undecodable tensor fails its item alone
+            out[i] = e
+    results = await core.act_many([item for _, item in good])
+    for (i, _), res in zip(good, results, strict=True):
+        out[i] = res
+    return S.ActManyOut(
+        results=[S.ActItemOut.of(r.session_id, o) for r, o in zip(body.requests, out, strict=True)]
+    )
 
 
 @api.put("/sessions/{session_id}/goal", response_model=S.SessionOut, tags=["sessions"])

@@ -8,6 +8,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field, StrictInt, StrictStr, field_validator
 
 from service.core import ActResult, ModelView, SessionView
+from service.errors import ServiceError
+from service.observations import MAX_ACT_ITEMS
 
 GoalRef = StrictInt | StrictStr
 
@@ -168,6 +170,18 @@ class Act(BaseModel):
         return v
 
 
+class ActItem(Act):
+    """One item of `POST /act`: a session and its observation (as in `POST /sessions/{id}/act`)."""
+
+    session_id: StrictStr
+
+
+class ActMany(BaseModel):
+    """`POST /act`: one step for each of many sessions, in one forward pass; a session may appear once."""
+
+    requests: list[ActItem] = Field(description=f"At most {MAX_ACT_ITEMS} items.")
+
+
 class ActOut(BaseModel):
     """The action for the observation (a list for Box spaces, an int for Discrete ones)."""
 
@@ -198,6 +212,30 @@ class ErrorOut(BaseModel):
     """Every error answer: `{"error": {"code", "message"}}`."""
 
     error: ErrorBody
+
+
+class ActItemOut(BaseModel):
+    """One item of `POST /act`'s answer: the action (as `POST /sessions/{id}/act` answers it) or the error that
+    failed this item alone (the same code and message that call would have answered)."""
+
+    session_id: str
+    action: list[float] | int | None = None
+    step: int | None = None
+    goal: int | None = None
+    error: ErrorBody | None = None
+
+    @classmethod
+    def of(cls, session_id: str, r: ActResult | ServiceError) -> ActItemOut:
+        """From the core's result or error."""
+        if isinstance(r, ServiceError):
+            return cls(session_id=session_id, error=ErrorBody(code=r.code, message=r.message))
+        return cls(**ActOut.of(r).model_dump())
+
+
+class ActManyOut(BaseModel):
+    """`POST /act`'s answer: one result per request, in request order."""
+
+    results: list[ActItemOut]
 
 
 class Health(BaseModel):

@@ -304,3 +304,63 @@ def test_rest_request_without_an_answer_times_out(no_sleep):
         with RestClient(url, timeout_s=0.2) as c, pytest.raises(DeadlineExceeded) as e:
             c.act("s", OBS)
     assert e.value.code == "deadline_exceeded" and "/sessions/s/act" in e.value.message and no_sleep == []
+
+
+# ----- many sessions in one call -------------------------------------------------------------------------------
+def test_act_many_answers_what_act_answers(client):
+    rng = np.random.default_rng(4)
+    goals, seeds = (0, 2, 2, 1), (1, 2, 3, 4)
+    many = [client.create_session("tiny-gmt", g, seed=s) for g, s in zip(goals, seeds, strict=True)]
+    twins = [client.create_session("tiny-gmt", g, seed=s) for g, s in zip(goals, seeds, strict=True)]
+    try:
+        for t in range(3):
+            obs = rng.normal(size=(len(many), 17))
+            got = client.act_many([(s.id, o) for s, o in zip(many, obs, strict=True)])
+            assert len(got) == len(many)
+            for r, twin, o, g in zip(got, twins, obs, goals, strict=True):
+                want = twin.act(o)
+                assert isinstance(r, base.ActResult) and r.action.dtype == np.float32
+                np.testing.assert_array_equal(r.action, want.action)
+                assert (r.step, r.goal) == (want.step, want.goal) == (t, g)
+            # same goal, different observations: each session acted on its own
+            assert not np.array_equal(got[1].action, got[2].action)
+    finally:
+        for s in many + twins:
+            s.close()
+
+
+def test_act_many_returns_per_item_errors_and_raises_whole_call_errors(client):
+    with client.create_session("tiny-gmt", 1, seed=7) as a, client.create_session("tiny-gmt", 1, seed=7) as b:
+        got = client.act_many([(a.id, OBS), (b.id, np.zeros(5)), ("no-such-session", OBS), (a.id, OBS)])
+        assert isinstance(got[0], base.ActResult) and got[0].step == 0
+        assert [type(e) for e in got[1:]] == [InvalidArgument, NotFound, InvalidArgument]
+        with pytest.raises(InvalidArgument) as single:
+            b.act(np.zeros(5))
+        assert (got[1].code, got[1].message) == ("invalid_argument", single.value.message)
+        with pytest.raises(NotFound) as single:
+            client.act("no-such-session", OBS)
+        assert (got[2].code, got[2].message) == ("not_found", single.value.message)
+        assert got[3].message == f"session {a.id!r} appears more than once in this call"
+        r = b.act(OBS)  # the failed item left b as it was: it acts like a did on its first step
+        np.testing.assert_array_equal(r.action, got[0].action)
+        assert r.step == 0
+        with pytest.raises(InvalidArgument, match="at most 4096 sessions, got 4097 requests"):
+            client.act_many([(a.id, [0.0])] * 4097)
+        assert client.act_many([]) == []
+        assert a.act(OBS).step == 1
+
+
+def test_act_many_is_the_same_over_both_transports(live_server):
+    rng = np.random.default_rng(5)
+    with RestClient(live_server.rest_url) as r, GrpcClient(live_server.grpc_target) as g:
+        rs = [r.create_session("tiny-gmt", i % 3, seed=i) for i in range(5)]
+        gs = [g.create_session("tiny-gmt", i % 3, seed=i) for i in range(5)]
+        for _ in range(2):
+            obs = rng.normal(size=(5, 17))
+            a = r.act_many([(s.id, o) for s, o in zip(rs, obs, strict=True)])
+            b = g.act_many([(s.id, o) for s, o in zip(gs, obs, strict=True)])
+            for x, y in zip(a, b, strict=True):
+                np.testing.assert_array_equal(x.action, y.action)
+                assert (x.step, x.goal) == (y.step, y.goal)
+        for s in rs + gs:
+            s.close()

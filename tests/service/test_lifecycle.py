@@ -297,6 +297,7 @@ def test_openapi_lists_exactly_the_designed_routes(http):
         ("POST", "/sessions"),
         ("GET", "/sessions/{session_id}"),
         ("POST", "/sessions/{session_id}/act"),
+        ("POST", "/act"),
         ("PUT", "/sessions/{session_id}/goal"),
         ("POST", "/sessions/{session_id}/reset"),
         ("DELETE", "/sessions/{session_id}"),

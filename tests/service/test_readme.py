@@ -65,6 +65,28 @@ def test_curl_walkthrough(cheetah_server):
     assert rest.strip() == "204"
 
 
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_curl_many_sessions_in_one_call(cheetah_server):
+    (block,) = [b for b in serving_blocks("bash") if "localhost:8000/act " in b]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}  # python3 = this venv
+    out = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", localize(block, cheetah_server)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    doc, end = json.JSONDecoder().raw_decode(out.stdout)
+    assert out.stdout[end:].strip() == ""  # the DELETEs answer 204 with no body
+    ok, bad = doc["results"]
+    assert (ok["step"], ok["goal"], len(ok["action"])) == (0, 0, 6)
+    assert bad["session_id"] != ok["session_id"] and set(bad) == {"session_id", "error"}
+    assert bad["error"]["code"] == "invalid_argument"
+    assert bad["error"]["message"].startswith("observation has 2 values, expected 17")
+    assert cheetah_server.run(cheetah_server.core.store.count()) == 0  # the block closed its sessions
+
+
 def test_python_snippets(cheetah_server, capsys):
     blocks = serving_blocks("python")
     assert len(blocks) == 2

@@ -180,6 +180,36 @@ class ActResponse(_message.Message):
     session_id: str
     def __init__(self, action: _Optional[_Iterable[float]] = ..., discrete_action: _Optional[int] = ..., is_discrete: _Optional[bool] = ..., step: _Optional[int] = ..., goal: _Optional[int] = ..., session_id: _Optional[str] = ...) -> None: ...
 
+class ActBatchRequest(_message.Message):
+    __slots__ = ("requests",)
+    REQUESTS_FIELD_NUMBER: _ClassVar[int]
+    requests: _containers.RepeatedCompositeFieldContainer[ActRequest]
+    def __init__(self, requests: _Optional[_Iterable[_Union[ActRequest, _Mapping]]] = ...) -> None: ...
+
+class ActBatchError(_message.Message):
+    __slots__ = ("code", "message")
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    code: str
+    message: str
+    def __init__(self, code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+
+class ActBatchResult(_message.Message):
+    __slots__ = ("session_id", "action", "error")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    action: ActResponse
+    error: ActBatchError
+    def __init__(self, session_id: _Optional[str] = ..., action: _Optional[_Union[ActResponse, _Mapping]] = ..., error: _Optional[_Union[ActBatchError, _Mapping]] = ...) -> None: ...
+
+class ActBatchResponse(_message.Message):
+    __slots__ = ("results",)
+    RESULTS_FIELD_NUMBER: _ClassVar[int]
+    results: _containers.RepeatedCompositeFieldContainer[ActBatchResult]
+    def __init__(self, results: _Optional[_Iterable[_Union[ActBatchResult, _Mapping]]] = ...) -> None: ...
+
 class SetGoalRequest(_message.Message):
     __slots__ = ("session_id", "goal", "blend_steps")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]

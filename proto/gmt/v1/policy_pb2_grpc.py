@@ -74,6 +74,11 @@ class PolicyServiceStub:
                 request_serializer=gmt_dot_v1_dot_policy__pb2.CloseSessionRequest.SerializeToString,
                 response_deserializer=gmt_dot_v1_dot_policy__pb2.CloseSessionResponse.FromString,
                 _registered_method=True)
+        self.ActBatch = channel.unary_unary(
+                '/gmt.v1.PolicyService/ActBatch',
+                request_serializer=gmt_dot_v1_dot_policy__pb2.ActBatchRequest.SerializeToString,
+                response_deserializer=gmt_dot_v1_dot_policy__pb2.ActBatchResponse.FromString,
+                _registered_method=True)
         self.Control = channel.stream_stream(
                 '/gmt.v1.PolicyService/Control',
                 request_serializer=gmt_dot_v1_dot_policy__pb2.ControlRequest.SerializeToString,
@@ -132,6 +137,13 @@ class PolicyServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def ActBatch(self, request, context):
+        """One step for each of many sessions, in one forward pass; per-item errors in-band, in request order.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Control(self, request_iterator, context):
         """Ordered act / set_goal / reset commands for one session; errors come back in-band and keep the stream open.
         """
@@ -181,6 +193,11 @@ def add_PolicyServiceServicer_to_server(servicer, server):
                     servicer.CloseSession,
                     request_deserializer=gmt_dot_v1_dot_policy__pb2.CloseSessionRequest.FromString,
                     response_serializer=gmt_dot_v1_dot_policy__pb2.CloseSessionResponse.SerializeToString,
+            ),
+            'ActBatch': grpc.unary_unary_rpc_method_handler(
+                    servicer.ActBatch,
+                    request_deserializer=gmt_dot_v1_dot_policy__pb2.ActBatchRequest.FromString,
+                    response_serializer=gmt_dot_v1_dot_policy__pb2.ActBatchResponse.SerializeToString,
             ),
             'Control': grpc.stream_stream_rpc_method_handler(
                     servicer.Control,
@@ -404,6 +421,33 @@ class PolicyService:
             '/gmt.v1.PolicyService/CloseSession',
             gmt_dot_v1_dot_policy__pb2.CloseSessionRequest.SerializeToString,
             gmt_dot_v1_dot_policy__pb2.CloseSessionResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ActBatch(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gmt.v1.PolicyService/ActBatch',
+            gmt_dot_v1_dot_policy__pb2.ActBatchRequest.SerializeToString,
+            gmt_dot_v1_dot_policy__pb2.ActBatchResponse.FromString,
             options,
             channel_credentials,
             insecure,
