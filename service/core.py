@@ -393,23 +393,14 @@ class Core:
             Aborted: another replica changed the session meanwhile (retry).
         """
         self._check_serving()
-        if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
-            raise InvalidArgument(f"step must be an integer >= 0, got {step!r}")
         async with self._lock(sid):
             s = await self.store.get(sid)
             m = self._model_of(s)
             x = self.validate_observation(m, observation)
             ctx = self._live(m, s)
-            if step is not None and step != ctx.step:
-                if step == ctx.step - 1:
-                    action, goal = m.engine.last_answer(ctx)
-                    return self._result(m, sid, action, step, goal)
-                raise FailedPrecondition(
-                    f"session {sid!r} is at step {ctx.step}; this act is for step {step} "
-                    f"(only step {ctx.step}, or {ctx.step - 1} to repeat the last answer, is accepted)"
-                    if ctx.step
-                    else f"session {sid!r} is at step 0; this act is for step {step}"
-                )
+            repeat = self._repeat(m, sid, ctx, step)
+            if repeat is not None:
+                return repeat
             step, goal, version = ctx.step, ctx.goal, ctx.version
             try:
                 action = await self._batchers[m.name].act(ctx, x)
@@ -419,10 +410,32 @@ class Core:
             await self._save(m, s, version)
         return self._result(m, sid, action, step, goal)
 
-    async def act_many(self, items: list[tuple[str, object]]) -> list[ActResult | ServiceError]:
-        """One step for each (session id, observation), all in one forward pass; a bad item fails alone.
+    def _repeat(self, m: LoadedModel, sid: str, ctx: Context, step: int | None) -> ActResult | None:
+        """None when an act for `step` should run; the last answer when it repeats the last answered step.
 
-        A session may appear once per call; a repeat fails as invalid_argument.
+        Raises:
+            InvalidArgument: `step` is not an integer >= 0.
+            FailedPrecondition: `step` is neither the session's next step nor its last answered one.
+        """
+        if step is None or step == ctx.step:
+            if step is not None and (isinstance(step, bool) or not isinstance(step, int)):
+                raise InvalidArgument(f"step must be an integer >= 0, got {step!r}")
+            return None
+        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+            raise InvalidArgument(f"step must be an integer >= 0, got {step!r}")
+        if step == ctx.step - 1:
+            action, goal = m.engine.last_answer(ctx)
+            return self._result(m, sid, action, step, goal)
+        accepted = f"only {ctx.step}, or {ctx.step - 1} to repeat the last answer," if ctx.step else "only 0"
+        raise FailedPrecondition(
+            f"session {sid!r} is at step {ctx.step}; this act is for step {step} ({accepted} is accepted)"
+        )
+
+    async def act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
+        """One step for each (session id, observation[, expected step]), all in one forward pass.
+
+        A bad item fails alone. A session may appear once per call; a repeat fails as invalid_argument. An
+        expected step works as in `act`.
 
         Returns:
             In request order: the item's ActResult, or the ServiceError that failed it.
@@ -431,7 +444,7 @@ class Core:
         out: list[ActResult | ServiceError | None] = [None] * len(items)
         seen: set[str] = set()
         order: list[int] = []
-        for i, (sid, _) in enumerate(items):
+        for i, (sid, *_) in enumerate(items):
             if sid in seen:
                 out[i] = InvalidArgument(f"session {sid!r} appears more than once in this call")
             else:
@@ -441,13 +454,18 @@ class Core:
         async with contextlib.AsyncExitStack() as stack:
             ready: list[tuple[int, Session, LoadedModel, Context, np.ndarray]] = []
             for i in order:
-                sid, observation = items[i]
+                sid, observation, step = (*items[i], None)[:3]
                 await stack.enter_async_context(self._lock(sid))
                 try:
                     s = await self.store.get(sid)
                     m = self._model_of(s)
                     x = self.validate_observation(m, observation)
-                    ready.append((i, s, m, self._live(m, s), x))
+                    ctx = self._live(m, s)
+                    repeat = self._repeat(m, sid, ctx, step)
+                    if repeat is not None:
+                        out[i] = repeat
+                        continue
+                    ready.append((i, s, m, ctx, x))
                 except ServiceError as e:
                     out[i] = e
             by_model: dict[str, list] = {}

@@ -79,15 +79,20 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         return await self._unary("GetSession", context, call)
 
     async def _act(self, request: pb.ActRequest) -> pb.ActResponse:
-        return convert.act_response(await self.core.act(request.session_id, convert.observation(request)))
+        step = request.step if request.HasField("step") else None
+        return convert.act_response(
+            await self.core.act(request.session_id, convert.observation(request), step)
+        )
 
     async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
         check_act_items(len(request.requests))
         out: list = [None] * len(request.requests)
-        good: list[tuple[int, tuple[str, object]]] = []
+        good: list[tuple[int, tuple[str, object, int | None]]] = []
         for i, r in enumerate(request.requests):
             try:
-                good.append((i, (r.session_id, convert.observation(r))))
+                good.append(
+                    (i, (r.session_id, convert.observation(r), r.step if r.HasField("step") else None))
+                )
             except ServiceError as e:  # an undecodable observation fails its item alone
                 out[i] = e
         results = await self.core.act_many([item for _, item in good])

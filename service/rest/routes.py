@@ -108,7 +108,7 @@ async def act(session_id: str, body: S.Act, core: CoreDep, response: Response) -
     """One step: the observation in, the action out."""
     obs = _observation(body)
     response.headers[SESSION_HEADER] = session_id
-    return S.ActOut.of(await core.act(session_id, obs))
+    return S.ActOut.of(await core.act(session_id, obs, body.step))
 
 
 @api.post("/act", response_model=S.ActManyOut, response_model_exclude_none=True, tags=["sessions"])
@@ -117,10 +117,10 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     (HTTP 200 for the call). A session may appear once per call."""
     check_act_items(len(body.requests))
     out: list = [None] * len(body.requests)
-    good: list[tuple[int, tuple[str, object]]] = []
+    good: list[tuple[int, tuple[str, object, int | None]]] = []
     for i, r in enumerate(body.requests):
         try:
-            good.append((i, (r.session_id, _observation(r))))
+            good.append((i, (r.session_id, _observation(r), r.step)))
         except ServiceError as e:  # an undecodable tensor fails its item alone
             out[i] = e
     results = await core.act_many([item for _, item in good])

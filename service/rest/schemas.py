@@ -161,6 +161,13 @@ class Act(BaseModel):
     """`POST /sessions/{id}/act`: one observation, as (nested) numbers or a base64 tensor."""
 
     observation: list[Any] | Tensor = Field(examples=[[0.0] * 17])
+    step: int | None = Field(
+        None,
+        ge=0,
+        description="The step this act is for (0 for an episode's first act). A repeat of the last answered "
+        "step returns that answer again without stepping (a safe retry); any other mismatch answers 409 "
+        "failed_precondition naming the session's step.",
+    )
 
     @field_validator("observation", mode="before")
     @classmethod

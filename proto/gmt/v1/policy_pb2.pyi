@@ -155,14 +155,16 @@ class GetSessionRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class ActRequest(_message.Message):
-    __slots__ = ("session_id", "values", "tensor")
+    __slots__ = ("session_id", "values", "tensor", "step")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     VALUES_FIELD_NUMBER: _ClassVar[int]
     TENSOR_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     values: FloatVector
     tensor: Tensor
-    def __init__(self, session_id: _Optional[str] = ..., values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    step: int
+    def __init__(self, session_id: _Optional[str] = ..., values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ..., step: _Optional[int] = ...) -> None: ...
 
 class ActResponse(_message.Message):
     __slots__ = ("action", "discrete_action", "is_discrete", "step", "goal", "session_id")
