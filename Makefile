@@ -7,7 +7,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve test lint proto data train eval bench clean
+.PHONY: venv serve cluster cluster-down test lint proto data train eval bench clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -20,6 +20,16 @@ venv: $(STAMP)
 
 serve: $(STAMP)
 	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT)
+
+# redis-server, two replicas (gmt-1, gmt-2) and nginx (docker/nginx.conf) on loopback, REST :$(REST_PORT) and gRPC
+# :$(GRPC_PORT) through nginx; returns once all are ready. Pids and logs in run/cluster/. Needs nginx and
+# redis-server (apt-get install nginx redis-server). More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --max-batch 32"
+cluster: $(STAMP)
+	$(BIN)/gmt cluster up --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT) $(CLUSTER_ARGS)
+
+# Stops exactly the processes whose pids are in run/cluster/*.pid.
+cluster-down:
+	$(BIN)/gmt cluster down
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -38,13 +48,13 @@ data: $(STAMP)
 	$(BIN)/gmt data collect --env Walker2d-v5
 	$(BIN)/gmt data collect --env Ant-v5 --no-random  # see behaviour/ant/TRAINED_WITH.md
 
-# The exact command behind the shipped checkpoint (about 31 minutes on one core; see its PROVENANCE.md).
+# The exact command behind the shipped checkpoint (35 minutes on 2 threads here; see its PROVENANCE.md).
 train: $(STAMP)
-	$(BIN)/gmt train --dataset gmt/halfcheetah/mixed-v0 --out $(CHECKPOINT) --steps 20000 --lr 5e-4 \
-		--warmup 1000 --threads 1 --seed 0
+	$(BIN)/gmt train --dataset gmt/halfcheetah/mixed-v0 --out $(CHECKPOINT) --attention window --batch-size 32 \
+		--steps 8000 --lr 5e-4 --warmup 500 --threads 2 --no-bf16 --seed 0
 
 eval: $(STAMP)
-	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 1 --json $(CHECKPOINT)/eval.json \
+	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 2 --json $(CHECKPOINT)/eval.json \
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
 
 # Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every

@@ -127,6 +127,38 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
+class ServedBy:
+    """Adds `X-Served-By: <replica id>` to every HTTP response, errors and unknown routes included.
+
+    It wraps the whole middleware stack (see `_App`), so even the 500 of Starlette's outermost error handler
+    carries it.
+    """
+
+    def __init__(self, app: ASGIApp, replica_id: str) -> None:
+        self.app = app
+        self.header = (b"x-served-by", replica_id.encode("ascii"))
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_with_header(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", ()), self.header]
+            await send(message)
+
+        await self.app(scope, receive, send_with_header)
+
+
+class _App(FastAPI):
+    """FastAPI whose middleware stack, Starlette's own error handling included, is wrapped in `ServedBy`."""
+
+    replica_id = ""
+
+    def build_middleware_stack(self) -> ASGIApp:
+        return ServedBy(super().build_middleware_stack(), self.replica_id)
+
+
 class RequestMetrics:
     """Observes each request's latency by endpoint name and status."""
 
@@ -174,12 +206,13 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
             if core is None:
                 await c.close()
 
-    app = FastAPI(
+    app = _App(
         title="GMT controllable-policy service",
         version="1",
         description="Drive an agent with a Goal-Masked Transformer and change its goal mid-episode.",
         lifespan=lifespan,
     )
+    app.replica_id = settings.replica_id
     app.include_router(public)
     app.include_router(api)
     app.add_exception_handler(ServiceError, _service_error)

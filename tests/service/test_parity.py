@@ -88,7 +88,7 @@ def test_tensor_observations_match_lists(http, stub, engine, observations):
         r = http.post(f"/sessions/{sid_rest}/act", json={"observation": tensor})
         assert r.status_code == 200, r.text
         np.testing.assert_array_equal(np.float32(r.json()["action"]), want[t])
-        t_pb = pb.Tensor(data=o.astype(np.float64).tobytes(), dtype="float64", shape=[1, 17])
+        t_pb = pb.Tensor(data=o.astype(np.float64).tobytes(), dtype="float64", shape=[17])
         a = stub.Act(pb.ActRequest(session_id=sid_grpc, tensor=t_pb))
         np.testing.assert_array_equal(np.float32(a.action), want[t])
 
