@@ -1,8 +1,19 @@
 """The one client interface both transports implement, the values it returns, and the Session handle.
 
 `PolicyClient` is what the runner and users code against; `clients.rest.RestClient` and
-`clients.grpc.GrpcClient` implement it. Only failures to connect are retried (the request never reached the
-server, so a retry cannot apply anything twice); every answer from the server, error or not, is final.
+`clients.grpc.GrpcClient` implement it.
+
+Retries (a few, with exponential backoff) never apply anything twice:
+- a call that never reached a server (refused connection) is always retried;
+- an answer saying nothing was applied and another attempt may succeed (`aborted`: another replica changed the
+  session meanwhile; `unavailable` answered by a replica: shutting down, store unreachable) is always retried;
+- a call that may or may not have been applied (the connection broke, a proxy answered 502, a gRPC stream was
+  reset: typically the replica died) is retried only when repeating it is harmless: reads, reset, close,
+  set_goal without a blend, and acts that carry the step they are for. The client tracks each session's next
+  step (0 after create or reset) and sends it with every act, so a repeated act is answered again by the
+  server instead of stepping twice. Creating a session, acting on a session whose step this client does not
+  know, and a blended set_goal are not retried after such a failure.
+Every other answer (invalid argument, not found, ...) is final.
 """
 
 from __future__ import annotations
@@ -133,24 +144,45 @@ def with_retries(
     retries: int,
     backoff_s: float,
     where: str,
+    is_retryable: Callable[[BaseException], bool] | None = None,
 ) -> T:
-    """Run `call`, retrying up to `retries` times (exponential backoff) when it fails to connect.
+    """Run `call`, retrying up to `retries` times (exponential backoff) when it fails to connect, or when
+    `is_retryable(error)` says another attempt is safe.
 
     Raises:
-        ConnectionFailed: every attempt failed to connect.
+        ConnectionFailed: the last attempt failed to connect.
+        Exception: the last attempt's own error otherwise.
     """
     for attempt in range(retries + 1):
         try:
             return call()
         except Exception as e:
-            if not is_connection_error(e):
+            connect = is_connection_error(e)
+            if not connect and not (is_retryable is not None and is_retryable(e)):
                 raise
             if attempt == retries:
-                raise ConnectionFailed(
-                    f"could not connect to {where} after {attempt + 1} attempt(s): {e}"
-                ) from e
+                if connect:
+                    raise ConnectionFailed(
+                        f"could not connect to {where} after {attempt + 1} attempt(s): {e}"
+                    ) from e
+                raise
             time.sleep(backoff_s * 2**attempt)
     raise AssertionError("unreachable")
+
+
+# Error codes that prove a call was not applied: the session's step did not move.
+_NOT_APPLIED = frozenset(
+    {
+        "invalid_argument",
+        "unauthenticated",
+        "permission_denied",
+        "not_found",
+        "failed_precondition",
+        "aborted",
+        "resource_exhausted",
+        "payload_too_large",
+    }
+)
 
 
 class Session:
@@ -209,7 +241,37 @@ class Session:
 
 
 class PolicyClient(abc.ABC):
-    """The controllable-policy service, whichever transport carries it. Use as a context manager."""
+    """The controllable-policy service, whichever transport carries it. Use as a context manager.
+
+    The client remembers the next step of every session it created, reset, read or acted on, and sends it with
+    each act (see the module docstring). If something else steps the same session meanwhile, the next act
+    fails with `failed_precondition` naming the session's step; `get_session` brings the client up to date.
+    """
+
+    # ----- the expected step of each session --------------------------------------------------------------
+    @property
+    def _next_steps(self) -> dict[str, int]:
+        steps = self.__dict__.get("_steps")
+        if steps is None:
+            steps = self.__dict__["_steps"] = {}
+        return steps
+
+    def expected_step(self, session_id: str) -> int | None:
+        """The step the next act of this session is for, as this client knows it (None: unknown)."""
+        return self._next_steps.get(session_id)
+
+    def _seen_session(self, info: SessionInfo) -> SessionInfo:
+        self._next_steps[info.session_id] = int(info.step)
+        return info
+
+    def _seen_act(self, session_id: str, result: ActResult | Exception) -> None:
+        if isinstance(result, ActResult):
+            self._next_steps[session_id] = result.step + 1
+        elif getattr(result, "code", None) not in _NOT_APPLIED:
+            self._next_steps.pop(session_id, None)  # it may have stepped: unknown until the next answer
+
+    def _forget(self, session_id: str) -> None:
+        self._next_steps.pop(session_id, None)
 
     @abc.abstractmethod
     def list_models(self) -> list[ModelInfo]:

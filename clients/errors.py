@@ -59,6 +59,13 @@ class FailedPrecondition(ServiceError):
     code = "failed_precondition"
 
 
+class Aborted(ServiceError):
+    """Another replica changed the session between this request's read and its write; nothing was applied and
+    retrying is safe (the clients do, a few times)."""
+
+    code = "aborted"
+
+
 class ResourceExhausted(ServiceError):
     """Too many live sessions, or a message over the size limit."""
 
@@ -107,6 +114,7 @@ _BY_CODE: dict[str, type[ServiceError]] = {
         PermissionDenied,
         NotFound,
         FailedPrecondition,
+        Aborted,
         ResourceExhausted,
         PayloadTooLarge,
         Unavailable,
@@ -123,6 +131,7 @@ _BY_HTTP_STATUS: dict[int, type[ServiceError]] = {
     413: PayloadTooLarge,
     422: InvalidArgument,
     429: ResourceExhausted,
+    502: Unavailable,  # a proxy that lost its upstream
     503: Unavailable,
     504: DeadlineExceeded,
 }

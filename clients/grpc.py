@@ -46,6 +46,39 @@ def _is_connection_error(e: BaseException) -> bool:
     return any(p in details for p in _CONNECT_FAILURES)
 
 
+SESSION_METADATA = (
+    "x-session-id"  # what a proxy routes on (docker/nginx.conf): session ids are in the messages
+)
+SERVED_BY = "x-served-by"  # the replica that answered: initial metadata, and trailing metadata of its status
+
+
+def _answered_by_replica(e: grpc.RpcError) -> bool:
+    """The status came from a replica (it sends `x-served-by` in the trailers of every status it answers), not
+    from a broken connection or a proxy."""
+    trailers = getattr(e, "trailing_metadata", None)
+    try:
+        md = trailers() if callable(trailers) else None
+    except Exception:  # noqa: BLE001 - a call without trailers
+        md = None
+    return any(k == SERVED_BY for k, _ in md or ())
+
+
+def _is_retryable(e: BaseException, safe: bool) -> bool:
+    """ABORTED, and UNAVAILABLE answered by a replica, applied nothing: retry. A call that may have been applied
+    (UNAVAILABLE from the transport or a proxy; a stream reset, which gRPC reports as INTERNAL "RST_STREAM",
+    e.g. when nginx loses the replica mid-call) is repeated only when `safe`."""
+    if not isinstance(e, grpc.RpcError):
+        return False
+    code = e.code()
+    if code == grpc.StatusCode.ABORTED:
+        return True
+    if code == grpc.StatusCode.UNAVAILABLE:
+        return safe or _answered_by_replica(e)
+    if code == grpc.StatusCode.INTERNAL and "RST_STREAM" in (e.details() or ""):
+        return safe and not _answered_by_replica(e)
+    return False
+
+
 def _error(e: grpc.RpcError) -> ServiceError:
     code = e.code()
     return error_for(code.name.lower(), e.details() or code.name, code.name)
@@ -124,14 +157,19 @@ def goal_proto(goal: int | str | None, target: float | None) -> pb.GoalSelector 
     return pb.GoalSelector(**{kind: value})
 
 
-def act_request(session_id: str, observation: Any) -> pb.ActRequest:
-    """Float observations as float32 values; other dtypes (images) as a raw little-endian tensor."""
+def act_request(session_id: str, observation: Any, step: int | None = None) -> pb.ActRequest:
+    """Float observations as float32 values; other dtypes (images) as a raw little-endian tensor; `step` is the
+    step the act is for (None: not checked)."""
     x = as_observation(observation)
     if x.dtype == np.float32:
-        return pb.ActRequest(session_id=session_id, values=pb.FloatVector(values=x.ravel()))
-    x = np.ascontiguousarray(x, dtype=x.dtype.newbyteorder("<"))
-    tensor = pb.Tensor(data=x.tobytes(), shape=list(x.shape), dtype=x.dtype.name)
-    return pb.ActRequest(session_id=session_id, tensor=tensor)
+        req = pb.ActRequest(session_id=session_id, values=pb.FloatVector(values=x.ravel()))
+    else:
+        x = np.ascontiguousarray(x, dtype=x.dtype.newbyteorder("<"))
+        tensor = pb.Tensor(data=x.tobytes(), shape=list(x.shape), dtype=x.dtype.name)
+        req = pb.ActRequest(session_id=session_id, tensor=tensor)
+    if step is not None:
+        req.step = step
+    return req
 
 
 def set_goal_request(
@@ -150,10 +188,13 @@ class GrpcClient(PolicyClient):
     Args:
         target: "host:port" of the gRPC server.
         timeout_s: Deadline of each unary call, and the longest wait for each answer on a Control stream.
-        retries: Extra attempts when the server cannot be connected to (never after it answered).
+        retries: Extra attempts after a failure that a retry cannot make worse (see `clients.base`).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
         stream: Sessions send act / set_goal / reset over one ordered `Control` stream instead of unary calls.
+
+    Every call about one session carries its id as `x-session-id` metadata, so that a proxy routes all of a
+    session's calls (and its Control stream) to one replica.
     """
 
     def __init__(
@@ -171,23 +212,50 @@ class GrpcClient(PolicyClient):
         self._channel = grpc.insecure_channel(self.target)
         self.stub = pb_grpc.PolicyServiceStub(self._channel)
 
-    def _call(self, method: str, request: Any) -> Any:
+    def session_metadata(self, session_id: str | None) -> tuple[tuple[str, str], ...]:
+        """The metadata of a call about `session_id`: the token, and the id for a routing proxy."""
+        return (*self.metadata, (SESSION_METADATA, session_id)) if session_id else self.metadata
+
+    def _call(
+        self,
+        method: str,
+        request: Any,
+        *,
+        session_id: str | None = None,
+        safe: bool = False,
+        gone_ok_on_retry: bool = False,
+    ) -> Any:
+        """One unary call; `safe` and `gone_ok_on_retry` as in `RestClient._request`."""
         rpc = getattr(self.stub, method)
+        metadata = self.session_metadata(session_id)
+        maybe_applied = False
 
         def send() -> Any:
-            return rpc(request, timeout=self.timeout_s, metadata=self.metadata)
+            return rpc(request, timeout=self.timeout_s, metadata=metadata)
+
+        def retryable(e: BaseException) -> bool:
+            nonlocal maybe_applied
+            if not _is_retryable(e, safe):
+                return False
+            maybe_applied |= e.code() != grpc.StatusCode.ABORTED and not _answered_by_replica(e)
+            return True
 
         try:
-            return with_retries(send, _is_connection_error, self.retries, self.backoff_s, self.target)
+            return with_retries(
+                send, _is_connection_error, self.retries, self.backoff_s, self.target, retryable
+            )
         except grpc.RpcError as e:
+            if gone_ok_on_retry and maybe_applied and e.code() == grpc.StatusCode.NOT_FOUND:
+                return None
             raise _error(e) from None
 
     # ----- models -------------------------------------------------------------------------------------------
     def list_models(self) -> list[ModelInfo]:
-        return [model_from_proto(m) for m in self._call("ListModels", pb.ListModelsRequest()).models]
+        models = self._call("ListModels", pb.ListModelsRequest(), safe=True).models
+        return [model_from_proto(m) for m in models]
 
     def get_model(self, name: str) -> ModelInfo:
-        return model_from_proto(self._call("GetModel", pb.GetModelRequest(name=name)))
+        return model_from_proto(self._call("GetModel", pb.GetModelRequest(name=name), safe=True))
 
     # ----- sessions -----------------------------------------------------------------------------------------
     def create_session(
@@ -204,21 +272,43 @@ class GrpcClient(PolicyClient):
         )
         if seed is not None:
             req.seed = seed
-        info = session_from_proto(self._call("CreateSession", req))
+        info = self._seen_session(session_from_proto(self._call("CreateSession", req)))
         return StreamSession(self, info) if self.stream else Session(self, info)
 
     def get_session(self, session_id: str) -> SessionInfo:
-        return session_from_proto(self._call("GetSession", pb.GetSessionRequest(session_id=session_id)))
+        req = pb.GetSessionRequest(session_id=session_id)
+        return self._seen_session(
+            session_from_proto(self._call("GetSession", req, session_id=session_id, safe=True))
+        )
 
     def act(self, session_id: str, observation: Any) -> ActResult:
-        return act_from_proto(self._call("Act", act_request(session_id, observation)))
+        step = self.expected_step(session_id)
+        req = act_request(session_id, observation, step)
+        try:
+            result = act_from_proto(self._call("Act", req, session_id=session_id, safe=step is not None))
+        except ServiceError as e:
+            self._seen_act(session_id, e)
+            raise
+        self._seen_act(session_id, result)
+        return result
 
     def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
-        req = pb.ActBatchRequest(requests=[act_request(sid, o) for sid, o in items])
-        results = self._call("ActBatch", req).results
+        steps = [self.expected_step(sid) for sid, _ in items]
+        req = pb.ActBatchRequest(
+            requests=[act_request(sid, o, t) for (sid, o), t in zip(items, steps, strict=True)]
+        )
+        try:
+            results = self._call("ActBatch", req, safe=all(t is not None for t in steps)).results
+        except ServiceError as e:
+            for sid, _ in items:
+                self._seen_act(sid, e)
+            raise
         if len(results) != len(items):
             raise ProtocolError(f"ActBatch answered {len(results)} results for {len(items)} requests")
-        return [act_batch_item_from_proto(r) for r in results]
+        out = [act_batch_item_from_proto(r) for r in results]
+        for (sid, _), r in zip(items, out, strict=True):
+            self._seen_act(sid, r)
+        return out
 
     def set_goal(
         self,
@@ -229,33 +319,51 @@ class GrpcClient(PolicyClient):
         blend_steps: int = 0,
     ) -> SessionInfo:
         req = set_goal_request(session_id, goal, target, blend_steps)
-        return session_from_proto(self._call("SetGoal", req))
+        # Setting a goal again is harmless, unless a blend would restart.
+        answer = self._call("SetGoal", req, session_id=session_id, safe=not blend_steps)
+        return self._seen_session(session_from_proto(answer))
 
     def reset(
         self, session_id: str, goal: int | str | None = None, *, target: float | None = None
     ) -> SessionInfo:
         req = pb.ResetSessionRequest(session_id=session_id, goal=goal_proto(goal, target))
-        return session_from_proto(self._call("ResetSession", req))
+        answer = self._call("ResetSession", req, session_id=session_id, safe=True)
+        return self._seen_session(session_from_proto(answer))
 
     def close_session(self, session_id: str) -> None:
-        self._call("CloseSession", pb.CloseSessionRequest(session_id=session_id))
+        self._forget(session_id)
+        req = pb.CloseSessionRequest(session_id=session_id)
+        self._call("CloseSession", req, session_id=session_id, safe=True, gone_ok_on_retry=True)
 
     def close(self) -> None:
         self._channel.close()
 
 
-class ControlStream:
-    """One `Control` stream: each command is sent and its answer awaited before the next (strict order).
+class _InBandRetry(Exception):
+    """An in-band `aborted` / `unavailable` answer on a Control stream (nothing applied; worth another try)."""
 
-    A reader thread moves answers into a queue so that each wait has the client's timeout. A stream that
-    fails to connect before its first answer is reopened (bounded retries); once the server has answered, a
-    broken or silent stream is an error, never silently resent.
+    def __init__(self, response: pb.ControlResponse) -> None:
+        super().__init__(response.error.code)
+        self.response = response
+
+
+class ControlStream:
+    """One session's `Control` stream: each command is sent and its answer awaited before the next (strict order).
+
+    A reader thread moves answers into a queue so that each wait has the client's timeout. The stream carries
+    the session's id as `x-session-id` metadata, so that a proxy routes it to the session's replica. When a
+    command fails, the stream is reopened (a new call, which the proxy may route to another replica) and the
+    command resent, under the rules of `clients.base`: always when the stream never reached a server or the
+    server answered `aborted` / `unavailable` in-band; after a broken stream (e.g. its replica died) only when
+    the command is `safe` to repeat (an act carrying its step, reset, set_goal without a blend). A silent stream
+    (no answer within the timeout) is an error, never resent.
     """
 
     _END = object()
 
-    def __init__(self, client: GrpcClient) -> None:
+    def __init__(self, client: GrpcClient, session_id: str) -> None:
         self._client = client
+        self._metadata = client.session_metadata(session_id)
         self._call: Any = None
         self._requests: queue.SimpleQueue = queue.SimpleQueue()
         self._answers: queue.SimpleQueue = queue.SimpleQueue()
@@ -263,7 +371,7 @@ class ControlStream:
 
     def _open(self) -> None:
         self._requests, self._answers = queue.SimpleQueue(), queue.SimpleQueue()
-        self._call = self._client.stub.Control(iter(self._requests.get, None), metadata=self._client.metadata)
+        self._call = self._client.stub.Control(iter(self._requests.get, None), metadata=self._metadata)
         self._answered = False
         threading.Thread(
             target=self._read, args=(self._call, self._answers), name="gmt-control-reader", daemon=True
@@ -296,22 +404,36 @@ class ControlStream:
             self.close()
             raise ProtocolError("the server closed the Control stream")
         self._answered = True
+        if answer.WhichOneof("result") == "error" and answer.error.code in ("aborted", "unavailable"):
+            if answer.error.code == "unavailable":
+                self.close()  # a new stream may reach a replica that can serve
+            raise _InBandRetry(answer)
         return answer
 
-    def call(self, request: pb.ControlRequest) -> pb.ControlResponse:
-        """Send one command and return its answer; in-band errors are raised as `ServiceError`s."""
+    def call(self, request: pb.ControlRequest, safe: bool = False) -> pb.ControlResponse:
+        """Send one command and return its answer; in-band errors are raised as `ServiceError`s.
+
+        Args:
+            safe: Applying the command twice is the same as once (see the class docstring).
+        """
+
+        def is_connection_error(e: BaseException) -> bool:
+            return not self._answered and _is_connection_error(e)
 
         def is_retryable(e: BaseException) -> bool:
-            return not self._answered and _is_connection_error(e)
+            return isinstance(e, _InBandRetry) or _is_retryable(e, safe)
 
         try:
             response = with_retries(
                 lambda: self._send(request),
-                is_retryable,
+                is_connection_error,
                 self._client.retries,
                 self._client.backoff_s,
                 self._client.target,
+                is_retryable,
             )
+        except _InBandRetry as e:
+            response = e.response
         except grpc.RpcError as e:
             raise _error(e) from None
         if response.WhichOneof("result") == "error":
@@ -331,31 +453,40 @@ class StreamSession(Session):
 
     def __init__(self, client: GrpcClient, info: SessionInfo) -> None:
         super().__init__(client, info)
-        self._stream = ControlStream(client)
+        self._stream = ControlStream(client, info.session_id)
 
     def act(self, observation: Any) -> ActResult:
-        r = self._stream.call(pb.ControlRequest(act=act_request(self.id, observation)))
+        client = self._client
+        step = client.expected_step(self.id)
+        request = pb.ControlRequest(act=act_request(self.id, observation, step))
+        try:
+            r = self._stream.call(request, safe=step is not None)
+        except ServiceError as e:
+            client._seen_act(self.id, e)
+            raise
         if r.WhichOneof("result") != "act":
             raise ProtocolError(f"Control answered an act with {r.WhichOneof('result')!r}")
-        return act_from_proto(r.act)
+        result = act_from_proto(r.act)
+        client._seen_act(self.id, result)
+        return result
 
     def set_goal(
         self, goal: int | str | None = None, *, target: float | None = None, blend_steps: int = 0
     ) -> SessionInfo:
         req = set_goal_request(self.id, goal, target, blend_steps)
-        self.info = self._session_answer(pb.ControlRequest(set_goal=req), "set_goal")
+        self.info = self._session_answer(pb.ControlRequest(set_goal=req), "set_goal", not blend_steps)
         return self.info
 
     def reset(self, goal: int | str | None = None, *, target: float | None = None) -> SessionInfo:
         req = pb.ResetSessionRequest(session_id=self.id, goal=goal_proto(goal, target))
-        self.info = self._session_answer(pb.ControlRequest(reset=req), "reset")
+        self.info = self._session_answer(pb.ControlRequest(reset=req), "reset", True)
         return self.info
 
-    def _session_answer(self, request: pb.ControlRequest, what: str) -> SessionInfo:
-        r = self._stream.call(request)
+    def _session_answer(self, request: pb.ControlRequest, what: str, safe: bool) -> SessionInfo:
+        r = self._stream.call(request, safe)
         if r.WhichOneof("result") != "session":
             raise ProtocolError(f"Control answered a {what} with {r.WhichOneof('result')!r}")
-        return session_from_proto(r.session)
+        return self._client._seen_session(session_from_proto(r.session))
 
     def close(self) -> None:
         self._stream.close()

@@ -31,6 +31,36 @@ def _is_connection_error(e: BaseException) -> bool:
     return isinstance(e, httpx.ConnectError | httpx.ConnectTimeout)
 
 
+# The request was sent (it may have been applied) and the connection broke before the answer.
+_BROKEN = (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError)
+
+
+class _RetryableAnswer(Exception):
+    """An answer worth another attempt (see `_worth_retrying`), carried out of `with_retries`."""
+
+    def __init__(self, response: httpx.Response) -> None:
+        super().__init__(f"HTTP {response.status_code}")
+        self.response = response
+
+
+def _error_code(r: httpx.Response) -> str:
+    try:
+        err = r.json().get("error")
+    except (ValueError, AttributeError):
+        return ""
+    return str(err.get("code", "")) if isinstance(err, dict) else ""
+
+
+def _worth_retrying(r: httpx.Response, safe: bool) -> bool:
+    """409 `aborted` and a replica's 503 `unavailable` applied nothing; a proxy's 502 (or a 503 without the
+    service's error body) may hide a replica that applied the request and died: only a `safe` call is repeated."""
+    if r.status_code == 409:
+        return _error_code(r) == "aborted"
+    if r.status_code == 503:
+        return safe or _error_code(r) == "unavailable"
+    return r.status_code == 502 and safe
+
+
 def model_from_json(d: dict) -> ModelInfo:
     """A `ModelInfo` from a `GET /models/{name}` body."""
     return ModelInfo(
@@ -89,7 +119,7 @@ class RestClient(PolicyClient):
     Args:
         base_url: e.g. "http://localhost:8000".
         timeout_s: Per-request timeout (connect, read, write).
-        retries: Extra attempts when the server cannot be connected to (never after it answered).
+        retries: Extra attempts after a failure that a retry cannot make worse (see `clients.base`).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
         transport: An httpx transport to use instead of the network (tests).
@@ -113,16 +143,53 @@ class RestClient(PolicyClient):
             base_url=self.base_url, timeout=timeout_s, headers=headers, transport=transport
         )
 
-    def _request(self, method: str, path: str, json: dict | None = None) -> Any:
+    def _request(
+        self,
+        method: str,
+        path: str,
+        json: dict | None = None,
+        *,
+        safe: bool = False,
+        gone_ok_on_retry: bool = False,
+    ) -> Any:
+        """Send one request and decode its answer.
+
+        Args:
+            safe: Applying the request twice is the same as once (reads, reset, close, acts with a step):
+                it may be repeated after a failure that leaves unknown whether it was applied.
+            gone_ok_on_retry: A 404 after an attempt that may have been applied is success (it deleted it).
+        """
+        maybe_applied = False  # an earlier attempt may have been applied
+
         def send() -> httpx.Response:
-            return self._http.request(method, path, json=json)
+            r = self._http.request(method, path, json=json)
+            if _worth_retrying(r, safe):
+                raise _RetryableAnswer(r)
+            return r
+
+        def retryable(e: BaseException) -> bool:
+            nonlocal maybe_applied
+            if isinstance(e, _RetryableAnswer):
+                r = e.response
+                maybe_applied |= r.status_code == 502 or _error_code(r) not in ("aborted", "unavailable")
+                return True
+            if safe and isinstance(e, _BROKEN):
+                maybe_applied = True
+                return True
+            return False
 
         try:
-            r = with_retries(send, _is_connection_error, self.retries, self.backoff_s, self.base_url)
+            r = with_retries(
+                send, _is_connection_error, self.retries, self.backoff_s, self.base_url, retryable
+            )
+        except _RetryableAnswer as e:
+            r = e.response
         except httpx.TimeoutException as e:
             raise DeadlineExceeded(f"{method} {self.base_url}{path} timed out: {e!r}") from e
         except httpx.TransportError as e:
             raise ServiceError(f"{method} {self.base_url}{path} failed: {e!r}", code="transport_error") from e
+        if r.status_code == 404 and gone_ok_on_retry and maybe_applied:
+            return None
         if r.is_success:
             if r.status_code == 204 or not r.content:
                 return None
@@ -148,10 +215,10 @@ class RestClient(PolicyClient):
     # ----- models -------------------------------------------------------------------------------------------
     def list_models(self) -> list[ModelInfo]:
         # GET /models answers summaries; each model's spaces and goal table come from GET /models/{name}.
-        return [self.get_model(m["name"]) for m in self._request("GET", "/models")["models"]]
+        return [self.get_model(m["name"]) for m in self._request("GET", "/models", safe=True)["models"]]
 
     def get_model(self, name: str) -> ModelInfo:
-        return model_from_json(self._request("GET", f"/models/{name}"))
+        return model_from_json(self._request("GET", f"/models/{name}", safe=True))
 
     # ----- sessions -----------------------------------------------------------------------------------------
     def create_session(
@@ -170,21 +237,48 @@ class RestClient(PolicyClient):
             body["seed"] = seed
         if action_mode:
             body["action_mode"] = action_mode
-        return Session(self, session_from_json(self._request("POST", "/sessions", body)))
+        info = self._seen_session(session_from_json(self._request("POST", "/sessions", body)))
+        return Session(self, info)
 
     def get_session(self, session_id: str) -> SessionInfo:
-        return session_from_json(self._request("GET", f"/sessions/{session_id}"))
+        return self._seen_session(
+            session_from_json(self._request("GET", f"/sessions/{session_id}", safe=True))
+        )
 
     def act(self, session_id: str, observation: Any) -> ActResult:
-        body = {"observation": encode_observation(observation)}
-        return act_from_json(self._request("POST", f"/sessions/{session_id}/act", body))
+        body: dict[str, Any] = {"observation": encode_observation(observation)}
+        step = self.expected_step(session_id)
+        if step is not None:
+            body["step"] = step
+        try:
+            result = act_from_json(
+                self._request("POST", f"/sessions/{session_id}/act", body, safe=step is not None)
+            )
+        except ServiceError as e:
+            self._seen_act(session_id, e)
+            raise
+        self._seen_act(session_id, result)
+        return result
 
     def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
-        body = {"requests": [{"session_id": sid, "observation": encode_observation(o)} for sid, o in items]}
-        results = self._request("POST", "/act", body).get("results")
+        requests = []
+        for sid, o in items:
+            requests.append({"session_id": sid, "observation": encode_observation(o)})
+            if (step := self.expected_step(sid)) is not None:
+                requests[-1]["step"] = step
+        safe = all("step" in r for r in requests)
+        try:
+            results = self._request("POST", "/act", {"requests": requests}, safe=safe).get("results")
+        except ServiceError as e:
+            for sid, _ in items:
+                self._seen_act(sid, e)
+            raise
         if not isinstance(results, list) or len(results) != len(items):
             raise ProtocolError(f"POST /act answered {results!r:.200} for {len(items)} requests")
-        return [act_item_from_json(d) for d in results]
+        out = [act_item_from_json(d) for d in results]
+        for (sid, _), r in zip(items, out, strict=True):
+            self._seen_act(sid, r)
+        return out
 
     def set_goal(
         self,
@@ -199,17 +293,20 @@ class RestClient(PolicyClient):
             raise ValueError("set_goal needs a goal (id or name) or a target")
         if blend_steps:
             body["blend_steps"] = blend_steps
-        return session_from_json(self._request("PUT", f"/sessions/{session_id}/goal", body))
+        # Setting a goal again is harmless, unless a blend would restart.
+        answer = self._request("PUT", f"/sessions/{session_id}/goal", body, safe=not blend_steps)
+        return self._seen_session(session_from_json(answer))
 
     def reset(
         self, session_id: str, goal: int | str | None = None, *, target: float | None = None
     ) -> SessionInfo:
-        return session_from_json(
-            self._request("POST", f"/sessions/{session_id}/reset", _goal_body(goal, target))
-        )
+        answer = self._request("POST", f"/sessions/{session_id}/reset", _goal_body(goal, target), safe=True)
+        return self._seen_session(session_from_json(answer))
 
     def close_session(self, session_id: str) -> None:
-        self._request("DELETE", f"/sessions/{session_id}")
+        self._forget(session_id)
+        # A repeated DELETE answering 404 means an earlier attempt closed it.
+        self._request("DELETE", f"/sessions/{session_id}", safe=True, gone_ok_on_retry=True)
 
     def close(self) -> None:
         self._http.close()

@@ -48,6 +48,10 @@ def _register() -> None:
 
     app.command("serve")(serve_command)
 
+    from service.cluster import app as cluster_app
+
+    app.add_typer(cluster_app, name="cluster")
+
     from clients.cli import run_command
 
     app.command("run")(run_command)

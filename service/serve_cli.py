@@ -42,6 +42,11 @@ def serve_command(
     ),
     log_format: str = typer.Option(None, help="json or kv. Default json [GMT_LOG_FORMAT]"),
     log_level: str = typer.Option(None, help="Default INFO [GMT_LOG_LEVEL]"),
+    replica_id: str = typer.Option(
+        None,
+        help="This replica's name, sent as X-Served-By (REST) / x-served-by (gRPC metadata) on every answer. "
+        "Default hostname:pid [GMT_REPLICA_ID]",
+    ),
     naive: bool = typer.Option(
         None,
         "--naive/--no-naive",
@@ -74,6 +79,7 @@ def serve_command(
         "log_format": log_format,
         "log_level": log_level,
         "naive": naive,
+        "replica_id": replica_id,
     }
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})

@@ -99,6 +99,7 @@ class Server:
                 "grpc": f"{s.host}:{self.grpc_port}",
                 "rest_port": self.rest_port,
                 "grpc_port": self.grpc_port,
+                "replica_id": s.replica_id,
                 "models": sorted(self.core.registry.models),
                 "ready": self.core.ready,
                 "auth": s.token is not None,

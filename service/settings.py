@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import re
+import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+_REPLICA_ID = re.compile(r"[\x21-\x7e]{1,128}")  # valid in an HTTP header and in gRPC metadata
 
 
 class Settings(BaseSettings):
@@ -32,6 +37,8 @@ class Settings(BaseSettings):
         event_loop: `uvloop` (the default: a faster loop for both transports) or `asyncio`.
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
+        replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC
+            initial metadata `x-served-by`) so that routing can be checked; default `hostname:pid`.
     """
 
     model_config = SettingsConfigDict(env_prefix="GMT_", extra="ignore")
@@ -53,6 +60,7 @@ class Settings(BaseSettings):
     shutdown_grace_s: float = Field(5.0, ge=0)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
+    replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
 
     @field_validator("checkpoints", mode="before")
     @classmethod
@@ -65,6 +73,15 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
+
+    @field_validator("replica_id")
+    @classmethod
+    def _header_safe(cls, v: str) -> str:
+        if not _REPLICA_ID.fullmatch(v):
+            raise ValueError(
+                f"replica_id must be 1 to 128 printable ASCII characters without spaces, got {v!r}"
+            )
+        return v
 
     @field_validator("log_level")
     @classmethod

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import secrets
 
 import grpc
@@ -15,6 +16,56 @@ from service.grpc.servicer import PolicyServicer
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
 OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
+
+
+SERVED_BY = "x-served-by"
+
+
+class ServedBy(grpc.aio.ServerInterceptor):
+    """Sends `x-served-by: <replica id>` as initial metadata at the start of every call (of every service,
+    refused ones included), so routing can be checked from any answer, and in the trailers of every status this
+    server answers, which tells clients a status of this server (nothing applied) from a broken connection."""
+
+    def __init__(self, replica_id: str) -> None:
+        self._metadata = ((SERVED_BY, replica_id),)
+
+    async def intercept_service(self, continuation, handler_call_details):
+        handler = await continuation(handler_call_details)
+        if handler is None:
+            return None
+        md = self._metadata
+        if handler.response_streaming:
+            behavior = handler.unary_stream or handler.stream_stream
+
+            async def wrapped(request_or_iterator, context):
+                context.set_trailing_metadata(md)
+                await context.send_initial_metadata(md)
+                out = behavior(request_or_iterator, context)
+                if inspect.isasyncgen(out):
+                    async for message in out:
+                        yield message
+                elif inspect.isawaitable(out):  # writes with context.write
+                    await out
+                else:
+                    for message in out:
+                        yield message
+
+        else:
+            behavior = handler.unary_unary or handler.stream_unary
+
+            async def wrapped(request_or_iterator, context):
+                context.set_trailing_metadata(md)
+                await context.send_initial_metadata(md)
+                out = behavior(request_or_iterator, context)
+                return await out if inspect.isawaitable(out) else out
+
+        make = {
+            (False, False): grpc.unary_unary_rpc_method_handler,
+            (False, True): grpc.unary_stream_rpc_method_handler,
+            (True, False): grpc.stream_unary_rpc_method_handler,
+            (True, True): grpc.stream_stream_rpc_method_handler,
+        }[(handler.request_streaming, handler.response_streaming)]
+        return make(wrapped, handler.request_deserializer, handler.response_serializer)
 
 
 class BearerAuth(grpc.aio.ServerInterceptor):
@@ -71,7 +122,8 @@ class GrpcServer:
     def __init__(self, core: Core, host: str, port: int) -> None:
         s = core.settings
         self.core = core
-        interceptors = [BearerAuth(s.token)] if s.token else []
+        # ServedBy first: it wraps whatever the others answer, a refused call included.
+        interceptors = [ServedBy(s.replica_id), *([BearerAuth(s.token)] if s.token else [])]
         limit = s.max_request_bytes
         self.server = grpc.aio.server(
             interceptors=interceptors,

@@ -180,14 +180,74 @@ def test_rest_retries_connection_errors_only(live_server, no_sleep):
     assert counting.calls == 2 and len(no_sleep) == 2  # answers (4xx) are never retried
 
 
-def test_rest_does_not_resend_after_the_connection_broke_mid_request(live_server, no_sleep):
-    """The server may have applied a request whose answer was lost: resending could act twice."""
+def test_rest_resends_after_a_broken_connection_only_what_cannot_apply_twice(live_server, no_sleep):
+    """The server may have applied a request whose answer was lost: a read is sent again, an act on a session
+    whose step the client does not know is not (it could step twice)."""
     broken = CountingTransport(fail=1, error=httpx.ReadError)
     with RestClient(live_server.rest_url, retries=3, transport=broken) as c:
+        assert c.get_model("tiny-gmt").name == "tiny-gmt"
+    assert broken.calls == 2 and no_sleep == [0.2]
+
+    with RestClient(live_server.rest_url) as owner:
+        sid = owner.create_session(goal=0).id
+    broken = CountingTransport(fail=1, error=httpx.ReadError)
+    with RestClient(live_server.rest_url, retries=3, transport=broken) as c:
+        assert c.expected_step(sid) is None
         with pytest.raises(ServiceError) as e:
-            c.get_model("tiny-gmt")
-    assert broken.calls == 1 and no_sleep == []
+            c.act(sid, OBS)
+    assert broken.calls == 1 and no_sleep == [0.2]
     assert e.value.code == "transport_error" and "ReadError" in e.value.message
+
+
+class LosesAnswers(httpx.HTTPTransport):
+    """Sends every request; the answers to the ones numbered in `lose` are lost (ReadError) after the server
+    applied them, and answers in `replace` are swapped for a canned response (status, JSON body)."""
+
+    def __init__(self, lose=(), replace=None) -> None:
+        super().__init__()
+        self.calls, self.lose, self.replace, self.bodies = 0, set(lose), replace or {}, []
+
+    def handle_request(self, request):
+        self.calls += 1
+        self.bodies.append(request.content)
+        if self.calls in self.replace:
+            status, body = self.replace[self.calls]
+            return httpx.Response(status, json=body, request=request)
+        response = super().handle_request(request)
+        if self.calls in self.lose:
+            response.read()
+            raise httpx.ReadError("answer lost (simulated)", request=request)
+        return response
+
+
+def test_rest_act_lost_after_it_stepped_is_resent_with_its_step_and_never_steps_twice(live_server, no_sleep):
+    rng = np.random.default_rng(3)
+    obs = rng.normal(size=(4, 17)).astype(np.float32)
+    lossy = LosesAnswers(lose={3})  # 1: create, 2: act step 0, 3: act step 1 (applied, answer lost)
+    with RestClient(live_server.rest_url, transport=lossy) as c, RestClient(live_server.rest_url) as twin_c:
+        s, twin = c.create_session(goal=1, seed=4), twin_c.create_session(goal=1, seed=4)
+        assert c.expected_step(s.id) == 0
+        got = [s.act(o) for o in obs]
+        want = [twin.act(o) for o in obs]
+        assert [r.step for r in got] == [0, 1, 2, 3] and c.expected_step(s.id) == 4
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g.action, w.action)
+        assert c.get_session(s.id).step == 4  # the lost act was applied once, not twice
+    assert lossy.calls == 7 and no_sleep == [0.2]
+    assert [b'"step":1' in b.replace(b" ", b"") for b in lossy.bodies[2:4]] == [True, True]
+
+
+def test_rest_retries_aborted_and_unavailable_answers_but_not_a_502_on_a_create(live_server, no_sleep):
+    aborted = {"error": {"code": "aborted", "message": "session changed meanwhile (simulated)"}}
+    unavailable = {"error": {"code": "unavailable", "message": "no replica answered (simulated)"}}
+    flaky = LosesAnswers(replace={2: (409, aborted), 3: (503, unavailable)})
+    with RestClient(live_server.rest_url, transport=flaky) as c:
+        s = c.create_session(goal=0)
+        assert s.act(OBS).step == 0 and flaky.calls == 4 and no_sleep == [0.2, 0.4]
+    flaky = LosesAnswers(replace={1: (502, unavailable)})
+    with RestClient(live_server.rest_url, transport=flaky) as c, pytest.raises(Unavailable):
+        c.create_session(goal=0)  # the replica may have created it: not repeated
+    assert flaky.calls == 1
 
 
 class Unreachable(grpc.RpcError):
@@ -224,7 +284,7 @@ class CountingStub:
         return call
 
 
-def test_grpc_retries_connection_errors_only(live_server, no_sleep):
+def test_grpc_retries_connection_errors_and_repeats_only_what_cannot_apply_twice(live_server, no_sleep):
     with GrpcClient(live_server.grpc_target, retries=3) as c:
         c.stub = stub = CountingStub(c.stub, fail=1)
         assert c.get_model("tiny-gmt").name == "tiny-gmt"
@@ -234,21 +294,28 @@ def test_grpc_retries_connection_errors_only(live_server, no_sleep):
         assert stub.calls == 3 and len(no_sleep) == 1
 
         c.stub = stub = CountingStub(stub.stub, fail=1, details="Socket closed")  # broke mid-call
+        assert c.get_model("tiny-gmt").name == "tiny-gmt"  # a read: sent again
+        assert stub.calls == 2 and len(no_sleep) == 2
+
+        sid = c.create_session(goal=0).id
+        c._forget(sid)  # as if another client had created it: the step is unknown, so an act is not repeated
+        c.stub = stub = CountingStub(stub.stub, fail=1, details="Socket closed")
         with pytest.raises(Unavailable, match="Socket closed") as e:
-            c.get_model("tiny-gmt")
-        assert stub.calls == 1 and len(no_sleep) == 1 and not isinstance(e.value, ConnectionFailed)
+            c.act(sid, OBS)
+        assert stub.calls == 1 and len(no_sleep) == 2 and not isinstance(e.value, ConnectionFailed)
 
 
-def test_server_side_unavailable_is_not_retried(tmp_path, start_server, no_sleep):
-    """A server with no model answers UNAVAILABLE itself: an answer, so no retry (unlike a refused connect)."""
+def test_server_side_unavailable_is_retried_then_reported(tmp_path, start_server, no_sleep):
+    """A server with no model answers UNAVAILABLE itself: nothing was applied, so even a create is tried again
+    (a few times), and the server's own message is what the caller finally sees."""
     srv = start_server(tmp_path)
     for kind in ("rest", "grpc"):
-        with make_client(kind, srv) as c:
+        with make_client(kind, srv, retries=2) as c:
             with pytest.raises(Unavailable) as e:
                 c.create_session(goal=0)
         assert not isinstance(e.value, ConnectionFailed)
         assert "no model is loaded" in e.value.message
-    assert no_sleep == []
+    assert no_sleep == [0.2, 0.4, 0.2, 0.4]
 
 
 def test_service_error_str_names_code_and_message():
@@ -364,3 +431,117 @@ def test_act_many_is_the_same_over_both_transports(live_server):
                 assert (x.step, x.goal) == (y.step, y.goal)
         for s in rs + gs:
             s.close()
+
+
+# ----- routing metadata, expected steps and retries over gRPC --------------------------------------------------
+@pytest.fixture
+def recording_grpc_server():
+    """A PolicyService that records each call's (method, x-session-id, expected step) and answers minimally;
+    `aborts` holds, per method, how many calls to abort with ABORTED first (in-band on the Control stream)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gmt.v1 import policy_pb2 as pb
+    from gmt.v1 import policy_pb2_grpc as pb_grpc
+
+    calls: list[tuple[str, str | None, int | None]] = []
+    aborts: dict[str, int] = {}
+
+    def note(method, context, step=None):
+        sid = dict(context.invocation_metadata()).get("x-session-id")
+        calls.append((method, sid, step))
+        if aborts.get(method, 0) > 0:
+            aborts[method] -= 1
+            return True
+        return False
+
+    def act(req):
+        return pb.ActResponse(
+            session_id=req.session_id, action=[0.0] * 6, step=req.step if req.HasField("step") else 7
+        )
+
+    class Recording(pb_grpc.PolicyServiceServicer):
+        def CreateSession(self, request, context):
+            note("CreateSession", context)
+            return pb.SessionInfo(session_id="s-1", model="tiny-gmt", step=0)
+
+        def GetSession(self, request, context):
+            note("GetSession", context)
+            return pb.SessionInfo(session_id=request.session_id, step=5)
+
+        def Act(self, request, context):
+            if note("Act", context, request.step if request.HasField("step") else None):
+                context.abort(grpc.StatusCode.ABORTED, "changed meanwhile (simulated)")
+            return act(request)
+
+        def SetGoal(self, request, context):
+            note("SetGoal", context)
+            return pb.SessionInfo(session_id=request.session_id, step=2)
+
+        def ResetSession(self, request, context):
+            note("ResetSession", context)
+            return pb.SessionInfo(session_id=request.session_id, step=0)
+
+        def CloseSession(self, request, context):
+            note("CloseSession", context)
+            return pb.CloseSessionResponse(session_id=request.session_id)
+
+        def Control(self, request_iterator, context):
+            for req in request_iterator:
+                cmd = req.act
+                if note("Control.act", context, cmd.step if cmd.HasField("step") else None):
+                    yield pb.ControlResponse(error=pb.ControlError(code="aborted", message="simulated"))
+                else:
+                    yield pb.ControlResponse(act=act(cmd))
+
+    server = grpc.server(ThreadPoolExecutor(4))
+    pb_grpc.add_PolicyServiceServicer_to_server(Recording(), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    yield f"127.0.0.1:{port}", calls, aborts
+    server.stop(0)
+
+
+def test_grpc_client_sends_the_session_id_and_the_expected_step(recording_grpc_server, no_sleep):
+    target, calls, aborts = recording_grpc_server
+    with GrpcClient(target) as c:
+        s = c.create_session(goal=0)
+        s.act(OBS)
+        aborts["Act"] = 1  # ABORTED applied nothing: sent again, with the same step
+        s.act(OBS)
+        s.set_goal(1)
+        assert c.expected_step("s-1") == 2  # the server's answer wins
+        s.act(OBS)
+        s.reset()
+        s.act(OBS)
+        c.get_session("s-1")
+        s.close()
+    assert calls == [
+        ("CreateSession", None, None),
+        ("Act", "s-1", 0),
+        ("Act", "s-1", 1),
+        ("Act", "s-1", 1),
+        ("SetGoal", "s-1", None),
+        ("Act", "s-1", 2),
+        ("ResetSession", "s-1", None),
+        ("Act", "s-1", 0),
+        ("GetSession", "s-1", None),
+        ("CloseSession", "s-1", None),
+    ]
+    assert no_sleep == [0.2]
+
+    calls.clear()
+    with GrpcClient(target, stream=True) as c:
+        s = c.create_session(goal=0)
+        assert [s.act(OBS).step for _ in range(2)] == [0, 1]
+        aborts["Control.act"] = 2  # in-band aborted: sent again, with the same step
+        assert s.act(OBS).step == 2
+        s.close()
+    assert calls == [
+        ("CreateSession", None, None),
+        ("Control.act", "s-1", 0),
+        ("Control.act", "s-1", 1),
+        ("Control.act", "s-1", 2),
+        ("Control.act", "s-1", 2),
+        ("Control.act", "s-1", 2),
+        ("CloseSession", "s-1", None),
+    ]
