@@ -32,7 +32,11 @@ def run_command(
         False, help="Also record episode-<i>.mp4 into --out (MuJoCo renders offscreen)."
     ),
     timeout: float = typer.Option(10.0, help="Seconds per request."),
-    retries: int = typer.Option(3, min=0, help="Retries when the server cannot be connected to."),
+    retries: int = typer.Option(
+        3,
+        min=0,
+        help="Retries after a refused connection, unavailable or aborted (acts carry their step: never applied twice).",
+    ),
     token: str = typer.Option(None, envvar="GMT_TOKEN", help="Bearer token, if the server requires one."),
 ) -> None:
     """Drive an agent remotely: send observations, apply actions, report each goal segment."""

@@ -50,5 +50,6 @@ def test_serve_help_lists_the_flags():
         "--max-sessions",
         "--idle-timeout",
         "--auth-token",
+        "--replica-id",
     ):
         assert flag in out

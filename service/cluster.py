@@ -1,0 +1,474 @@
+"""`gmt cluster up|down` (`make cluster` / `make cluster-down`): the scale-out topology, natively on loopback.
+
+redis-server (AOF on, data under the run directory), two `gmt serve` replicas (`gmt-1`, `gmt-2`) sharing it,
+and nginx in front with `docker/nginx.conf` rendered for loopback addresses: REST on :8000 and gRPC on :50051
+by default (DESIGN.md section 8; `docker/compose.yaml` is the same topology in containers). `up` returns once
+every process is ready and nginx answers on both ports; each process's pid is in `<run dir>/<name>.pid`
+(`redis`, `gmt-1`, `gmt-2`, `nginx`), and `down` stops exactly those processes.
+
+The processes outlive the command that started them (each in a session of its own); their output goes to
+`<run dir>/<name>.log`, nginx's to `<run dir>/nginx/error.log` and `access.log` (which replica served what).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import typer
+
+NGINX_TEMPLATE = Path(__file__).resolve().parents[1] / "docker" / "nginx.conf"
+DEFAULT_RUN_DIR = Path("run/cluster")
+REPLICAS = ("gmt-1", "gmt-2")
+INSTALL_HINT = "apt-get install nginx redis-server (.ci/run installs both)"
+_PLACEHOLDER = re.compile(r"\$\{(GMT_[A-Z0-9_]+)\}")
+# The order `down` stops them in: no new calls first, then the replicas (graceful), the store last.
+_STOP_ORDER = ("nginx", *REPLICAS, "redis")
+
+# Processes this Python process started: polled (and so reaped) instead of probed by pid.
+_children: dict[int, subprocess.Popen] = {}
+
+
+class ClusterError(RuntimeError):
+    """The cluster could not be started or stopped; the message says why and where the logs are."""
+
+
+@dataclass(frozen=True)
+class Replica:
+    """One `gmt serve` process of the cluster."""
+
+    name: str
+    pid: int
+    rest_port: int
+    grpc_port: int
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """A started cluster: where to reach it and which processes it is (also in `<run_dir>/cluster.json`)."""
+
+    run_dir: Path
+    rest_url: str
+    grpc_target: str
+    redis_url: str
+    pids: dict[str, int]
+    replicas: list[Replica] = field(default_factory=list)
+
+    def replica(self, name: str) -> Replica:
+        """The replica with this id."""
+        return next(r for r in self.replicas if r.name == name)
+
+
+# ----- helpers -------------------------------------------------------------------------------------------------
+def find_executable(name: str) -> str | None:
+    """`name` on PATH, or in the sbin folders a non-root PATH often lacks (Debian installs nginx there)."""
+    extra = os.pathsep.join(("/usr/sbin", "/usr/local/sbin", "/sbin"))
+    return shutil.which(name) or shutil.which(name, path=extra)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A port nothing listens on right now (bound, then released)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _check_free(host: str, port: int, what: str) -> None:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            raise ClusterError(f"{what} port {host}:{port} is taken ({e.strerror}); choose another") from None
+
+
+def render_nginx_conf(values: Mapping[str, str], template: Path = NGINX_TEMPLATE) -> str:
+    """`docker/nginx.conf` with every `${GMT_*}` placeholder replaced by `values[name]`.
+
+    Raises:
+        ClusterError: a placeholder without a value (or a value for no placeholder).
+    """
+    text = template.read_text()
+    names = set(_PLACEHOLDER.findall(text))
+    missing, unknown = sorted(names - set(values)), sorted(set(values) - names)
+    if missing or unknown:
+        raise ClusterError(f"{template}: placeholders without a value {missing}, values for none {unknown}")
+    return _PLACEHOLDER.sub(lambda m: str(values[m.group(1)]), text)
+
+
+def nginx_values(
+    run_dir: Path,
+    host: str,
+    rest_port: int,
+    grpc_port: int,
+    replicas: Sequence[tuple[int, int]],
+) -> dict[str, str]:
+    """The template's values for a loopback cluster: nginx on (rest_port, grpc_port), replicas' (REST, gRPC)."""
+    if len(replicas) != 2:
+        raise ClusterError(f"docker/nginx.conf names two replicas, got {len(replicas)}")
+    nginx_dir = (run_dir / "nginx").resolve()
+    h = f"[{host}]" if ":" in host else host
+    values = {
+        "GMT_NGINX_REST_LISTEN": f"{h}:{rest_port}",
+        "GMT_NGINX_GRPC_LISTEN": f"{h}:{grpc_port}",
+        "GMT_NGINX_RUN_DIR": str(nginx_dir),
+        "GMT_NGINX_ERROR_LOG": str(nginx_dir / "error.log"),
+        "GMT_NGINX_ACCESS_LOG": str(nginx_dir / "access.log"),
+    }
+    for i, (rest, grpc) in enumerate(replicas, start=1):
+        values[f"GMT_REST_{i}"] = f"{h}:{rest}"
+        values[f"GMT_GRPC_{i}"] = f"{h}:{grpc}"
+    return values
+
+
+def nginx_test(conf: Path, nginx: str | None = None) -> subprocess.CompletedProcess:
+    """`nginx -t` on a rendered config (its prefix is the config's folder)."""
+    exe = nginx or find_executable("nginx")
+    if exe is None:
+        raise ClusterError(f"nginx is not installed ({INSTALL_HINT})")
+    prefix = conf.resolve().parent
+    return subprocess.run(
+        [exe, "-t", "-p", str(prefix), "-c", str(conf.resolve()), "-e", str(prefix / "error.log")],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+
+
+def _cmdline(pid: int) -> str | None:
+    """The process's command line ('' where /proc is missing), None when no such process."""
+    proc = Path(f"/proc/{pid}")
+    if not Path("/proc/self").exists():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass
+        return ""
+    try:
+        status = (proc / "status").read_text()
+        if re.search(r"^State:\s+Z", status, flags=re.M):
+            return None  # a zombie: it has exited
+        return (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    child = _children.get(pid)
+    if child is not None:
+        return child.poll() is None
+    return _cmdline(pid) is not None
+
+
+def _is_ours(name: str, pid: int) -> bool:
+    """Whether `pid` is still the process `name` was (pids are reused): its command line says so."""
+    cmd = _cmdline(pid)
+    if cmd is None:
+        return False
+    if cmd == "":
+        return True  # no /proc: trust the pid file
+    if name == "redis":
+        return "redis-server" in cmd
+    if name == "nginx":
+        return "nginx" in cmd
+    return "serve" in cmd and name in cmd
+
+
+def _read_pids(run_dir: Path) -> dict[str, int]:
+    pids = {}
+    for f in sorted(run_dir.glob("*.pid")):
+        try:
+            pids[f.stem] = int(f.read_text().strip())
+        except ValueError:
+            f.unlink()
+    return pids
+
+
+def _log_tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except FileNotFoundError:
+        return "(no log)"
+
+
+# ----- up / down -----------------------------------------------------------------------------------------------
+def _spawn(name: str, cmd: list[str], run_dir: Path, env: Mapping[str, str] | None = None) -> int:
+    log = open(run_dir / f"{name}.log", "ab")  # noqa: SIM115 - handed to the child
+    try:
+        proc = subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=dict(env) if env is not None else None,
+            start_new_session=True,  # outlives `gmt cluster up`; Ctrl-C in that terminal does not reach it
+        )
+    finally:
+        log.close()
+    _children[proc.pid] = proc
+    (run_dir / f"{name}.pid").write_text(f"{proc.pid}\n")
+    return proc.pid
+
+
+def _redis_ping(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=1) as s:
+            s.sendall(b"PING\r\n")
+            return s.recv(64).startswith(b"+PONG")
+    except OSError:
+        return False
+
+
+def _http_ready(url: str) -> bool:
+    import httpx
+
+    try:
+        return httpx.get(url, timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def _grpc_ready(target: str) -> bool:
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    try:
+        with grpc.insecure_channel(target) as ch:
+            r = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(), timeout=2)
+            return r.status == health_pb2.HealthCheckResponse.SERVING
+    except grpc.RpcError:
+        return False
+
+
+def _wait(what: str, ready, pid: int, log: Path, deadline: float) -> None:
+    while not ready():
+        if not _alive(pid):
+            raise ClusterError(f"{what} exited while starting; the end of {log}:\n{_log_tail(log)}")
+        if time.monotonic() > deadline:
+            raise ClusterError(f"{what} was not ready in time; the end of {log}:\n{_log_tail(log)}")
+        time.sleep(0.2)
+
+
+def up(
+    run_dir: Path = DEFAULT_RUN_DIR,
+    *,
+    host: str = "127.0.0.1",
+    rest_port: int = 8000,
+    grpc_port: int = 50051,
+    redis_port: int = 0,
+    checkpoints: Sequence[Path] = (),
+    serve_args: Sequence[str] = (),
+    env: Mapping[str, str] | None = None,
+    timeout_s: float = 180.0,
+    template: Path = NGINX_TEMPLATE,
+) -> Cluster:
+    """Start redis-server, the replicas and nginx; return once all are ready.
+
+    Args:
+        run_dir: Pid files, logs, Redis data (AOF) and nginx's files.
+        host: The loopback (or other) interface every process binds.
+        rest_port / grpc_port: Where nginx listens (0 = a free port).
+        redis_port: Redis's port (0 = a free port); the replicas' ports are always free ones.
+        checkpoints: Passed to each replica as --checkpoints (none: its default, GMT_CHECKPOINTS or checkpoints/).
+        serve_args: More `gmt serve` flags for both replicas (e.g. ["--batch-wait-ms", "5"]).
+        env: The replicas' environment (default: this process's; GMT_* variables apply where no flag is given).
+        timeout_s: Longest wait for everything to be ready.
+
+    Raises:
+        ClusterError: a program is missing, a port is taken, a cluster already runs in `run_dir`, or a process
+            failed to start (everything started so far is stopped again).
+    """
+    redis_exe, nginx_exe = find_executable("redis-server"), find_executable("nginx")
+    missing = [n for n, exe in (("redis-server", redis_exe), ("nginx", nginx_exe)) if exe is None]
+    if missing:
+        raise ClusterError(f"{' and '.join(missing)} not installed ({INSTALL_HINT})")
+    run_dir = Path(run_dir)
+    running = [n for n, pid in _read_pids(run_dir).items() if _is_ours(n, pid)] if run_dir.exists() else []
+    if running:
+        raise ClusterError(f"a cluster already runs from {run_dir} ({', '.join(running)}); stop it first")
+    for f in run_dir.glob("*.pid"):
+        f.unlink()  # stale
+    (run_dir / "redis").mkdir(parents=True, exist_ok=True)
+    (run_dir / "nginx").mkdir(parents=True, exist_ok=True)
+    rest_port = rest_port or free_port(host)
+    grpc_port = grpc_port or free_port(host)
+    _check_free(host, rest_port, "REST (nginx)")
+    _check_free(host, grpc_port, "gRPC (nginx)")
+    redis_port = redis_port or free_port(host)
+    _check_free(host, redis_port, "Redis")
+    ports = [(free_port(host), free_port(host)) for _ in REPLICAS]
+    h = f"[{host}]" if ":" in host else host
+    redis_url = f"redis://{h}:{redis_port}/0"
+    deadline = time.monotonic() + timeout_s
+    try:
+        pids = {
+            "redis": _spawn(
+                "redis",
+                [
+                    redis_exe,
+                    "--bind", host,
+                    "--port", str(redis_port),
+                    "--dir", str((run_dir / "redis").resolve()),
+                    "--appendonly", "yes",
+                    "--appendfsync", "everysec",
+                    "--save", "",
+                    "--daemonize", "no",
+                ],
+                run_dir,
+            )
+        }  # fmt: skip
+        _wait(
+            "redis-server",
+            lambda: _redis_ping(host, redis_port),
+            pids["redis"],
+            run_dir / "redis.log",
+            deadline,
+        )
+
+        exe = Path(sys.executable).parent / "gmt"
+        gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"]
+        ckpt = [a for c in checkpoints for a in ("--checkpoints", str(c))]
+        replicas = []
+        for name, (rest, grpc_) in zip(REPLICAS, ports, strict=True):
+            cmd = [*gmt, "serve", "--replica-id", name, "--host", host, "--rest-port", str(rest)]
+            cmd += ["--grpc-port", str(grpc_), "--redis-url", redis_url, *ckpt, *serve_args]
+            pids[name] = _spawn(name, cmd, run_dir, env)
+            replicas.append(Replica(name, pids[name], rest, grpc_))
+
+        conf = run_dir / "nginx" / "nginx.conf"
+        conf.write_text(render_nginx_conf(nginx_values(run_dir, host, rest_port, grpc_port, ports), template))
+        nginx_dir = (run_dir / "nginx").resolve()
+        cmd = [nginx_exe, "-p", str(nginx_dir), "-c", str(conf.resolve()), "-e", str(nginx_dir / "error.log")]
+        pids["nginx"] = _spawn("nginx", [*cmd, "-g", "daemon off;"], run_dir)
+
+        for r in replicas:
+            log = run_dir / f"{r.name}.log"
+            _wait(r.name, lambda r=r: _http_ready(f"http://{h}:{r.rest_port}/readyz"), r.pid, log, deadline)
+        rest_url, grpc_target = f"http://{h}:{rest_port}", f"{h}:{grpc_port}"
+        log = run_dir / "nginx" / "error.log"
+        _wait("nginx (REST)", lambda: _http_ready(f"{rest_url}/readyz"), pids["nginx"], log, deadline)
+        _wait("nginx (gRPC)", lambda: _grpc_ready(grpc_target), pids["nginx"], log, deadline)
+    except BaseException:
+        down(run_dir, quiet=True)
+        raise
+    cluster = Cluster(run_dir, rest_url, grpc_target, redis_url, pids, replicas)
+    state = {**asdict(cluster), "run_dir": str(run_dir)}
+    (run_dir / "cluster.json").write_text(json.dumps(state, indent=2) + "\n")
+    return cluster
+
+
+def _signal(pid: int, sig: int) -> None:
+    try:
+        os.kill(pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def down(run_dir: Path = DEFAULT_RUN_DIR, *, timeout_s: float = 15.0, quiet: bool = False) -> dict[str, str]:
+    """Stop the processes named by `<run_dir>/*.pid` (graceful signal, SIGKILL after `timeout_s`).
+
+    A pid whose process is gone, or is now some other program (its command line says so), is not signalled.
+
+    Returns:
+        What happened to each: "stopped", "killed", "not running" or "not ours".
+    """
+    run_dir = Path(run_dir)
+    pids = _read_pids(run_dir) if run_dir.exists() else {}
+    order = sorted(pids, key=lambda n: _STOP_ORDER.index(n) if n in _STOP_ORDER else len(_STOP_ORDER))
+    outcome: dict[str, str] = {}
+    # nginx first (no new calls), then every replica at once (graceful, GMT_SHUTDOWN_GRACE_S), Redis last.
+    for group in (["nginx"], [n for n in order if n not in ("nginx", "redis")], ["redis"]):
+        live = {}
+        for name in (n for n in group if n in pids):
+            pid = pids[name]
+            if not _alive(pid):
+                outcome[name] = "not running"
+            elif not _is_ours(name, pid):
+                outcome[name] = "not ours"
+            else:
+                _signal(pid, signal.SIGQUIT if name == "nginx" else signal.SIGTERM)
+                live[name] = pid
+        end = time.monotonic() + timeout_s
+        while live and time.monotonic() < end:
+            for name in [n for n, p in live.items() if not _alive(p)]:
+                outcome[name] = "stopped"
+                del live[name]
+            time.sleep(0.05)
+        for name, pid in live.items():
+            _signal(pid, signal.SIGKILL)
+            outcome[name] = "killed"
+            deadline = time.monotonic() + 5
+            while _alive(pid) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        for name in group:
+            if name in pids:
+                (run_dir / f"{name}.pid").unlink(missing_ok=True)
+                _children.pop(pids[name], None)
+    if not quiet:
+        for name in order:
+            typer.echo(f"{name}: {outcome.get(name, 'not running')}", err=True)
+    return outcome
+
+
+# ----- the command ---------------------------------------------------------------------------------------------
+app = typer.Typer(
+    help="The scale-out topology on loopback: redis-server, two gmt serve replicas and nginx (docker/nginx.conf).",
+    no_args_is_help=True,
+)
+
+
+@app.command("up", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def up_command(
+    ctx: typer.Context,
+    run_dir: Path = typer.Option(DEFAULT_RUN_DIR, help="Pid files, logs, Redis data and nginx files."),
+    host: str = typer.Option("127.0.0.1", help="Interface every process binds."),
+    rest_port: int = typer.Option(8000, help="nginx's REST port (0 = any free port)."),
+    grpc_port: int = typer.Option(50051, help="nginx's gRPC port (0 = any free port)."),
+    redis_port: int = typer.Option(0, help="Redis's port (0 = any free port)."),
+    checkpoints: list[Path] = typer.Option(
+        None, "--checkpoints", "-c", help="Checkpoints for both replicas (default: theirs, checkpoints/)."
+    ),
+    timeout: float = typer.Option(180.0, help="Longest wait, in seconds, for everything to be ready."),
+) -> None:
+    """Start the cluster and return once it is ready. More `gmt serve` flags for both replicas may follow
+    (e.g. `-- --batch-wait-ms 5`); GMT_* environment variables (GMT_AUTH_TOKEN, ...) reach the replicas."""
+    try:
+        c = up(
+            run_dir,
+            host=host,
+            rest_port=rest_port,
+            grpc_port=grpc_port,
+            redis_port=redis_port,
+            checkpoints=checkpoints or (),
+            serve_args=list(ctx.args),
+            timeout_s=timeout,
+        )
+    except ClusterError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"REST {c.rest_url}  gRPC {c.grpc_target}  (through nginx)")
+    for r in c.replicas:
+        typer.echo(f"{r.name}: pid {r.pid}, REST :{r.rest_port}, gRPC :{r.grpc_port}")
+    typer.echo(f"redis: pid {c.pids['redis']}, {c.redis_url} (AOF in {run_dir}/redis)")
+    typer.echo(f"nginx: pid {c.pids['nginx']}; pids in {run_dir}/*.pid, logs in {run_dir}/*.log")
+
+
+@app.command("down")
+def down_command(
+    run_dir: Path = typer.Option(DEFAULT_RUN_DIR, help="The run directory `up` used."),
+    timeout: float = typer.Option(15.0, help="Seconds each process gets to stop before SIGKILL."),
+) -> None:
+    """Stop exactly the processes whose pids `up` wrote to <run dir>/*.pid."""
+    down(run_dir, timeout_s=timeout)

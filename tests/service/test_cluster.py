@@ -1,0 +1,298 @@
+"""The scale-out topology for real (DESIGN.md section 8): `gmt cluster up` starts redis-server, two `gmt serve`
+replicas and nginx with the shipped docker/nginx.conf on free loopback ports. nginx routes each session to one
+replica, and when that replica is killed (SIGKILL) while a request is in flight, the clients' retries (with the
+expected step) continue the episode on the other one with exactly the actions of an uninterrupted twin."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+import time
+from pathlib import Path
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
+
+from clients import base
+from clients.grpc import GrpcClient
+from clients.rest import RestClient
+from model.fixtures import tiny_checkpoint
+from service import cluster
+
+ROOT = Path(__file__).resolve().parents[2]
+MODEL = "tiny-cheetah"
+BATCH_WAIT_MS = 400  # a lone act waits this long in the batcher (other sessions could join): time to kill it
+KILL_AFTER_S = 0.15
+STEPS, KILL_AT = 8, 4
+
+needs_programs = pytest.mark.skipif(
+    cluster.find_executable("nginx") is None or cluster.find_executable("redis-server") is None,
+    reason=f"nginx and redis-server are needed ({cluster.INSTALL_HINT})",
+)
+
+
+def _loopback_values(run_dir: Path) -> dict[str, str]:
+    ports = [cluster.free_port() for _ in range(6)]
+    return cluster.nginx_values(
+        run_dir, "127.0.0.1", ports[0], ports[1], [tuple(ports[2:4]), tuple(ports[4:])]
+    )
+
+
+@pytest.mark.skipif(
+    cluster.find_executable("nginx") is None, reason=f"nginx is needed ({cluster.INSTALL_HINT})"
+)
+def test_shipped_nginx_conf_passes_nginx_t(tmp_path):
+    conf = tmp_path / "nginx" / "nginx.conf"
+    conf.parent.mkdir()
+    conf.write_text(cluster.render_nginx_conf(_loopback_values(tmp_path)))
+    r = cluster.nginx_test(conf)
+    assert r.returncode == 0, r.stderr
+    assert "test is successful" in r.stderr
+
+
+def test_the_template_and_compose_agree():
+    """docker/compose.yaml fills exactly the placeholders of docker/nginx.conf, and the native renderer too."""
+    text = cluster.NGINX_TEMPLATE.read_text()
+    placeholders = set(re.findall(r"\$\{(GMT_[A-Z0-9_]+)\}", text))
+    assert set(_loopback_values(Path("/tmp"))) == placeholders
+    compose = (ROOT / "docker" / "compose.yaml").read_text()
+    nginx_service = compose[compose.index("\n  nginx:") : compose.index("\nvolumes:")]
+    assert set(re.findall(r"^\s+(GMT_[A-Z0-9_]+):", nginx_service, flags=re.M)) == placeholders
+    assert "GMT_AUTH_TOKEN: ${GMT_AUTH_TOKEN:?" in compose and '"--appendonly", "yes"' in compose
+    assert "GMT_REPLICA_ID: gmt-1" in compose and "GMT_REPLICA_ID: gmt-2" in compose
+    assert compose.count("condition: service_healthy") == 3
+    with pytest.raises(cluster.ClusterError, match="without a value"):
+        cluster.render_nginx_conf({"GMT_REST_1": "x"})
+
+
+@needs_programs
+def test_a_replica_that_cannot_start_fails_up_and_leaves_nothing_running(tmp_path):
+    run_dir = tmp_path / "cluster"
+    with pytest.raises(cluster.ClusterError, match=r"gmt-1 exited while starting(.|\n)*no-such-flag"):
+        cluster.up(run_dir, rest_port=0, grpc_port=0, serve_args=["--no-such-flag"], timeout_s=60)
+    assert not list(run_dir.glob("*.pid"))
+    if Path("/proc/self").exists():  # redis-server and nginx, started before the replica failed, are gone
+        left = [
+            p for p in Path("/proc").glob("[0-9]*") if str(run_dir) in (cluster._cmdline(int(p.name)) or "")
+        ]
+        assert not left
+
+
+# ----- a running cluster ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def running(tmp_path_factory):
+    if cluster.find_executable("nginx") is None or cluster.find_executable("redis-server") is None:
+        pytest.skip(f"nginx and redis-server are needed ({cluster.INSTALL_HINT})")
+    root = tmp_path_factory.mktemp("checkpoints")
+    tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
+    run_dir = tmp_path_factory.mktemp("run") / "cluster"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env.update(GMT_SHUTDOWN_GRACE_S="1", GMT_LOG_LEVEL="WARNING")
+    c = cluster.up(
+        run_dir,
+        rest_port=0,
+        grpc_port=0,
+        checkpoints=[root],
+        serve_args=["--batch-wait-ms", str(BATCH_WAIT_MS)],
+        env=env,
+        timeout_s=90,
+    )
+    yield c
+    cluster.down(run_dir, timeout_s=10, quiet=True)
+
+
+def rest_replica(http: httpx.Client, sid: str) -> str:
+    return http.get(f"/sessions/{sid}").headers["x-served-by"]
+
+
+def grpc_replica(stub, sid: str) -> str:
+    _, call = stub.GetSession.with_call(
+        pb.GetSessionRequest(session_id=sid), metadata=(("x-session-id", sid),)
+    )
+    return dict(call.initial_metadata())["x-served-by"]
+
+
+@needs_programs
+def test_cluster_is_up_with_one_pid_file_per_process(running):
+    assert sorted(p.name for p in running.run_dir.glob("*.pid")) == [
+        "gmt-1.pid",
+        "gmt-2.pid",
+        "nginx.pid",
+        "redis.pid",
+    ]
+    for name, pid in running.pids.items():
+        assert int((running.run_dir / f"{name}.pid").read_text()) == pid
+        assert cluster._is_ours(name, pid), name
+    r = httpx.get(f"{running.rest_url}/readyz")
+    assert r.status_code == 200 and r.headers["x-served-by"] in ("gmt-1", "gmt-2")
+    r = httpx.get(f"{running.rest_url}/no/such/route")
+    assert r.status_code == 404 and r.headers["x-served-by"] in ("gmt-1", "gmt-2")
+    with pytest.raises(cluster.ClusterError, match="already runs"):
+        cluster.up(running.run_dir, rest_port=0, grpc_port=0)
+
+
+@needs_programs
+def test_each_session_sticks_to_one_replica_over_rest_and_grpc(running):
+    obs = np.zeros(17, dtype=np.float32).tolist()
+    rest_seen, grpc_seen = set(), set()
+    with (
+        httpx.Client(base_url=running.rest_url, timeout=30) as http,
+        grpc.insecure_channel(running.grpc_target) as channel,
+    ):
+        stub = policy_pb2_grpc.PolicyServiceStub(channel)
+        for i in range(24):  # until both replicas served sessions over both transports (1 in 2^20 to fail)
+            sid = http.post("/sessions", json={"model": MODEL, "goal": 0}).json()["session_id"]
+            rest = {rest_replica(http, sid) for _ in range(3)}
+            rest.add(http.get("/models", headers={"X-Session-Id": sid}).headers["x-served-by"])
+            over_grpc = {grpc_replica(stub, sid) for _ in range(3)}
+            if i < 2:  # acts, and a Control stream, go where the reads went
+                r = http.post(f"/sessions/{sid}/act", json={"observation": obs, "step": 0})
+                assert r.status_code == 200, r.text
+                rest.add(r.headers["x-served-by"])
+                act = pb.ControlRequest(act=pb.ActRequest(session_id=sid, values=pb.FloatVector(values=obs)))
+                stream = stub.Control(iter([act]), metadata=(("x-session-id", sid),))
+                assert [a.act.step for a in stream] == [1]
+                over_grpc.add(dict(stream.initial_metadata())["x-served-by"])
+            assert len(rest) == 1 and len(over_grpc) == 1, (rest, over_grpc)
+            rest_seen |= rest
+            grpc_seen |= over_grpc
+            http.delete(f"/sessions/{sid}")
+            if rest_seen == grpc_seen == {"gmt-1", "gmt-2"}:
+                break
+    assert rest_seen == grpc_seen == {"gmt-1", "gmt-2"}
+
+
+class Recorder(httpx.HTTPTransport):
+    """Records (path, status, X-Served-By) of every answer."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.answers: list[tuple[str, int, str | None]] = []
+
+    def handle_request(self, request):
+        r = super().handle_request(request)
+        self.answers.append((request.url.path, r.status_code, r.headers.get("x-served-by")))
+        return r
+
+
+def _episode(session, obs, barrier, timings, out, errors) -> None:
+    try:
+        for t, o in enumerate(obs):
+            if t == KILL_AT:
+                barrier.wait(30)
+                t0 = time.monotonic()
+            out.append(session.act(o))
+            if t == KILL_AT:
+                timings.append(time.monotonic() - t0)
+    except BaseException as e:  # noqa: BLE001 - reported by the test
+        errors.append(e)
+
+
+@needs_programs
+def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(running, monkeypatch):
+    victim, survivor = "gmt-1", "gmt-2"
+    rng = np.random.default_rng(21)
+    obs = {"rest": rng.normal(size=(STEPS, 17)), "grpc": rng.normal(size=(STEPS, 17))}
+    seeds = {"rest": 5, "grpc": 6}
+    recorder = Recorder()
+    backoffs: dict[str, list[float]] = {}  # the clients' retry delays, by episode thread
+    sleep = time.sleep
+
+    def recorded_sleep(seconds: float) -> None:
+        backoffs.setdefault(threading.current_thread().name, []).append(seconds)
+        sleep(seconds)
+
+    monkeypatch.setattr(base.time, "sleep", recorded_sleep)  # base.time is the time module
+    kw = dict(timeout_s=30, retries=4, backoff_s=0.1)
+    with (
+        RestClient(running.rest_url, transport=recorder, **kw) as rest,
+        GrpcClient(running.grpc_target, stream=True, **kw) as stream_client,
+        httpx.Client(base_url=running.rest_url, timeout=30) as http,
+        grpc.insecure_channel(running.grpc_target) as channel,
+    ):
+        stub = policy_pb2_grpc.PolicyServiceStub(channel)
+        # Uninterrupted twins: the same seeds and observations, before anything is killed.
+        want = {}
+        for kind, client in (("rest", rest), ("grpc", stream_client)):
+            with client.create_session(MODEL, 1, seed=seeds[kind]) as twin:
+                want[kind] = [twin.act(o).action for o in obs[kind]]
+        # Sessions that nginx routes to the victim (REST by path, gRPC by x-session-id), plus one idle session
+        # there, so that the batcher holds the in-flight acts (it stops waiting once every session it has seen
+        # has an act queued).
+        sessions = {}
+        padding = None
+        for _ in range(40):
+            if len(sessions) == 2 and padding is not None:
+                break
+            kind = "rest" if "rest" not in sessions else "grpc" if "grpc" not in sessions else "padding"
+            client = stream_client if kind == "grpc" else rest
+            s = client.create_session(MODEL, 1, seed=seeds.get(kind, 0))
+            where = grpc_replica(stub, s.id) if kind == "grpc" else rest_replica(http, s.id)
+            if where != victim:
+                s.close()
+            elif kind == "padding":
+                padding = s
+            else:
+                sessions[kind] = s
+        assert len(sessions) == 2 and padding is not None, "no session was routed to the victim"
+
+        barrier = threading.Barrier(3)
+        got = {k: [] for k in sessions}
+        timings, errors = [], []
+        threads = [
+            threading.Thread(target=_episode, args=(s, obs[k], barrier, timings, got[k], errors), name=k)
+            for k, s in sessions.items()
+        ]
+        for t in threads:
+            t.start()
+        barrier.wait(30)
+        sleep(KILL_AFTER_S)  # both acts of step KILL_AT are now held in the victim's batcher
+        victim_pid = running.pids[victim]
+        os.kill(victim_pid, signal.SIGKILL)
+        for t in threads:
+            t.join(60)
+        assert not errors, errors
+        assert not cluster._alive(victim_pid)
+
+        for kind in sessions:
+            assert [r.step for r in got[kind]] == list(range(STEPS)), kind
+            for t, (g, w) in enumerate(zip(got[kind], want[kind], strict=True)):
+                np.testing.assert_array_equal(g.action, w, err_msg=f"{kind} step {t}")
+        assert min(timings) > KILL_AFTER_S  # each act of step KILL_AT was waiting when the victim died
+        assert set(backoffs) == {
+            "rest",
+            "grpc",
+        }  # both clients retried (502; reset stream), a few times at most
+        assert all(1 <= len(v) <= 4 for v in backoffs.values()), backoffs
+        assert len({tuple(a.action) for a in got["rest"]}) == STEPS  # sampled: the seeds mattered
+
+        # REST: the act in flight came back from nginx as a 502 (the victim died holding it); the client sent
+        # it again, with its step, and the survivor answered it and every later one.
+        acts = [(status, by) for path, status, by in recorder.answers if path.endswith("/act")]
+        rest_acts = acts[-(STEPS + 1) :]
+        assert rest_acts[: KILL_AT + 1] == [(200, victim)] * KILL_AT + [(502, "nginx")]
+        assert rest_acts[KILL_AT + 1 :] == [(200, survivor)] * (STEPS - KILL_AT)
+        # No session lost: both are where their episodes left them, now on the survivor.
+        for kind, s in sessions.items():
+            assert rest.get_session(s.id).step == STEPS
+            where = grpc_replica(stub, s.id) if kind == "grpc" else rest_replica(http, s.id)
+            assert where == survivor
+            s.close()
+        padding.close()
+
+
+@needs_programs
+def test_cluster_down_stops_exactly_its_processes(running):
+    pids = dict(running.pids)
+    outcome = cluster.down(running.run_dir, timeout_s=10, quiet=True)
+    assert outcome == {"nginx": "stopped", "gmt-1": "not running", "gmt-2": "stopped", "redis": "stopped"}
+    assert not list(running.run_dir.glob("*.pid"))
+    assert not any(cluster._alive(pid) for pid in pids.values())
+    assert (running.run_dir / "redis" / "appendonlydir").is_dir()  # Redis kept an AOF
+    assert cluster.down(running.run_dir, quiet=True) == {}
