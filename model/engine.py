@@ -450,6 +450,13 @@ class PolicyEngine(PolicyRuntime):
             # whose last bit differs from the batched GEMM, and batched == unbatched must hold exactly.
             two = [np.repeat(x, 2, axis=0) for x in (slots, t, g, goal, w, states)]
             return self._predict_incremental(*two)[:1]
+        if (
+            np.diff(slots) < 0
+        ).any():  # rows in slot order: consecutive slots are read from the cache as views
+            order = np.argsort(slots, kind="stable")
+            sorted_rows = [x[order] for x in (slots, t, g, goal, w, states)]
+            out = self._predict_incremental(*sorted_rows)
+            return out[torch.from_numpy(np.argsort(order))]
         p = self.pool
         prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
         prev[t == 0] = 0

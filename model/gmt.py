@@ -65,7 +65,19 @@ class CausalSelfAttention(nn.Module):
         rows = slots[:, None].expand_as(pos)  # [B, n]
         k_cache[rows, pos] = k
         v_cache[rows, pos] = v
-        return self._attend(q, k_cache[slots], v_cache[slots], attn_mask)  # keys, values [B, W, C]
+        first = int(slots[0])
+        if (
+            slots.shape[0] > 1
+            and int(slots[-1]) - first == slots.shape[0] - 1
+            and bool((slots.diff() == 1).all())
+        ):
+            keys, values = (
+                k_cache[first : first + slots.shape[0]],
+                v_cache[first : first + slots.shape[0]],
+            )  # views
+        else:
+            keys, values = k_cache[slots], v_cache[slots]  # [B, W, C] gathered copies
+        return self._attend(q, keys, values, attn_mask)
 
 
 class Block(nn.Module):
