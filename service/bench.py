@@ -103,7 +103,7 @@ def start_server(checkpoint: Path, naive: bool, max_batch: int = 256) -> tuple[s
     """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record)."""
     exe = Path(sys.executable).parent / "gmt"
     args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
-    args += ["--log-level", "WARNING", "--max-batch", str(max_batch), "--max-sessions", "4096"]
+    args += ["--log-level", "INFO", "--max-batch", str(max_batch), "--max-sessions", "4096"]
     args += ["--naive"] if naive else []
     env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
     env["GMT_LOG_LEVEL"] = "INFO"
@@ -148,7 +148,7 @@ def wrk(url: str, script: str, connections: int, seconds: float) -> dict:
                 "-c",
                 str(connections),
                 "-d",
-                f"{seconds}s",
+                f"{max(1, round(seconds))}s",  # wrk takes whole seconds
                 "--timeout",
                 "10s",
                 "-s",

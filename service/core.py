@@ -11,6 +11,7 @@ import uuid
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +27,12 @@ from service.sessions import Clock, MemorySessionStore, Session, SessionStore
 from service.settings import Settings
 
 log = logging.getLogger("gmt.core")
+
+
+def short_id(sid: str) -> str:
+    """A session id as logs show it: its first 8 characters (a whole id is a bearer of the session)."""
+    return sid[:8] + "..." if len(sid) > 8 else sid
+
 
 MAX_BLEND_STEPS = 100_000
 GoalRef = int | str | None
@@ -188,7 +195,9 @@ class Core:
             reason = "starting"
         elif not reg.models:
             reason = "no model loaded"
-        return {"ready": reason is None, "reason": reason, "models": sorted(reg.models), "errors": reg.errors}
+        # Load errors by checkpoint name: readiness is public and must not reveal file paths.
+        errors = {Path(k).name: v.replace(k, Path(k).name) for k, v in reg.errors.items()}
+        return {"ready": reason is None, "reason": reason, "models": sorted(reg.models), "errors": errors}
 
     async def _sweep_forever(self) -> None:
         period = min(max(self.settings.idle_timeout_s / 2, 0.05), 30.0)
@@ -204,7 +213,7 @@ class Core:
         gone = await self.store.sweep()
         for s in gone:
             self._dropped(s.id, s.model)
-            log.info("session expired", extra={"session_id": s.id, "model": s.model})
+            log.info("session expired", extra={"session": short_id(s.id), "model": s.model})
         self.metrics.sessions_expired.inc(len(gone))
         self.metrics.live_sessions.set(await self.store.count())
         return len(gone)
@@ -354,7 +363,7 @@ class Core:
             raise
         self.metrics.sessions_created.labels(m.name).inc()
         self.metrics.live_sessions.set(await self.store.count())
-        log.info("session created", extra={"session_id": s.id, "model": m.name, "goal": g})
+        log.info("session created", extra={"session": short_id(s.id), "model": m.name, "goal": g})
         return self._view_session(s)
 
     async def get_session(self, sid: str) -> SessionView:
@@ -531,7 +540,7 @@ class Core:
             m.engine.set_goal(ctx, g, blend_steps)
             s.last_used = self.clock()
             await self._save(m, s, version)
-            log.info("goal set", extra={"session_id": sid, "goal": g, "blend_steps": blend_steps})
+            log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})
             return self._view_session(s)
 
     async def reset(self, sid: str, goal: GoalRef = None, target: float | None = None) -> SessionView:
@@ -558,4 +567,4 @@ class Core:
         async with self._lock(sid):
             await self.store.delete(sid)
         self.metrics.live_sessions.set(await self.store.count())
-        log.info("session closed", extra={"session_id": sid})
+        log.info("session closed", extra={"session": short_id(sid)})

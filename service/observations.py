@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -25,6 +26,7 @@ DTYPES = (
     "float64",
 )
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+MAX_DIMS = 8
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 
 
@@ -59,10 +61,14 @@ def decode_tensor(data: bytes, dtype: str, shape: Sequence[int]) -> np.ndarray:
     if dtype not in DTYPES:
         raise InvalidArgument(f"observation dtype {dtype!r} is not supported; use one of {', '.join(DTYPES)}")
     dims = [int(s) for s in shape]
+    if len(dims) > MAX_DIMS:
+        raise InvalidArgument(
+            f"observation shape has {len(dims)} dimensions; at most {MAX_DIMS} are accepted"
+        )
     if any(s < 0 for s in dims):
         raise InvalidArgument(f"observation shape {dims} has a negative dimension")
     dt = np.dtype(dtype).newbyteorder("<")
-    need = int(np.prod(dims)) * dt.itemsize
+    need = math.prod(dims) * dt.itemsize  # Python ints: a huge shape cannot overflow into a small number
     if need != len(data):
         raise InvalidArgument(f"observation data has {len(data)} bytes; shape {dims} of {dtype} needs {need}")
     return np.frombuffer(data, dtype=dt).reshape(dims)

@@ -24,6 +24,12 @@ ERRORS = {
     404: {"model": S.ErrorOut, "description": "Unknown or expired model or session"},
 }
 
+
+def session_header(sid: str | None) -> dict:
+    """`X-Session-Id` for a response, when the id can be a header value (printable ASCII); else none."""
+    return {SESSION_HEADER: sid} if sid and sid.isascii() and sid.isprintable() else {}
+
+
 _bearer = HTTPBearer(auto_error=False, description="Required when the server runs with --auth-token.")
 
 
@@ -95,7 +101,7 @@ async def create_session(body: S.CreateSession, core: CoreDep, response: Respons
 @api.get("/sessions/{session_id}", response_model=S.SessionOut, tags=["sessions"])
 async def get_session(session_id: str, core: CoreDep, response: Response) -> S.SessionOut:
     """A session's state (does not reset its idle timer)."""
-    response.headers[SESSION_HEADER] = session_id
+    response.headers.update(session_header(session_id))
     return S.SessionOut.of(await core.get_session(session_id))
 
 
@@ -130,7 +136,7 @@ async def act(session_id: str, request: Request, core: CoreDep) -> Response:
         "goal": r.goal,
         "session_id": r.session_id,
     }
-    return Response(orjson.dumps(out), media_type="application/json", headers={SESSION_HEADER: session_id})
+    return Response(orjson.dumps(out), media_type="application/json", headers=session_header(session_id))
 
 
 @api.post("/act", response_model=S.ActManyOut, response_model_exclude_none=True, tags=["sessions"])
@@ -156,7 +162,7 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
 @api.put("/sessions/{session_id}/goal", response_model=S.SessionOut, tags=["sessions"])
 async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Response) -> S.SessionOut:
     """Change the goal from the next step on, optionally blended over `blend_steps` steps."""
-    response.headers[SESSION_HEADER] = session_id
+    response.headers.update(session_header(session_id))
     return S.SessionOut.of(await core.set_goal(session_id, body.goal, body.target, body.blend_steps))
 
 
@@ -166,7 +172,7 @@ async def reset_session(
 ) -> S.SessionOut:
     """Start a new episode, keeping the goal unless one is given."""
     body = body or S.ResetSession()
-    response.headers[SESSION_HEADER] = session_id
+    response.headers.update(session_header(session_id))
     return S.SessionOut.of(await core.reset(session_id, body.goal, body.target))
 
 
@@ -174,4 +180,4 @@ async def reset_session(
 async def close_session(session_id: str, core: CoreDep) -> Response:
     """Close the session."""
     await core.close_session(session_id)
-    return Response(status_code=204, headers={SESSION_HEADER: session_id})
+    return Response(status_code=204, headers=session_header(session_id))

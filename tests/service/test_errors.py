@@ -94,6 +94,17 @@ ACT_BODIES = [
         "observation.shape.0: Input should be a valid integer",
     ),
     ("bad JSON", '{"observation": [1,', "request body is not valid JSON"),
+    (
+        "tensor shape overflow",
+        obs_json({"data": "", "dtype": "float32", "shape": [4294967296, 4294967296]}),
+        "observation data has 0 bytes; shape [4294967296, 4294967296] of float32 needs",
+    ),
+    (
+        "tensor 65 dimensions",
+        obs_json({"data": "", "dtype": "float32", "shape": [1] * 65}),
+        "observation shape has 65 dimensions; at most 8 are accepted",
+    ),
+    ("deep JSON", '{"observation": ' + "[" * 30_000 + "]" * 30_000 + "}", "request body is not valid JSON"),
 ]
 
 
@@ -251,6 +262,14 @@ def test_rest_body_too_large_without_content_length(http, rest_twins):
             "session 'nope' not found (never created, or closed)",
         ),
         ("GET", "/sessions/nope", None, 404, "not_found", "session 'nope' not found"),
+        (
+            "POST",
+            "/sessions/s\u00e9ance-\u4f1a\u8bdd/act",
+            {"observation": [0.0] * N},
+            404,
+            "not_found",
+            "session 's\u00e9ance-\u4f1a\u8bdd' not found",
+        ),
         ("PUT", "/sessions/nope/goal", {"goal": 0}, 404, "not_found", "session 'nope' not found"),
         ("POST", "/sessions/nope/reset", None, 404, "not_found", "session 'nope' not found"),
         ("DELETE", "/sessions/nope", None, 404, "not_found", "session 'nope' not found"),
