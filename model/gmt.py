@@ -55,26 +55,20 @@ class CausalSelfAttention(nn.Module):
         v_cache: torch.Tensor,
         slots: torch.Tensor,
         pos: torch.Tensor,
+        view: slice | None = None,
     ) -> torch.Tensor:
         """Attend from new tokens `x` [B, n, C] over the cached tokens of their slots.
 
         The new keys and values are first written to ring positions `pos` [B, n] of `slots` [B] in the
         caches [n_slots, W, C]; `attn_mask` [B, 1, n, W] says which ring positions each new token sees.
+        `view` is the same slots as a slice when they are consecutive: the caches are then read without a copy.
         """
         q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, n, C]
         rows = slots[:, None].expand_as(pos)  # [B, n]
         k_cache[rows, pos] = k
         v_cache[rows, pos] = v
-        first = int(slots[0])
-        if (
-            slots.shape[0] > 1
-            and int(slots[-1]) - first == slots.shape[0] - 1
-            and bool((slots.diff() == 1).all())
-        ):
-            keys, values = (
-                k_cache[first : first + slots.shape[0]],
-                v_cache[first : first + slots.shape[0]],
-            )  # views
+        if view is not None:
+            keys, values = k_cache[view], v_cache[view]  # [B, W, C] views
         else:
             keys, values = k_cache[slots], v_cache[slots]  # [B, W, C] gathered copies
         return self._attend(q, keys, values, attn_mask)
@@ -101,10 +95,10 @@ class Block(nn.Module):
         return self.out(F.gelu(self.fc(self.ln2(x)), approximate="tanh"))
 
     def forward_cached(
-        self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos
+        self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos, view=None
     ) -> torch.Tensor:
         """`forward` for new tokens attending over a key/value cache (see `CausalSelfAttention.forward_cached`)."""
-        x = x + self.attn.forward_cached(self.ln1(x), attn_mask, k_cache, v_cache, slots, pos)
+        x = x + self.attn.forward_cached(self.ln1(x), attn_mask, k_cache, v_cache, slots, pos, view)
         return x + self.mlp(x)
 
 
@@ -303,8 +297,11 @@ class GMT(nn.Module):
         )
         see |= torch.arange(W)[None, None, :] == pos[:, :, None]  # every token sees itself: no empty row
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
+        B, first = slots.shape[0], int(slots[0])
+        consecutive = B > 1 and bool((slots == torch.arange(first, first + B)).all())
+        view = slice(first, first + B) if consecutive else None
         for layer, block in enumerate(self.blocks):
-            x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos)
+            x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos, view)
         return self._action_head(self.ln_f(x))[
             :, 2
         ]  # [B, act_dim] from the state token (3 rows: see forward)

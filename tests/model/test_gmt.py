@@ -116,3 +116,23 @@ def test_trajectory_masking_masks_whole_windows():
 def test_no_masking_is_identity():
     goals, _, out = _masks("none", 0.5)
     assert torch.equal(goals, out)
+
+
+def test_window_attention_sees_exactly_the_last_K_timesteps():
+    torch.manual_seed(0)
+    K, T = 3, 8
+    window = {"obs_shape": (5,), "act_dim": 2, "discrete_actions": False, "n_goals": 3, "context_length": K}
+    model = GMT(
+        GMTConfig(**window, n_layer=1, n_embd=32, attention="window")
+    ).eval()  # one layer: span = K steps
+    goals, states, actions, ts, valid = _batch(T=T)
+    a0, _ = model(goals, states, actions, ts, valid)
+    far, near = states.clone(), states.clone()
+    far[:, T - 1 - K] += 5.0  # K steps before the last one: outside its span
+    near[:, T - K] += 5.0  # the oldest step inside it
+    a_far, _ = model(goals, far, actions, ts, valid)
+    a_near, _ = model(goals, near, actions, ts, valid)
+    assert torch.equal(a0[:, -1], a_far[:, -1])
+    assert not torch.allclose(a0[:, -1], a_near[:, -1])
+    assert model.cfg.history_steps == K  # one layer: receptive field n_layer * (K - 1) + 1
+    assert GMTConfig(**window, n_layer=3, attention="window").history_steps == 3 * (K - 1) + 1

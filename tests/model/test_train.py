@@ -123,3 +123,25 @@ def test_loading_refuses_pickle(tmp_path):
 def test_missing_files_give_clear_errors(tmp_path):
     with pytest.raises(CheckpointError, match="has no model.safetensors"):
         load_checkpoint(tmp_path)
+
+
+def test_window_model_trains_on_longer_sequences_and_records_its_span(tmp_path):
+    ds = SyntheticDataset()
+    window = {**SMALL, "attention": "window"}
+    cfg = model_config_for(ds, 3, **window)
+    assert _tc().sequence_steps(cfg) == 2 * cfg.context_length  # the window default: 2K
+    with pytest.raises(ValueError, match="exactly K"):
+        _tc(sequence_length=9).sequence_steps(model_config_for(ds, 3, **SMALL))
+    from model.gmt import GMT
+
+    torch.manual_seed(0)
+    untrained = type("C", (), {"model": GMT(cfg).eval(), "config": cfg})()
+    before = _eval_loss(untrained, ds)
+    ckpt = train(ds, ds.labels, ds.goals, tmp_path / "w", _tc(steps=150), window, progress=False)
+    assert _eval_loss(ckpt, ds) < 0.6 * before
+    meta = json.loads((tmp_path / "w" / "gmt.json").read_text())
+    assert meta["model"]["attention"] == "window" and meta["training"]["sequence_length"] == 0
+    assert load_checkpoint(tmp_path / "w").config.attention == "window"
+    del meta["model"]["attention"]  # a checkpoint written before the field existed reads as full
+    (tmp_path / "w" / "gmt.json").write_text(json.dumps(meta))
+    assert load_checkpoint(tmp_path / "w").config.attention == "full"
