@@ -403,11 +403,7 @@ class Core:
         """
         self._check_serving()
         async with self._lock(sid):
-            s = await self.store.get(sid)
-            m = self._model_of(s)
-            x = self.validate_observation(m, observation)
-            ctx = self._live(m, s)
-            repeat = self._repeat(m, sid, ctx, step)
+            s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
             if repeat is not None:
                 return repeat
             step, goal, version = ctx.step, ctx.goal, ctx.version
@@ -418,6 +414,14 @@ class Core:
             s.last_used = self.clock()
             await self._save(m, s, version)
         return self._result(m, sid, action, step, goal)
+
+    async def _prepare(self, sid: str, observation: object, step: int | None):
+        """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
+        s = await self.store.get(sid)
+        m = self._model_of(s)
+        x = self.validate_observation(m, observation)
+        ctx = self._live(m, s)
+        return s, m, ctx, x, self._repeat(m, sid, ctx, step)
 
     def _repeat(self, m: LoadedModel, sid: str, ctx: Context, step: int | None) -> ActResult | None:
         """None when an act for `step` should run; the last answer when it repeats the last answered step.
@@ -466,11 +470,7 @@ class Core:
                 sid, observation, step = (*items[i], None)[:3]
                 await stack.enter_async_context(self._lock(sid))
                 try:
-                    s = await self.store.get(sid)
-                    m = self._model_of(s)
-                    x = self.validate_observation(m, observation)
-                    ctx = self._live(m, s)
-                    repeat = self._repeat(m, sid, ctx, step)
+                    s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
                     if repeat is not None:
                         out[i] = repeat
                         continue
