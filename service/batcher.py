@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import time
 from collections.abc import Callable
 from concurrent.futures import Executor
@@ -18,6 +19,9 @@ import numpy as np
 
 from model.context import Context
 from model.runtime import PolicyRuntime
+from service.errors import Unavailable
+
+log = logging.getLogger("gmt.batcher")
 
 
 @dataclass
@@ -62,8 +66,31 @@ class MicroBatcher:
         self._groups = 0
 
     def start(self) -> None:
-        """Start the batching task on the running loop."""
-        self._task = asyncio.get_running_loop().create_task(self._run(), name="micro-batcher")
+        """Start the (supervised) batching task on the running loop."""
+        self.restarts = 0
+        self._task = asyncio.get_running_loop().create_task(self._supervise(), name="micro-batcher")
+
+    @property
+    def healthy(self) -> bool:
+        """Whether the batching task runs."""
+        return self._task is not None and not self._task.done()
+
+    async def _supervise(self) -> None:
+        """Run the batching loop; if it ever crashes, fail only the calls it held (`Unavailable`) and restart."""
+        while True:
+            try:
+                await self._run()
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # noqa: BLE001 - a bug in the loop must not strand its callers
+                log.exception("batcher crashed; restarting")
+                self.restarts += 1
+                gone = Unavailable(f"the batcher failed ({type(e).__name__}); retry the request")
+                for item in [*self._running, *self._pending]:
+                    if not item.future.done():
+                        item.future.set_exception(gone)
+                self._running = []
+                self._pending.clear()
 
     async def close(self) -> None:
         """Stop batching; queued requests are cancelled."""

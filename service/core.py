@@ -195,6 +195,8 @@ class Core:
             reason = "starting"
         elif not reg.models:
             reason = "no model loaded"
+        elif not all(b.healthy for b in self._batchers.values()):
+            reason = "a batcher is not running"
         # Load errors by checkpoint name: readiness is public and must not reveal file paths.
         errors = {Path(k).name: v.replace(k, Path(k).name) for k, v in reg.errors.items()}
         return {"ready": reason is None, "reason": reason, "models": sorted(reg.models), "errors": errors}

@@ -137,6 +137,37 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
+class AuthFirst:
+    """With auth on, refuses a request without the right bearer token before anything reads its body.
+
+    Health checks and the API docs stay open; every other path (unknown ones included) needs the token.
+    """
+
+    OPEN = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+
+    def __init__(self, app: ASGIApp, token: str | None) -> None:
+        self.app = app
+        self.token = None if token is None else token.encode()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
+            return await self.app(scope, receive, send)
+        auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
+        if auth is None or not auth.startswith(b"Bearer "):
+            e = Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
+        elif not secrets.compare_digest(auth[7:].strip(), self.token):
+            e = Unauthenticated("invalid bearer token")
+        else:
+            return await self.app(scope, receive, send)
+        headers = {"WWW-Authenticate": "Bearer", **session_header(_path_session(scope.get("path", "")))}
+        await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
+
+
+def _path_session(path: str) -> str | None:
+    parts = path.split("/")
+    return unquote(parts[2]) if len(parts) > 2 and parts[1] == "sessions" and parts[2] else None
+
+
 class ServedBy:
     """Adds `X-Served-By: <replica id>` to every HTTP response, errors and unknown routes included.
 
@@ -255,7 +286,8 @@ class _App(FastAPI):
     settings: Settings | None = None
 
     def build_middleware_stack(self) -> ASGIApp:
-        return ServedBy(FastAct(super().build_middleware_stack(), self.settings), self.replica_id)
+        inner = FastAct(super().build_middleware_stack(), self.settings)
+        return ServedBy(AuthFirst(inner, self.settings.token), self.replica_id)
 
 
 class RequestMetrics:

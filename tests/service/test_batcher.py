@@ -138,3 +138,30 @@ def test_a_failing_forward_fails_its_batch_only(pool):
         return out
 
     assert run(main()) == 2
+
+
+def test_a_crashed_batcher_fails_its_calls_as_unavailable_and_restarts(pool):
+    from service.errors import Unavailable
+
+    engine = RecordingEngine()
+
+    async def main():
+        b = MicroBatcher(engine, pool, max_batch=4, max_wait_s=0.0)
+        b.start()
+        real_gather = b._gather
+        crashes = [RuntimeError("bug in the batching loop")]
+
+        async def gather_once_broken():
+            if crashes:
+                raise crashes.pop()
+            await real_gather()
+
+        b._gather = gather_once_broken
+        with pytest.raises(Unavailable, match="the batcher failed \\(RuntimeError\\); retry"):
+            await b.act(None, 1)
+        assert b.healthy and b.restarts == 1
+        assert await b.act(None, 2) == 2  # the restarted loop serves the next call
+        await b.close()
+        assert not b.healthy
+
+    run(main())

@@ -47,13 +47,15 @@ def test_rest_answers_carry_x_served_by(replica):
             http.get("/readyz"),
             http.get("/models", headers=auth),
             http.get("/models"),  # 401
-            http.get("/no/such/route"),  # 404
+            http.get("/no/such/route", headers=auth),  # 404
             http.post("/sessions", content=b"{", headers={**auth, "Content-Type": "application/json"}),  # 400
             http.post("/sessions", content=b"x" * 5000, headers=auth),  # 413
             http.get("/sessions/missing", headers=auth),  # 404 of the service
             http.delete("/healthz"),  # 405
+            http.post("/sessions", content=b"x" * 5000),  # 401: auth is checked before the body is read
+            http.get("/no/such/route"),  # 401: without the token no route is revealed
         ]
-    assert [r.status_code for r in answers] == [200, 200, 200, 401, 404, 400, 413, 404, 405]
+    assert [r.status_code for r in answers] == [200, 200, 200, 401, 404, 400, 413, 404, 405, 401, 401]
     assert [r.headers.get("x-served-by") for r in answers] == ["r-7"] * len(answers)
 
 
