@@ -328,6 +328,50 @@ def bench_serving(
     return out
 
 
+# ----- cluster ----------------------------------------------------------------------------------------------
+def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0) -> dict:
+    """REST load through nginx onto two replicas sharing Redis (`gmt cluster`): errors, latency, memory.
+
+    Memory: each replica's RSS after start, with `sessions` live sessions after the load, after they all
+    closed, and after a second wave of as many sessions acted again (slots are reused, so it should not grow).
+    """
+    from service import cluster
+
+    run_dir = Path(tempfile.mkdtemp(prefix="gmt-cluster-"))
+    c = cluster.up(
+        run_dir, rest_port=0, grpc_port=0, checkpoints=[checkpoint], serve_args=["--max-sessions", "4096"]
+    )
+    try:
+        pids = {r.name: r.pid for r in c.replicas}
+        rss = lambda: {n: rss_bytes(p) for n, p in pids.items()}  # noqa: E731
+        import httpx
+
+        model = httpx.get(f"{c.rest_url}/models", timeout=30).json()["models"][0]["name"]
+        base = rss()
+        sids = _sessions(c.rest_url, model, sessions)
+        load = bench_rest(c.rest_url, sids, seconds)
+        peak = rss()
+        _close(c.rest_url, sids)
+        closed = rss()
+        again = _sessions(c.rest_url, model, sessions)
+        second = bench_rest(c.rest_url, again, min(seconds, 10.0))
+        reused = rss()
+        _close(c.rest_url, again)
+    finally:
+        cluster.down(run_dir, quiet=True)
+        shutil.rmtree(run_dir, ignore_errors=True)
+    total = lambda d: sum(d.values())  # noqa: E731
+    return {
+        "sessions": sessions,
+        "seconds": seconds,
+        "load": load,
+        "second_wave": second,
+        "rss_bytes": {"started": base, "live": peak, "closed": closed, "second_wave": reused},
+        "rss_per_live_session_bytes": (total(peak) - total(base)) // sessions,
+        "rss_growth_second_wave_bytes": total(reused) - total(peak),
+    }
+
+
 # ----- training ---------------------------------------------------------------------------------------------
 def gemm_gflops(dtype) -> float:
     """Measured matrix-product rate of one thread (1024 x 1024 x 1024)."""
@@ -400,6 +444,13 @@ def machine() -> dict:
     return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "platform": platform.platform()}
 
 
+def _default(tmp: Path) -> Path:
+    d = tmp / "bench-gmt"
+    if not d.exists():
+        default_size_checkpoint(d)
+    return d
+
+
 def run(
     checkpoint: Path | None, sections: tuple[str, ...], seconds: float, sessions: tuple[int, ...] = SESSIONS
 ) -> dict:
@@ -410,13 +461,15 @@ def run(
         if "engine" in sections:
             result["engine"] = bench_engine()
         if "serving" in sections:
-            if checkpoint is None:
-                checkpoint = tmp / "bench-gmt"
-                default_size_checkpoint(checkpoint)
+            checkpoint = checkpoint or _default(tmp)
             if shutil.which("wrk") is None:
                 result["serving"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
             else:
                 result["serving"] = bench_serving(checkpoint, sessions, seconds)
+        if "cluster" in sections:
+            result["cluster"] = bench_cluster(
+                checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
+            )
         if "training" in sections:
             result["training"] = bench_training()
         if "alternatives" in sections:

@@ -1,6 +1,7 @@
 """`gmt serve --naive` is the exactness oracle of the default server; `gmt bench` measures what it says."""
 
 import shutil
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
 from model.fixtures import tiny_checkpoint
-from service.bench import bench_engine, bench_serving
+from service.bench import bench_cluster, bench_engine, bench_serving
 
 
 @pytest.fixture(scope="module")
@@ -71,3 +72,17 @@ def test_serving_section_drives_every_transport_without_errors(window_ckpt):
         for r in rows:
             assert r["errors"] == 0 and r["acts_per_s"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"], (transport, r)
     assert res["memory"]["rss_per_session_bytes"] >= 0
+
+
+@pytest.mark.skipif(
+    any(
+        shutil.which(p) is None and not Path("/usr/sbin", p).exists()
+        for p in ("wrk", "nginx", "redis-server")
+    ),
+    reason="needs wrk, nginx and redis-server (apt-get install wrk nginx redis-server)",
+)
+def test_cluster_section_loads_two_replicas_through_nginx_without_errors(window_ckpt):
+    res = bench_cluster(window_ckpt, sessions=4, seconds=1.0)
+    for wave in (res["load"], res["second_wave"]):
+        assert wave["errors"] == 0 and wave["acts_per_s"] > 0, wave
+    assert set(res["rss_bytes"]["live"]) == {"gmt-1", "gmt-2"}
