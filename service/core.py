@@ -363,6 +363,11 @@ class Core:
         except BaseException:
             m.engine.forget(sid)
             raise
+        if not isinstance(self.store, MemorySessionStore):
+            # A shared store holds the truth, and a proxy routes the session's acts by its id, usually to another
+            # replica: keep no slot here until this replica is asked to act for it.
+            s.ctx = s.ctx.to_stored()
+            m.engine.forget(sid)
         self.metrics.sessions_created.labels(m.name).inc()
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session created", extra={"session": short_id(s.id), "model": m.name, "goal": g})

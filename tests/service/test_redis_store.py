@@ -208,3 +208,17 @@ def test_replica_dies_and_another_answers_exactly_as_it_would_have(redis_clean, 
             }
     finally:
         c.stop()
+
+
+def test_with_a_shared_store_a_replica_holds_a_slot_only_for_sessions_it_acts_for(redis_clean, ckpt_root):
+    s = RunningServer(make_settings(checkpoints=[ckpt_root], redis_url=redis_clean)).start()
+    try:
+        pool = s.core.registry.get("tiny-gmt").engine.pool
+        with httpx.Client(base_url=s.url) as http:
+            sid = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).json()["session_id"]
+            assert pool.live == 0  # creating it stored it; a proxy may route its acts to another replica
+            r = http.post(f"/sessions/{sid}/act", json={"observation": [0.0] * 17})
+            assert r.status_code == 200 and pool.live == 1
+            assert http.delete(f"/sessions/{sid}").status_code == 204 and pool.live == 0
+    finally:
+        s.stop()
