@@ -19,9 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated
-from service.observations import decode_base64, decode_tensor
-from service.rest import schemas as S
-from service.rest.routes import api, public, session_header
+from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
 
 log = logging.getLogger("gmt.rest")
@@ -194,8 +192,8 @@ class ServedBy:
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
-    The same contract as the documented route in `routes.py` (auth, body limit, validation messages, error
-    envelope, `X-Session-Id`, request metrics; `ServedBy` still wraps it) at a fraction of the per-request
+    The same contract as the documented route in `routes.py` (body limit, validation messages, error envelope,
+    `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
     cost: measured, FastAPI's stack was most of the server's time per act under load. Any other request passes
     through untouched.
     """
@@ -205,8 +203,6 @@ class FastAct:
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
         self.limit = settings.max_request_bytes
-        token = settings.token
-        self.token = None if token is None else token.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         m = self._PATH.match(scope.get("path", "")) if scope["type"] == "http" else None
@@ -225,36 +221,23 @@ class FastAct:
     async def _answer(self, core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
         session = session_header(sid)
         try:
-            if self.token is not None:
-                auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
-                if auth is None or not auth.startswith(b"Bearer "):
-                    raise Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
-                if not secrets.compare_digest(auth[7:].strip(), self.token):
-                    raise Unauthenticated("invalid bearer token")
             raw = await self._body(scope, receive)
             if raw is None:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
             try:
-                act = S.Act.model_validate_json(raw)
+                return 200, await act_answer(core, sid, raw), session
             except ValidationError as e:
-                msg = validation_message(e.errors(include_url=False))
-                return 400, _error_body("invalid_argument", msg), session
-            obs = act.observation
-            if isinstance(obs, S.Tensor):
-                obs = decode_tensor(decode_base64(obs.data), obs.dtype, obs.shape)
-            r = await core.act(sid, obs, act.step)
+                return (
+                    400,
+                    _error_body("invalid_argument", validation_message(e.errors(include_url=False))),
+                    session,
+                )
         except ServiceError as e:
-            headers = dict(session)
-            if e.http_status == 401:
-                headers["WWW-Authenticate"] = "Bearer"
-            return e.http_status, _error_body(e.code, e.message), headers
+            return e.http_status, _error_body(e.code, e.message), session
         except Exception as e:  # noqa: BLE001 - the error envelope, never a dropped connection
             log.exception("unhandled error", extra={"path": scope.get("path")})
             return 500, _error_body("internal", f"internal error: {type(e).__name__}"), {}
-        action = r.action if r.action is not None else r.discrete_action
-        out = {"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id}
-        return 200, orjson.dumps(out), session
 
     async def _body(self, scope: Scope, receive: Receive) -> bytes | None:
         """The whole body, or None once it exceeds the limit."""
