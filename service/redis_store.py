@@ -61,7 +61,10 @@ class RedisSessionStore(SessionStore):
         self._errors = (aioredis.RedisError, OSError)
         # A bounded pool that makes callers wait for a free connection: the default pool answers "Too many
         # connections" once 100 requests are in flight (seen at 256 concurrent sessions through nginx).
-        pool = aioredis.BlockingConnectionPool.from_url(url, max_connections=64, timeout=10)
+        # Socket timeouts bound a call to a paused or unreachable Redis: it answers `unavailable` (retryable).
+        pool = aioredis.BlockingConnectionPool.from_url(
+            url, max_connections=64, timeout=10, socket_timeout=5, socket_connect_timeout=5
+        )
         self.redis = aioredis.Redis(connection_pool=pool)
         self.prefix = prefix
         self._live = f"{prefix}live"
