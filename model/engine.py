@@ -29,7 +29,6 @@ __all__ = ["InvalidObservation", "PolicyEngine", "SessionPool", "StepFailed"]
 
 ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions, default first
 CONTINUOUS_MODES = ("sample", "mean")  # continuous actions of a calibrated checkpoint, default first
-DETERMINISTIC_MODES = ("argmax", "mean")
 MODES = ("argmax", "sample", "expert", "mean")  # index stored per slot
 # Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
 # with small noise (HalfCheetah: ~0.05) and sampling it reproduces their statistics; a uniform-random level's
@@ -122,13 +121,6 @@ class SessionPool:
         """Return a slot to the free list."""
         self.free.append(slot)
 
-    def bytes_per_slot(self) -> int:
-        """Memory one session's slot takes (history, scalars and cache)."""
-        n = sum(getattr(self, name).nbytes for name in self._layout) // self.n_slots
-        if self.cache is not None:
-            n += (self.cache.k.nbytes + self.cache.v.nbytes + self.cache.tok.nbytes) // self.n_slots
-        return n
-
 
 class PolicyEngine(PolicyRuntime):
     """Answers batches of (context, observation) with actions; owns one loaded checkpoint.
@@ -169,7 +161,6 @@ class PolicyEngine(PolicyRuntime):
             action_modes=self.action_modes,
             history_steps=self.pool.H,
             path="incremental" if self.incremental else "recompute",
-            batching=True,
         )
 
     @property
@@ -230,11 +221,6 @@ class PolicyEngine(PolicyRuntime):
         slot = self.pool.keys.get(key)
         if slot is not None:
             self.release(Context(self.pool, slot, key))
-
-    def handle(self, key: str) -> Context | None:
-        """The live context registered under `key`, if this engine holds one."""
-        slot = self.pool.keys.get(key)
-        return None if slot is None else Context(self.pool, slot, key)
 
     def last_answer(self, ctx: Context) -> tuple[np.ndarray | int, int]:
         p, s = self.pool, ctx.slot

@@ -32,13 +32,11 @@ class RuntimeInfo:
         action_modes: Modes a session may choose, the default first.
         history_steps: Steps of history that determine an action (and that a stored context keeps).
         path: `incremental` (key/value cache, newest tokens only) or `recompute` (the reference forward).
-        batching: Whether concurrent acts of many sessions may share one forward pass.
     """
 
     action_modes: tuple[str, ...]
     history_steps: int
     path: str
-    batching: bool
 
 
 class PolicyRuntime(abc.ABC):

@@ -5,7 +5,7 @@ Schema (top level): `machine` {cpu, cores, torch, platform}, `engine`, `serving`
 - `engine`: [{K, path ("incremental" | "recompute"), batch, ms_per_step, acts_per_s}] for a random-weight
   `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread.
 - `serving`: {model, servers: {naive | default: {rest | rest_batch | grpc_unary | grpc_stream: [{sessions,
-  acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {bytes_per_slot, rss_per_session_bytes}}. REST load comes
+  acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
