@@ -311,8 +311,7 @@ class PolicyEngine(PolicyRuntime):
         tok = torch.arange(3 * (t - n), 3 * t)[-keep:]  # [keep] token indices
         ring = tok % cache.width
         for layer, (k, v) in enumerate(kv):
-            cache.k[layer, slot, ring] = k[0, -keep:]
-            cache.v[layer, slot, ring] = v[0, -keep:]
+            cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
         cache.tok[slot, ring] = tok
 
     # ----- observations -------------------------------------------------------------------------------------

@@ -28,17 +28,23 @@ class CausalSelfAttention(nn.Module):
     def _attend(
         self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor
     ) -> torch.Tensor:
+        """Attention of queries `q` [B, Lq, C] over keys and values [B, Lk, C], projected: [B, Lq, C]."""
+        return self._attend_heads(self._heads(q), self._heads(k), self._heads(v), attn_mask)
+
+    def _attend_heads(
+        self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor
+    ) -> torch.Tensor:
+        """`_attend` with q [B, h, Lq, C/h] and k, v [B, h, Lk, C/h] already split into heads."""
         # Explicit attention rather than F.scaled_dot_product_attention: on CPU SDPA's result depends on the
         # batch size in the last bit (batched and unbatched serving must agree exactly), and its backward is
         # 2x slower here.
-        B, Lq, C = q.shape
-        q, k, v = self._heads(q), self._heads(k), self._heads(v)  # [B, h, L, C/h]
-        att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(q.shape[-1]))  # [B, h, Lq, Lk]
+        B, h, Lq, d = q.shape
+        att = (q @ k.transpose(-2, -1)) * (1.0 / math.sqrt(d))  # [B, h, Lq, Lk]
         att = att.masked_fill(~attn_mask, float("-inf")).softmax(dim=-1)
         if self.training and self.dropout > 0:
             att = F.dropout(att, self.dropout)
         y = att @ v  # [B, h, Lq, C/h]
-        return self.proj(y.transpose(1, 2).reshape(B, Lq, C))  # [B, Lq, C]
+        return self.proj(y.transpose(1, 2).reshape(B, Lq, h * d))  # [B, Lq, C]
 
     def forward(self, x: torch.Tensor, attn_mask: torch.Tensor, kv_out: list | None = None) -> torch.Tensor:
         """Attend over `x` [B, L, C]; appends this layer's (keys, values) [B, L, C] to `kv_out` if given."""
@@ -60,18 +66,22 @@ class CausalSelfAttention(nn.Module):
         """Attend from new tokens `x` [B, n, C] over the cached tokens of their slots.
 
         The new keys and values are first written to ring positions `pos` [B, n] of `slots` [B] in the
-        caches [n_slots, W, C]; `attn_mask` [B, 1, n, W] says which ring positions each new token sees.
-        `view` is the same slots as a slice when they are consecutive: the caches are then read without a copy.
+        head-major caches [n_slots, h, W, C/h]; `attn_mask` [B, 1, n, W] says which ring positions each new
+        token sees. `view` is the same slots as a slice when they are consecutive: the caches are then read
+        without a copy.
         """
         q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, n, C]
-        rows = slots[:, None].expand_as(pos)  # [B, n]
-        k_cache[rows, pos] = k
-        v_cache[rows, pos] = v
+        q, k, v = self._heads(q), self._heads(k), self._heads(v)  # 3 x [B, h, n, C/h]
+        B, h, n, _ = k.shape
+        heads = torch.arange(h)[None, :, None]  # [1, h, 1]
+        at = (slots[:, None, None], heads, pos[:, None, :])  # broadcast to [B, h, n]
+        k_cache[at] = k
+        v_cache[at] = v
         if view is not None:
-            keys, values = k_cache[view], v_cache[view]  # [B, W, C] views
+            keys, values = k_cache[view], v_cache[view]  # [B, h, W, C/h] views
         else:
-            keys, values = k_cache[slots], v_cache[slots]  # [B, W, C] gathered copies
-        return self._attend(q, keys, values, attn_mask)
+            keys, values = k_cache[slots], v_cache[slots]  # [B, h, W, C/h] gathered copies
+        return self._attend_heads(q, keys, values, attn_mask)
 
 
 class Block(nn.Module):

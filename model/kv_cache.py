@@ -16,9 +16,12 @@ from model.config import GMTConfig
 class KVCache:
     """A pool of ring buffers, one slot per session.
 
+    Keys and values are stored head-major, so that each (slot, head) is one contiguous [W, C/h] block that the
+    attention product reads without a copy.
+
     Attributes:
-        k: [n_layer, n_slots, W, C] keys.
-        v: [n_layer, n_slots, W, C] values.
+        k: [n_layer, n_slots, n_head, W, C/h] keys.
+        v: [n_layer, n_slots, n_head, W, C/h] values.
         tok: [n_slots, W] token index held at each ring position (-1 = empty).
     """
 
@@ -26,7 +29,7 @@ class KVCache:
         if cfg.attention != "window":
             raise ValueError("a key/value cache is exact only for attention='window' models")
         self.width = 3 * (cfg.context_length + 1)
-        self.k = torch.zeros(cfg.n_layer, n_slots, self.width, cfg.n_embd)
+        self.k = torch.zeros(cfg.n_layer, n_slots, cfg.n_head, self.width, cfg.n_embd // cfg.n_head)
         self.v = torch.zeros_like(self.k)
         self.tok = torch.full((n_slots, self.width), -1, dtype=torch.int64)
 
@@ -40,10 +43,17 @@ class KVCache:
         extra = n_slots - self.n_slots
         if extra <= 0:
             return
-        L, _, W, C = self.k.shape
-        self.k = torch.cat([self.k, torch.zeros(L, extra, W, C)], dim=1)
-        self.v = torch.cat([self.v, torch.zeros(L, extra, W, C)], dim=1)
+        L, _, h, W, d = self.k.shape
+        self.k = torch.cat([self.k, torch.zeros(L, extra, h, W, d)], dim=1)
+        self.v = torch.cat([self.v, torch.zeros(L, extra, h, W, d)], dim=1)
         self.tok = torch.cat([self.tok, torch.full((extra, W), -1, dtype=torch.int64)])
+
+    def write(self, layer: int, slot: int, ring: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> None:
+        """Store keys and values `k`, `v` [n, C] of one slot's tokens at ring positions `ring` [n]."""
+        _, _, h, _, d = self.k.shape
+        n = ring.shape[0]
+        self.k[layer, slot][:, ring] = k.view(n, h, d).transpose(0, 1)  # [h, n, C/h]
+        self.v[layer, slot][:, ring] = v.view(n, h, d).transpose(0, 1)
 
     def clear(self, slots: torch.Tensor) -> None:
         """Forget everything held in `slots` ([B] int64)."""
