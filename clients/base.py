@@ -50,7 +50,7 @@ class GoalInfo:
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """A served model: its environment, spaces (as `model.spaces.space_to_dict` dicts) and goals."""
+    """A served model: its environment, spaces (as `clients.spaces.space_to_dict` dicts) and goals."""
 
     name: str
     env_id: str

@@ -41,9 +41,6 @@ def run_command(
 ) -> None:
     """Drive an agent remotely: send observations, apply actions, report each goal segment."""
     import gymnasium as gym
-    import torch
-
-    torch.set_num_threads(1)
 
     from clients.envs import SpaceMismatch
     from clients.errors import ServiceError

@@ -95,7 +95,7 @@ def make_env(
 
 def check_spaces(spec: ModelInfo, env: gym.Env, env_id: str) -> None:
     """Raise `SpaceMismatch`, naming both sides, when `env`'s spaces differ from the model's."""
-    from model.spaces import space_to_dict, spaces_match
+    from clients.spaces import space_to_dict, spaces_match
 
     problems = []
     for what, model_space, env_space in (

@@ -86,7 +86,7 @@ def _error(e: grpc.RpcError) -> ServiceError:
 
 # ----- messages <-> values ------------------------------------------------------------------------------------
 def space_from_proto(s: pb.Space) -> dict:
-    """A space dict in the shape of `model.spaces.space_to_dict` (infinite or absent bounds are None)."""
+    """A space dict in the shape of `clients.spaces.space_to_dict` (infinite or absent bounds are None)."""
     if s.type == "discrete":
         return {"type": "discrete", "n": int(s.n), "shape": list(s.shape), "dtype": s.dtype or "int64"}
 

@@ -7,18 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.segments import Segment
-
-MOVING_AVERAGE = 50
-
-
-def moving_average(x: Sequence[float], window: int = MOVING_AVERAGE) -> np.ndarray:
-    """Trailing mean over the last `window` values (fewer at the start)."""
-    a = np.asarray(x, dtype=np.float64)
-    c = np.concatenate([[0.0], np.cumsum(a)])
-    n = np.arange(1, len(a) + 1)
-    lo = np.maximum(n - window, 0)
-    return (c[n] - c[lo]) / (n - lo)
+from clients.segments import MOVING_AVERAGE, Segment, moving_average
 
 
 def plot_episode(

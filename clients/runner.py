@@ -8,15 +8,14 @@ changes made by other clients (e.g. `curl -X PUT .../goal`) in the middle of the
 from __future__ import annotations
 
 import sys
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from clients.base import ModelInfo, PolicyClient, Session
-from clients.segments import Segment, measure, table
-from clients.statistic import step_signal
+from clients.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
+from clients.statistics import signal_from_step
 from clients.trace import Trace
 
 if TYPE_CHECKING:
@@ -25,7 +24,6 @@ if TYPE_CHECKING:
     from clients.video import VideoWriter
 
 StepHook = Callable[[int, Session], None]
-STATUS_WINDOW = 50
 
 
 def parse_goal(text: str | int) -> int | str:
@@ -170,7 +168,6 @@ def run_episode(
     """Step one episode; returns its trace and whether the environment terminated early."""
     schedule = dict(cfg.schedule)
     trace = Trace()
-    window: deque[float] = deque(maxlen=STATUS_WINDOW)
     obs, _ = env.reset(seed=seed)
     terminated = False
     try:
@@ -181,17 +178,16 @@ def run_episode(
                 on_step(t, session)
             res = session.act(obs)
             obs, reward, terminated, truncated, info = env.step(res.action)
-            sig = step_signal(spec.statistic, reward, info)
+            sig = signal_from_step(spec.statistic, reward, info)
             trace.append(t, res.step, res.goal, sig, reward, res.action)
             if video is not None:
                 video.append(env.render())
-            window.append(sig)
             if status is not None:
-                g = spec.goal(res.goal)
+                g, recent = spec.goal(res.goal), trace.signal[-MOVING_AVERAGE:]
                 status.update(
                     t,
                     f"step {t:5d}  goal {g.id} ({g.name}, target {g.mean:.2f})  "
-                    f"{spec.statistic} avg{len(window)} {sum(window) / len(window):+.3f}",
+                    f"{spec.statistic} avg{len(recent)} {moving_average(recent)[-1]:+.3f}",
                 )
             if terminated or truncated:
                 break
@@ -271,7 +267,7 @@ def run(
                 finally:
                     files = [video.close()] if video is not None else []
             res = EpisodeResult(
-                ep, seed, session.id, trace, measure(trace.goal, trace.signal, spec), terminated
+                ep, seed, session.id, trace, measure(trace.goal, trace.signal, spec.goals), terminated
             )
             if cfg.out is not None:
                 res.files = _write_outputs(res, spec, cfg, env_id) + files

@@ -1,21 +1,34 @@
-"""Per-goal segments of an episode and how well each reached its goal (the evaluation protocol's measure).
+"""How well an episode followed its goals: the one definition that `gmt eval`, `gmt run` and the tests use.
 
-A segment is a run of steps whose actions the server reported for the same goal, so goal changes made by any
-client show up. Each segment is measured after a settle-in of min(100, length / 4) steps: the mean of the
-per-step statistic signal over the rest, compared with the goal's dataset mean within `model.evaluate`'s
-tolerance.
+A segment is a maximal run of steps acted on for the same goal (for `gmt run` the goal the server reported
+with each action, so goal changes made by any client show up; for `gmt eval` the scheduled goal). Each segment
+is measured after a settle-in of min(100, length // 4) steps: the mean of the per-step statistic signal over
+the rest (`achieved`), compared with the goal's dataset mean within `tolerance`. An episode succeeds when it
+never terminated early and every segment is `within` tolerance.
+
+Torch-free (numpy only), like everything under `clients/`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import Protocol
 
 import numpy as np
 
-from clients.base import ModelInfo
+from clients.tables import text_table
 
 SETTLE_MAX = 100
+MOVING_AVERAGE = 50  # steps of the trailing mean shown live by `gmt run` and drawn in its plots
+
+
+class GoalLike(Protocol):
+    """A row of a goal table: `clients.base.GoalInfo` (from a server) or `model.checkpoint.Goal`."""
+
+    id: int
+    name: str
+    mean: float
 
 
 def settle_in(length: int) -> int:
@@ -23,12 +36,65 @@ def settle_in(length: int) -> int:
     return min(SETTLE_MAX, length // 4)
 
 
+def runs(goals: Sequence[int]) -> list[tuple[int, int, int]]:
+    """(goal, start, end) of each maximal run of equal consecutive goals."""
+    out: list[tuple[int, int, int]] = []
+    for t, g in enumerate(goals):
+        if out and out[-1][0] == g:
+            out[-1] = (g, out[-1][1], t + 1)
+        else:
+            out.append((g, t, t + 1))
+    return out
+
+
+def measured_spans(goals: Sequence[int]) -> list[tuple[int, int, int]]:
+    """(goal, first measured step, end) of each segment of the per-step goals: `runs` after the settle-in."""
+    return [(g, a + settle_in(b - a), b) for g, a, b in runs(goals)]
+
+
+def tolerance(goal: GoalLike, goals: Sequence[GoalLike]) -> float:
+    """max(10% of |goal mean|, 5% of the span of goal means)."""
+    means = [g.mean for g in goals]
+    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)))
+
+
+def achieved(signal: np.ndarray | Sequence[float], start: int, end: int) -> np.ndarray | float:
+    """Mean signal over steps [start, end) along the last axis, ignoring NaN (steps after an early end).
+
+    A 1-D signal gives a float, an [E, T] array one value per episode; NaN where nothing was measured.
+    """
+    x = np.asarray(signal, dtype=np.float64)[..., start:end]
+    n = np.sum(~np.isnan(x), axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m = np.nansum(x, axis=-1) / n
+    return float(m) if np.ndim(m) == 0 else m
+
+
+def within(value: np.ndarray | float, target: float, tol: float) -> np.ndarray | bool:
+    """|value - target| <= tol; never for NaN."""
+    ok = np.abs(np.asarray(value, dtype=np.float64) - target) <= tol
+    return bool(ok) if np.ndim(ok) == 0 else ok
+
+
+def moving_average(x: np.ndarray | Sequence[float], window: int = MOVING_AVERAGE) -> np.ndarray:
+    """Trailing mean over the last `window` values along the last axis (fewer at the start; NaN ignored)."""
+    a = np.asarray(x, dtype=np.float64)
+    valid = ~np.isnan(a)
+    zero = np.zeros((*a.shape[:-1], 1))
+    s = np.concatenate([zero, np.cumsum(np.where(valid, a, 0.0), axis=-1)], axis=-1)
+    c = np.concatenate([zero, np.cumsum(valid, axis=-1)], axis=-1)
+    n = np.arange(1, a.shape[-1] + 1)
+    lo = np.maximum(n - window, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (s[..., n] - s[..., lo]) / (c[..., n] - c[..., lo])
+
+
 @dataclass(frozen=True)
 class Segment:
     """One segment's measurement.
 
     Attributes:
-        goal: Goal id the server reported for every action of the segment.
+        goal: Goal id acted on for every step of the segment.
         name: That goal's name.
         start: First step.
         end: One past the last step.
@@ -54,31 +120,20 @@ class Segment:
         return asdict(self)
 
 
-def runs(goals: Sequence[int]) -> list[tuple[int, int, int]]:
-    """(goal, start, end) of each maximal run of equal consecutive goals."""
-    out: list[tuple[int, int, int]] = []
-    for t, g in enumerate(goals):
-        if out and out[-1][0] == g:
-            out[-1] = (g, out[-1][1], t + 1)
-        else:
-            out.append((g, t, t + 1))
-    return out
+def measure(goals: Sequence[int], signal: Sequence[float], table: Sequence[GoalLike]) -> list[Segment]:
+    """The segments of one episode, from the goal acted on at each step and the step's signal.
 
-
-def measure(goals: Sequence[int], signal: Sequence[float], spec: ModelInfo) -> list[Segment]:
-    """The segments of an episode, from the goal reported with each step's action and the step's signal."""
-    from model.evaluate import tolerance
-
-    sig = np.asarray(signal, dtype=np.float64)
+    Args:
+        goals: Goal id of each step's action.
+        signal: The statistic's per-step signal.
+        table: The model's goal table (ids, names and dataset means).
+    """
+    by_id = {g.id: g for g in table}
     segs = []
-    for g, a, b in runs(goals):
-        goal = spec.goal(g)
-        m = a + settle_in(b - a)
-        achieved = float(np.mean(sig[m:b]))
-        tol = float(tolerance(goal, spec.goals))
-        segs.append(
-            Segment(g, goal.name, a, b, m, goal.mean, tol, achieved, bool(abs(achieved - goal.mean) <= tol))
-        )
+    for (g, a, b), (_, m, _) in zip(runs(goals), measured_spans(goals), strict=True):
+        goal = by_id[g]
+        value, tol = achieved(signal, m, b), tolerance(goal, table)
+        segs.append(Segment(g, goal.name, a, b, m, goal.mean, tol, value, within(value, goal.mean, tol)))
     return segs
 
 
@@ -96,8 +151,4 @@ def table(segments: Sequence[Segment], statistic: str) -> str:
         )
         for s in segments
     ]
-    widths = [max(len(r[i]) for r in (head, *rows)) for i in range(len(head))]
-    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
-    return "\n".join(
-        [fmt.format(*head), fmt.format(*("-" * w for w in widths)), *(fmt.format(*r) for r in rows)]
-    )
+    return text_table(head, rows)

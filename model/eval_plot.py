@@ -6,23 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from clients.segments import moving_average
 from model.evaluate import EvalResult
 
-SMOOTH = 25
-
-
-def _smooth(x: np.ndarray, n: int = SMOOTH) -> np.ndarray:
-    """Trailing moving average along the last axis (NaN-aware)."""
-    kernel = np.ones(n)
-    valid = ~np.isnan(x)
-    num = np.apply_along_axis(lambda r: np.convolve(r, kernel)[: len(r)], -1, np.where(valid, x, 0.0))
-    den = np.apply_along_axis(lambda r: np.convolve(r, kernel)[: len(r)], -1, valid.astype(float))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return num / den
+SMOOTH = 25  # steps of the trailing mean drawn per episode before the mean and std over seeds
 
 
 def _band(ax, sig: np.ndarray, label: str, color) -> None:
-    s = _smooth(sig)
+    s = moving_average(sig, SMOOTH)
     with np.errstate(invalid="ignore"):
         m, sd = np.nanmean(s, 0), np.nanstd(s, 0)
     t = np.arange(len(m))

@@ -2,8 +2,9 @@
 
 All episodes of every condition step in lockstep through the batched `PolicyEngine`, which is also what the
 server uses. Conditions: hold every goal; every ordered switch pair at mid-episode; cycling through the goals
-every N steps. An episode succeeds when it never terminates early and every measured segment's mean statistic
-lies within tolerance of its goal's dataset mean.
+every N steps. Segments, their settle-in, the tolerance and success are `clients.segments`' (the definition the
+remote runner uses too): an episode succeeds when it never terminates early and every segment's mean statistic
+after its settle-in of min(100, length // 4) steps lies within tolerance of its goal's dataset mean.
 
 JSON schema (`EvalResult.to_dict`):
     checkpoint, env_id, statistic, action_mode, seeds (list), episode_steps, wall_time_s,
@@ -12,7 +13,8 @@ JSON schema (`EvalResult.to_dict`):
         name ("hold 0", "switch 0->2", "every 200"), kind ("hold" | "switch" | "multi_switch"),
         schedule: [[step, goal], ...],
         episodes, successes, terminated_early,
-        segments: [{goal, start, end, target, tolerance, achieved_mean, achieved_std, within (count)}],
+        segments: [{goal, start, end (the measured steps [start, end)), target, tolerance, achieved_mean,
+                    achieved_std, within (count)}],
     }]
 """
 
@@ -24,17 +26,15 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
+from clients.segments import achieved, measured_spans, tolerance, within
+from clients.statistics import get_statistic, signal_from_step
+from clients.tables import markdown_table
 from model.checkpoint import Checkpoint, Goal
 from model.engine import PolicyEngine
 
-SWITCH_AT = 500
+__all__ = ["Condition", "ConditionResult", "EvalResult", "evaluate", "protocol", "tolerance"]
+
 MULTI_SWITCH_EVERY = (300, 200, 100)
-
-
-def tolerance(goal: Goal, goals: list[Goal]) -> float:
-    """max(10% of |goal mean|, 5% of the span of goal means)."""
-    means = [g.mean for g in goals]
-    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)))
 
 
 @dataclass
@@ -45,13 +45,18 @@ class Condition:
         name: Human-readable name.
         kind: hold, switch or multi_switch.
         schedule: (step, goal) pairs; the goal applies from that step on.
-        segments: (goal, start, end) measured step ranges, end exclusive.
+        steps: Episode length.
     """
 
     name: str
     kind: str
     schedule: list[tuple[int, int]]
-    segments: list[tuple[int, int, int]]
+    steps: int
+
+    @property
+    def segments(self) -> list[tuple[int, int, int]]:
+        """(goal, start, end) of the measured steps of each segment (`clients.segments.measured_spans`)."""
+        return measured_spans([self.goal_at(t) for t in range(self.steps)])
 
     def goal_at(self, step: int) -> int:
         """The scheduled goal at `step`."""
@@ -67,22 +72,20 @@ def protocol(
 ) -> list[Condition]:
     """The conditions of DESIGN.md section 5 for `n_goals` goals and `steps`-step episodes.
 
-    Settle-in times scale with the episode: for 1000 steps, holds are measured over [100, 1000), switches at
-    500 over [100, 500) and [600, 1000), and cycles of N steps after their first N/4 steps.
+    For 1000 steps, holds are measured over [100, 1000), switches at 500 over [100, 500) and [600, 1000), and
+    cycles of N steps after their first N/4 steps (a shorter last cycle after a quarter of its own length).
     """
-    settle, half = steps // 10, steps // 2
-    conds = [Condition(f"hold {g}", "hold", [(0, g)], [(g, settle, steps)]) for g in range(n_goals)]
+    half = steps // 2
+    conds = [Condition(f"hold {g}", "hold", [(0, g)], steps) for g in range(n_goals)]
     for a in range(n_goals):
         for b in range(n_goals):
             if a != b:
-                segs = [(a, settle, half), (b, half + settle, steps)]
-                conds.append(Condition(f"switch {a}->{b}", "switch", [(0, a), (half, b)], segs))
+                conds.append(Condition(f"switch {a}->{b}", "switch", [(0, a), (half, b)], steps))
     for n in multi_every:
         if n >= steps:
             continue
         sched = [(s, (s // n) % n_goals) for s in range(0, steps, n)]
-        segs = [(g, s + n // 4, min(s + n, steps)) for s, g in sched]
-        conds.append(Condition(f"every {n}", "multi_switch", sched, segs))
+        conds.append(Condition(f"every {n}", "multi_switch", sched, steps))
     return conds
 
 
@@ -142,26 +145,23 @@ class EvalResult:
     def markdown(self) -> str:
         """A Markdown table: one row per condition."""
         n = len(self.seeds)
-        lines = [
-            f"Evaluation of `{self.checkpoint}` on {self.env_id} ({self.statistic}), {n} seeds, "
-            f"{self.episode_steps} steps, action mode {self.action_mode}",
-            "",
-            "| condition | success | segments: goal target ± tol -> achieved mean (std) |",
-            "| --- | --- | --- |",
-        ]
-        for r in self.results:
-            segs = "; ".join(
-                f"{s['goal']}: {s['target']:.2f}±{s['tolerance']:.2f} -> {s['achieved_mean']:.2f} ({s['achieved_std']:.2f})"
-                for s in r.segments
+        rows = [
+            (
+                r.condition.name,
+                f"{int(r.success.sum())}/{n}",
+                "; ".join(
+                    f"{s['goal']}: {s['target']:.2f}±{s['tolerance']:.2f} -> {s['achieved_mean']:.2f} "
+                    f"({s['achieved_std']:.2f})"
+                    for s in r.segments
+                ),
             )
-            lines.append(f"| {r.condition.name} | {int(r.success.sum())}/{n} | {segs} |")
-        return "\n".join(lines)
-
-
-def _signal(statistic: str, reward: float, info: dict) -> float:
-    from model.data.statistics import signal_from_step
-
-    return float(signal_from_step(statistic, reward, info))
+            for r in self.results
+        ]
+        head = ("condition", "success", "segments: goal target ± tol -> achieved mean (std)")
+        return (
+            f"Evaluation of `{self.checkpoint}` on {self.env_id} ({self.statistic}), {n} seeds, "
+            f"{self.episode_steps} steps, action mode {self.action_mode}\n\n" + markdown_table(head, rows)
+        )
 
 
 def evaluate(
@@ -184,8 +184,6 @@ def evaluate(
             a condition seeds its sampler with seed i.
     """
     import gymnasium as gym
-
-    from model.data.statistics import get_statistic
 
     get_statistic(ckpt.statistic)  # fail early on an unknown statistic
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
@@ -215,7 +213,7 @@ def evaluate(
         for i, a in zip(idx, actions, strict=True):
             o, r, term, trunc, info = envs[i].step(a)
             obs[i] = o
-            signal[i, t] = _signal(ckpt.statistic, r, info)
+            signal[i, t] = signal_from_step(ckpt.statistic, r, info)
             if term:
                 terminated[i], alive[i] = True, False
             elif trunc and t < steps - 1:
@@ -226,25 +224,16 @@ def evaluate(
     for ci, c in enumerate(conds):
         rows = slice(ci * len(seed_list), (ci + 1) * len(seed_list))
         sig, term = signal[rows], terminated[rows]
-        seg_means = (
-            np.stack(
-                [
-                    np.nanmean(sig[:, a:b], axis=1) if b > a else np.full(len(sig), np.nan)
-                    for _, a, b in c.segments
-                ],
-                axis=1,
-            )
-            if c.segments
-            else np.zeros((len(sig), 0))
-        )
+        spans = c.segments
+        seg_means = np.stack([achieved(sig, a, b) for _, a, b in spans], axis=1)
         ok = ~term
         seg_info = []
-        for si, (g, a, b) in enumerate(c.segments):
+        for si, (g, a, b) in enumerate(spans):
             goal = ckpt.goals[g]
             tol = tolerance(goal, ckpt.goals)
-            within = np.abs(seg_means[:, si] - goal.mean) <= tol
-            within &= ~np.isnan(seg_means[:, si])
-            ok &= within
+            hit = within(seg_means[:, si], goal.mean, tol)
+            ok &= hit
+            mean, std = float(np.nanmean(seg_means[:, si])), float(np.nanstd(seg_means[:, si]))
             seg_info.append(
                 {
                     "goal": g,
@@ -252,9 +241,9 @@ def evaluate(
                     "end": b,
                     "target": goal.mean,
                     "tolerance": tol,
-                    "achieved_mean": float(np.nanmean(seg_means[:, si])),
-                    "achieved_std": float(np.nanstd(seg_means[:, si])),
-                    "within": int(within.sum()),
+                    "achieved_mean": mean,
+                    "achieved_std": std,
+                    "within": int(hit.sum()),
                 }
             )
         results.append(ConditionResult(c, sig, term, seg_means, ok, seg_info))

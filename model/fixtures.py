@@ -8,10 +8,10 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from clients.spaces import space_to_dict
 from model.checkpoint import Checkpoint, Goal, save_checkpoint
 from model.config import GMTConfig
 from model.gmt import GMT
-from model.spaces import space_to_dict
 from model.tokens import ActionCodec, ObsNormalizer
 
 GOAL_NAMES = ("low", "medium", "high")

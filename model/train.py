@@ -13,13 +13,13 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from clients.spaces import space_to_dict
 from model.calibrate import action_noise
 from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from model.config import GMTConfig, TrainConfig
 from model.gmt import GMT
 from model.losses import gmt_loss
 from model.masking import mask_goals
-from model.spaces import space_to_dict
 from model.tokens import ActionCodec, ObsNormalizer, WindowSampler
 
 RESUME_DIR = "_resume"

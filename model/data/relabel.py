@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clients.tables import text_table
+
 GOAL_NAMES = {
     1: ["all"],
     2: ["low", "high"],
@@ -104,18 +106,26 @@ class GoalTable:
 
     def format(self) -> str:
         """The silhouette scores, the chosen k and the per-goal table as text."""
-        lines = ["k  silhouette  normalised  candidate"]
-        for k, s in self.silhouette.items():
-            lines.append(
-                f"{k:<2d} {s:10.4f}  {self.normalised[k]:10.3f}  {'yes' if k in self.candidates else ''}"
-            )
+        scores = text_table(
+            ("k", "silhouette", "normalised", "candidate"),
+            [
+                (k, f"{sc:.4f}", f"{self.normalised[k]:.3f}", "yes" if k in self.candidates else "")
+                for k, sc in self.silhouette.items()
+            ],
+            align="<>>",
+            rule=False,
+        )
         how = "given" if self.k_given else f"sampled from candidates {self.candidates}, seed {self.seed}"
-        lines += ["", f"chosen k = {self.k} ({how}); statistic: {self.statistic}", ""]
-        lines.append(f"{'id':>2}  {'name':<8} {'count':>5} {'mean':>9} {'std':>8} {'min':>9} {'max':>9}")
-        for g in self.goals:
-            lines.append(
-                f"{g.id:>2}  {g.name:<8} {g.count:>5d} {g.mean:9.3f} {g.std:8.3f} {g.min:9.3f} {g.max:9.3f}"
-            )
+        goals = text_table(
+            ("id", "name", "count", "mean", "std", "min", "max"),
+            [
+                (g.id, g.name, g.count, f"{g.mean:.3f}", f"{g.std:.3f}", f"{g.min:.3f}", f"{g.max:.3f}")
+                for g in self.goals
+            ],
+            align="><>>>>>",
+            rule=False,
+        )
+        lines = [scores, "", f"chosen k = {self.k} ({how}); statistic: {self.statistic}", "", goals]
         return "\n".join(lines)
 
 

@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from clients.tables import markdown_table
 from model.data.behaviour import BEHAVIOUR_DIR, BehaviourMeta, BehaviourPolicy, env_slug, save_behaviour
 from model.data.rollout import rollout, stuck_step
 
@@ -373,10 +374,20 @@ def write_provenance(cfg: BehaviourTrainConfig, chosen: list[dict]) -> Path:
 
     pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
     dense = f" (every {cfg.eval_every // 4} during the first {cfg.dense_steps})" if cfg.dense_steps else ""
-    rows = "\n".join(
-        f"| {c['level']} | {c['target']} | {c['step']} | {c['mean_speed']:.3f} | {c['std_speed']:.3f} "
-        f"| {c['mean_length']:.0f} | {c['mean_return']:.0f} |"
-        for c in chosen
+    levels = markdown_table(
+        ("level", "target", "PPO step", "mean speed", "std", "mean length", "mean return"),
+        [
+            (
+                c["level"],
+                c["target"],
+                c["step"],
+                f"{c['mean_speed']:.3f}",
+                f"{c['std_speed']:.3f}",
+                f"{c['mean_length']:.0f}",
+                f"{c['mean_return']:.0f}",
+            )
+            for c in chosen
+        ],
     )
     text = f"""# Behaviour agents for {cfg.env_id}
 
@@ -395,9 +406,7 @@ highest mean - 2 std; a snapshot with an episode that fell ranks last). Speeds a
 over episodes of the per-episode mean `x_velocity` (m/s). The PPO run's snapshots and measurements are kept
 in `runs/behaviour/<env>/` (not committed); `--select-only` re-chooses from them.
 
-| level | target | PPO step | mean speed | std | mean length | mean return |
-| --- | --- | --- | --- | --- | --- | --- |
-{rows}
+{levels}
 
 `gmt data collect --env {cfg.env_id}` rolls these out with their Gaussian noise and adds a uniform-random
 policy; it replaces snapshot episodes in which a running agent came to a standstill for good (see its output).

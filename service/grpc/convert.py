@@ -14,7 +14,7 @@ from service.observations import decode_tensor
 
 
 def space(d: dict) -> pb.Space:
-    """A space dict (model.spaces) as a message; null (infinite) bounds become +-inf."""
+    """A space dict (clients.spaces) as a message; null (infinite) bounds become +-inf."""
 
     def bounds(values: list | None, inf: float) -> list[float]:
         return [inf if v is None else float(v) for v in (values or [])]
