@@ -61,7 +61,7 @@ class CausalSelfAttention(nn.Module):
         v_cache: torch.Tensor,
         slots: torch.Tensor,
         pos: torch.Tensor,
-        view: slice | None = None,
+        view,
     ) -> torch.Tensor:
         """Attend from new tokens `x` [B, n, C] over the cached tokens of their slots.
 
@@ -77,11 +77,7 @@ class CausalSelfAttention(nn.Module):
         at = (slots[:, None, None], heads, pos[:, None, :])  # broadcast to [B, h, n]
         k_cache[at] = k
         v_cache[at] = v
-        if view is not None:
-            keys, values = k_cache[view], v_cache[view]  # [B, h, W, C/h] views
-        else:
-            keys, values = k_cache[slots], v_cache[slots]  # [B, h, W, C/h] gathered copies
-        return self._attend_heads(q, keys, values, attn_mask)
+        return self._attend_heads(q, view(k_cache), view(v_cache), attn_mask)  # keys, values [B, h, W, C/h]
 
 
 class Block(nn.Module):
@@ -105,7 +101,7 @@ class Block(nn.Module):
         return self.out(F.gelu(self.fc(self.ln2(x)), approximate="tanh"))
 
     def forward_cached(
-        self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos, view=None
+        self, x: torch.Tensor, attn_mask: torch.Tensor, k_cache, v_cache, slots, pos, view
     ) -> torch.Tensor:
         """`forward` for new tokens attending over a key/value cache (see `CausalSelfAttention.forward_cached`)."""
         x = x + self.attn.forward_cached(self.ln1(x), attn_mask, k_cache, v_cache, slots, pos, view)
@@ -307,14 +303,22 @@ class GMT(nn.Module):
         )
         see |= torch.arange(W)[None, None, :] == pos[:, :, None]  # every token sees itself: no empty row
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
-        B, first = slots.shape[0], int(slots[0])
-        consecutive = B > 1 and bool((slots == torch.arange(first, first + B)).all())
-        view = slice(first, first + B) if consecutive else None
+        view = self._slot_reader(slots)
         for layer, block in enumerate(self.blocks):
             x = block.forward_cached(x, attn_mask, cache.k[layer], cache.v[layer], slots, pos, view)
         return self._action_head(self.ln_f(x))[
             :, 2
         ]  # [B, act_dim] from the state token (3 rows: see forward)
+
+    @staticmethod
+    def _slot_reader(slots: torch.Tensor):
+        """A function reading rows `slots` [B] of a cache [n_slots, ...]: a view where it can, else a gather."""
+        B, first = slots.shape[0], int(slots[0])
+        if bool((slots == first).all()):  # one slot (a lone row runs twice): broadcast it
+            return lambda cache: cache[first : first + 1].expand(B, *cache.shape[1:])
+        if bool((slots == torch.arange(first, first + B)).all()):  # consecutive slots
+            return lambda cache: cache[first : first + B]
+        return lambda cache: cache.index_select(0, slots)
 
     def num_params(self) -> int:
         """Number of parameters."""
