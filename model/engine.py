@@ -90,11 +90,15 @@ class SessionPool:
             "h_state": ((self.H, *cfg.obs_shape), state_dtype),
             "h_action": ((self.H, *act_shape), act_dtype),
         }
+        self._cfg, self._incremental, self._initial = cfg, engine.incremental, n_slots
+        self._allocate_arrays(n_slots)
+        self.keys: dict[str, int] = {}
+
+    def _allocate_arrays(self, n_slots: int) -> None:
         for name, (shape, dtype) in self._layout.items():
             setattr(self, name, np.zeros((n_slots, *shape), dtype=dtype))
-        self.cache = KVCache(cfg, n_slots) if engine.incremental else None
+        self.cache = KVCache(self._cfg, n_slots) if self._incremental else None
         self.free = list(range(n_slots - 1, -1, -1))
-        self.keys: dict[str, int] = {}
 
     @property
     def n_slots(self) -> int:
@@ -118,8 +122,14 @@ class SessionPool:
         return self.free.pop()
 
     def release(self, slot: int) -> None:
-        """Return a slot to the free list."""
+        """Return a slot to the free list; once no slot is in use, a grown pool shrinks back to its first size.
+
+        (Slots in use are never moved, so a pool cannot shrink while any is live: after a crowd has gone,
+        memory returns to the baseline.)
+        """
         self.free.append(slot)
+        if not self.live and self.n_slots > self._initial:
+            self._allocate_arrays(self._initial)
 
 
 class PolicyEngine(PolicyRuntime):

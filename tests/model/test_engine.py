@@ -220,3 +220,21 @@ def test_continuous_sample_mode_adds_the_goals_calibrated_noise():
             want = ckpt.action_codec.decode(np.clip(ckpt.action_codec.encode(mean) + std * noise, -1, 1))
             np.testing.assert_allclose(x, want, atol=1e-5)
             assert np.array_equal(x, y)  # same seed, same actions
+
+
+def test_pool_shrinks_back_once_every_session_has_gone():
+    engine = PolicyEngine(tiny_checkpoint(context_length=4, attention="window"))
+    first = engine.pool.n_slots
+    ctxs = [engine.new_context(i % 3) for i in range(3 * first)]
+    engine.act(ctxs, list(np.zeros((len(ctxs), 17), np.float32)))
+    grown = engine.pool.n_slots
+    assert grown >= 3 * first
+    for c in ctxs[:-1]:
+        engine.release(c)
+    assert engine.pool.n_slots == grown  # a live slot pins the pool: slots in use never move
+    engine.release(ctxs[-1])
+    assert engine.pool.n_slots == first and engine.pool.cache.k.shape[1] == first
+    twin, fresh = PolicyEngine(tiny_checkpoint(context_length=4, attention="window")), engine.new_context(1)
+    t = twin.new_context(1)
+    obs = np.random.default_rng(0).normal(size=17).astype(np.float32)
+    assert np.array_equal(engine.act([fresh], [obs])[0], twin.act([t], [obs])[0])
