@@ -125,12 +125,32 @@ def rss_bytes(pid: int) -> int:
     return 0
 
 
+# Counts wrk's error kinds separately, and every non-2xx answer by status with the first such body, so that an
+# error under load can be named (wrk copies the per-thread tables to `done` with thread:get).
 _WRK_DONE = """
+local threads = {}
+setup = function(thread) table.insert(threads, thread) end
+statuses = {}
+first_body = ""
+response = function(status, headers, body)
+  if status >= 300 then
+    statuses[status] = (statuses[status] or 0) + 1
+    if first_body == "" then first_body = body end
+  end
+end
 done = function(summary, latency, requests)
   local e = summary.errors
-  io.write(string.format('WRK {"requests":%d,"duration_us":%d,"errors":%d,"non2xx":%d,"p50_us":%d,"p99_us":%d}\\n',
+  local counts, body = {}, ""
+  for _, t in ipairs(threads) do
+    for k, v in pairs(t:get("statuses")) do table.insert(counts, string.format('"%d":%d', k, v)) end
+    if body == "" then body = t:get("first_body") end
+  end
+  body = string.gsub(string.sub(body, 1, 300), '[%c"\\\\]', " ")
+  io.write(string.format('WRK {"requests":%d,"duration_us":%d,"errors":%d,"non2xx":%d,"p50_us":%d,"p99_us":%d,' ..
+    '"error_kinds":{"connect":%d,"read":%d,"write":%d,"timeout":%d},"statuses":{%s},"first_error_body":"%s"}\\n',
     summary.requests, summary.duration, e.connect + e.read + e.write + e.timeout, e.status,
-    latency:percentile(50), latency:percentile(99)))
+    latency:percentile(50), latency:percentile(99), e.connect, e.read, e.write, e.timeout,
+    table.concat(counts, ","), body))
 end
 """
 
@@ -163,6 +183,17 @@ def wrk(url: str, script: str, connections: int, seconds: float) -> dict:
         os.unlink(f.name)
     rec = json.loads(next(line[4:] for line in out.splitlines() if line.startswith("WRK ")))
     return rec
+
+
+def _error_detail(r: dict) -> dict:
+    """wrk's error kinds and non-2xx statuses, only when there were errors."""
+    if not r["errors"] + r["non2xx"]:
+        return {}
+    return {
+        "error_kinds": r["error_kinds"],
+        "statuses": r["statuses"],
+        "first_error_body": r["first_error_body"],
+    }
 
 
 def _sessions(url: str, model: str, n: int) -> list[str]:
@@ -206,6 +237,7 @@ end
         "p50_ms": r["p50_us"] / 1000,
         "p99_ms": r["p99_us"] / 1000,
         "errors": r["errors"] + r["non2xx"],
+        **_error_detail(r),
     }
 
 
@@ -227,6 +259,7 @@ end
         "p50_ms": r["p50_us"] / 1000,
         "p99_ms": r["p99_us"] / 1000,
         "errors": r["errors"] + r["non2xx"],
+        **_error_detail(r),
     }
 
 
