@@ -1,66 +1,74 @@
-# Every target that needs Python creates or reuses .venv and installs the project into it first.
+# Every target that needs Python creates or reuses .venv and installs into it the extra it needs (DESIGN.md section
+# 8), at the versions of constraints.txt: `make serve` the `serve` extra, `make test` the `dev` extra (all tests).
+# torch is pinned there as its CPU build: pip finds it in a local wheel directory (as here) or, elsewhere, on the
+# PyTorch CPU index (export PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+CONSTRAINTS := constraints.txt
 CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve cluster cluster-down test lint proto data train eval bench clean
+.PHONY: venv serve cluster cluster-down test lint proto data train eval bench constraints clean
 
-$(STAMP): pyproject.toml
+$(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[dev]'
-	@touch $(STAMP)
+	$(BIN)/pip install --quiet -c $(CONSTRAINTS) -e '.[$*]'
+	@touch $@
 
-venv: $(STAMP)
+venv: $(VENV)/.installed-dev
 
-serve: $(STAMP)
+serve: $(VENV)/.installed-serve
 	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT)
 
 # redis-server, two replicas (gmt-1, gmt-2) and nginx (docker/nginx.conf) on loopback, REST :$(REST_PORT) and gRPC
 # :$(GRPC_PORT) through nginx; returns once all are ready. Pids and logs in run/cluster/. Needs nginx and
 # redis-server (apt-get install nginx redis-server). More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --max-batch 32"
-cluster: $(STAMP)
+cluster: $(VENV)/.installed-serve
 	$(BIN)/gmt cluster up --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT) $(CLUSTER_ARGS)
 
 # Stops exactly the processes whose pids are in run/cluster/*.pid.
 cluster-down:
 	$(BIN)/gmt cluster down
 
-lint: $(STAMP)
+lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-test: $(STAMP) lint
+test: $(VENV)/.installed-dev lint
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 # Regenerate the committed gRPC stubs from proto/gmt/v1/policy.proto (tests/proto checks they are current).
-proto: $(STAMP)
+proto: $(VENV)/.installed-dev
 	cd proto && ../$(BIN)/python -m grpc_tools.protoc -I. --python_out=. --grpc_python_out=. --pyi_out=. gmt/v1/policy.proto
 
-data: $(STAMP)
+data: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env HalfCheetah-v5
 	$(BIN)/gmt data collect --env Hopper-v5
 	$(BIN)/gmt data collect --env Walker2d-v5
 	$(BIN)/gmt data collect --env Ant-v5 --no-random  # see behaviour/ant/TRAINED_WITH.md
 
 # The exact command behind the shipped checkpoint (35 minutes on 2 threads here; see its PROVENANCE.md).
-train: $(STAMP)
+train: $(VENV)/.installed-train
 	$(BIN)/gmt train --dataset gmt/halfcheetah/mixed-v0 --out $(CHECKPOINT) --attention window --batch-size 32 \
 		--steps 8000 --lr 5e-4 --warmup 500 --threads 2 --no-bf16 --seed 0
 
-eval: $(STAMP)
+eval: $(VENV)/.installed-eval
 	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 2 --json $(CHECKPOINT)/eval.json \
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
 
 # Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
 # transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
-bench: $(STAMP)
+bench: $(VENV)/.installed-bench
 	$(BIN)/gmt bench --out bench.json
+
+# After changing a dependency in pyproject.toml: install every extra, then pin exactly what is installed.
+constraints:
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet -e '.[dev,bench,atari]'
+	$(BIN)/python tools/lock.py $(CONSTRAINTS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import gymnasium as gym
 
 from clients.base import ModelInfo
+from clients.extras import MissingExtra, require_module
 
 VIDEO_SIZE = (480, 320)  # width, height of rendered MuJoCo frames
 
@@ -37,8 +38,10 @@ def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: boo
     """ALE game with DQN preprocessing (frame skip 4, grayscale, square resize, stacking) matching the spec.
 
     The raw game is returned unchanged when the spec describes raw frames. Preprocessing uses Gymnasium's
-    `AtariPreprocessing`, which needs opencv-python (`pip install "gymnasium[other]"`).
+    `AtariPreprocessing` (OpenCV). Both come with the `atari` extra.
     """
+    require_module("ale_py", "atari", f"environment {env_id}")
+    require_module("cv2", "atari", f"environment {env_id}")
     import ale_py
 
     gym.register_envs(ale_py)
@@ -57,7 +60,20 @@ def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: boo
 
 
 def _make_plain(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:
-    """`gym.make(env_id)`; MuJoCo frames are rendered offscreen (EGL unless MUJOCO_GL says otherwise)."""
+    """`gym.make(env_id)`; MuJoCo frames are rendered offscreen (EGL unless MUJOCO_GL says otherwise).
+
+    Raises:
+        MissingExtra: a MuJoCo environment without MuJoCo installed (the `run` extra).
+    """
+    try:
+        return _gym_make(env_id, max_steps, render)
+    except gym.error.DependencyNotInstalled as e:
+        if "mujoco" not in str(e).lower():
+            raise
+        raise MissingExtra("run", f"environment {env_id}", ["mujoco"]) from None
+
+
+def _gym_make(env_id: str, max_steps: int | None, render: bool) -> gym.Env:
     if not render:
         return gym.make(env_id, max_episode_steps=max_steps)
     os.environ.setdefault("MUJOCO_GL", "egl")

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from clients.base import ModelInfo, PolicyClient, Session
+from clients.extras import require_module
 from clients.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
 from clients.statistics import signal_from_step
 from clients.trace import Trace
@@ -59,15 +60,15 @@ class RunConfig:
     """What `run` does.
 
     Attributes:
-        env_id: Environment to step locally (default: the model's own).
-        model: Model name (default: the server's only model, or the one for `env_id`).
-        goal: Goal at step 0 (id or name).
+        env_id: Gymnasium id to step locally, e.g. HalfCheetah-v5 (default: the model's own).
+        model: Model name (default: the server's only model, or its only model for the environment).
+        goal: Goal at step 0: an id (0 = lowest statistic) or a name.
         schedule: (step, goal) changes made by this client before acting at that step.
         episodes: Number of episodes; episode i uses seed + i for the environment and the session.
-        seed: First seed.
+        seed: Seed of the first episode.
         steps: Maximum steps per episode (the environment's time limit is set to it).
-        out: Folder for the JSON / CSV traces, PNG plots and videos (None: write nothing).
-        video: Record an MP4 per episode into `out`.
+        out: Folder for the episode-<i>.json/.csv traces, .png plots and videos (default: write nothing).
+        video: Also record episode-<i>.mp4 into `out` (MuJoCo renders offscreen).
         transport: Description of how the server is reached, for the summary.
     """
 
@@ -81,6 +82,10 @@ class RunConfig:
     out: Path | None = None
     video: bool = False
     transport: str = ""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1 or self.steps < 1:
+            raise ValueError(f"episodes and steps must be at least 1, got {self.episodes} and {self.steps}")
 
 
 @dataclass
@@ -240,11 +245,14 @@ def run(
         SpaceMismatch: the environment's spaces differ from the model's.
         KeyError: a goal that the model does not have.
         ServiceError: the server answered with an error.
+        MissingExtra: the environment or the plots need an extra that is not installed.
     """
     from clients.envs import make_env
 
     if cfg.video and cfg.out is None:
         raise ValueError("video needs an output folder (out)")
+    if cfg.out is not None:
+        require_module("matplotlib", "run", "the episode plots (out)")
     spec = resolve_model(client, cfg.model, cfg.env_id)
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)

@@ -6,46 +6,33 @@ import json
 import shlex
 import sys
 from pathlib import Path
+from typing import Any
 
 import typer
 
+from clients.cli_support import dataclass_flags, needs, pick, with_flags
+from model.config import GMTConfig, TrainConfig
 
+# The options of `gmt train` are the fields of the configurations it fills: defaults and help cannot drift.
+TRAIN_FLAGS = dataclass_flags(
+    TrainConfig, skip=("extra",), names={"warmup_steps": ("--warmup-steps", "--warmup")}
+)
+MODEL_FLAGS = dataclass_flags(GMTConfig, skip=("obs_shape", "act_dim", "discrete_actions", "n_goals"))
+
+
+@needs("train", "gmt train")
+@with_flags(TRAIN_FLAGS, MODEL_FLAGS)
 def train_command(
     dataset: str = typer.Option(..., help="Minari dataset id (e.g. gmt/halfcheetah/mixed-v0) or directory."),
     out: Path = typer.Option(..., help="Checkpoint directory to write (e.g. checkpoints/halfcheetah-gmt)."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic the goals cluster."),
-    k: int = typer.Option(None, help="Number of goals (default: chosen by silhouette score)."),
     labels: Path = typer.Option(
         None, help="Goal labels from `gmt data relabel` instead of relabelling here."
     ),
-    steps: int = typer.Option(20000, help="Optimiser steps."),
-    batch_size: int = typer.Option(64, help="Windows per batch."),
-    lr: float = typer.Option(6e-4, help="Peak learning rate."),
-    warmup: int = typer.Option(1000, help="Warmup steps."),
-    masking: str = typer.Option("token", help="Goal masking: token, trajectory or none."),
-    mask_prob: float = typer.Option(0.5, help="Masking probability p."),
-    context_length: int = typer.Option(20, help="K, timesteps in the context."),
-    n_layer: int = typer.Option(3, help="Transformer blocks."),
-    n_embd: int = typer.Option(128, help="Embedding width."),
-    n_head: int = typer.Option(1, help="Attention heads."),
-    attention: str = typer.Option(
-        "full",
-        help="full (the paper's K-step windows) or window (banded attention, exact KV-cached serving).",
-    ),
-    sequence_length: int = typer.Option(
-        0, help="Timesteps per training sequence (0 = K for full attention, 2K for window attention)."
-    ),
-    seed: int = typer.Option(0, help="Seed of weights, sampling and masks (and of k's sampling)."),
-    threads: int = typer.Option(
-        2, help="torch threads (match the free cores: oversubscription is 3x slower)."
-    ),
-    bf16: bool = typer.Option(True, help="bfloat16 autocast for matrix products (2x faster on AMX CPUs)."),
-    save_every: int = typer.Option(2000, help="Steps between resumable states."),
     resume: bool = typer.Option(True, help="Continue from OUT/_resume when present."),
+    **flags: Any,
 ) -> None:
     """Train a Goal-Masked Transformer and write a checkpoint directory (safetensors + gmt.json)."""
     from model.checkpoint import Goal
-    from model.config import TrainConfig
     from model.data.minari_io import load_dataset
     from model.data.relabel import GoalTable, relabel
     from model.data.statistics import per_trajectory
@@ -59,34 +46,15 @@ def train_command(
                 f"{labels} labels {len(rel.labels)} episodes, the dataset has {len(ds.episodes)}"
             )
     else:
-        rel = relabel(per_trajectory(statistic, ds), statistic=statistic, k=k, seed=seed)
+        stat, k, seed = flags["statistic"], flags["k"], flags["seed"]
+        rel = relabel(per_trajectory(stat, ds), statistic=stat, k=k, seed=seed)
     goals = [Goal(**g.__dict__) for g in rel.goals]
     typer.echo(
         f"{len(ds.episodes)} episodes, k = {len(goals)} goals: "
         + ", ".join(f"{g.name}={g.mean:.2f}" for g in goals)
     )
-    tc = TrainConfig(
-        steps=steps,
-        batch_size=batch_size,
-        lr=lr,
-        warmup_steps=warmup,
-        masking=masking,
-        mask_prob=mask_prob,
-        seed=seed,
-        threads=threads,
-        bf16=bf16,
-        save_every=save_every,
-        statistic=rel.statistic,
-        k=len(goals),
-        sequence_length=sequence_length,
-    )
-    overrides = {
-        "context_length": context_length,
-        "n_layer": n_layer,
-        "n_embd": n_embd,
-        "n_head": n_head,
-        "attention": attention,
-    }
+    tc = TrainConfig(**{**pick(flags, TRAIN_FLAGS), "statistic": rel.statistic, "k": len(goals)})
+    overrides = pick(flags, MODEL_FLAGS)
     command = "gmt train " + " ".join(shlex.quote(a) for a in sys.argv[2:])
     ckpt = train(
         ds,
@@ -107,6 +75,7 @@ def train_command(
     )
 
 
+@needs("eval", "gmt eval")
 def eval_command(
     checkpoint: Path = typer.Argument(..., help="Checkpoint directory."),
     seeds: int = typer.Option(15, help="Seeds 0..N-1 per condition."),

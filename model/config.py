@@ -109,7 +109,7 @@ class TrainConfig:
         k: Number of goals; None picks k by silhouette score.
         calibration_batches: Batches of windows scored after training to measure the per-goal action noise
             of continuous-action models (`model.calibrate`).
-        bf16: Run matrix products under bfloat16 autocast (AMX on this CPU).
+        bf16: Run matrix products under bfloat16 autocast (pays off only on CPUs with AMX).
         sequence_length: Timesteps per training sequence; 0 = K for `full` attention and 2K for `window`
             attention (a window model must learn from sequences longer than its span).
     """

@@ -1,24 +1,154 @@
 """The `gmt` console command: one entry point for data, training, evaluation, serving and clients.
 
-Sub-command groups live beside the code they drive and are registered here. Heavy imports (torch, gymnasium)
-happen inside commands so that `gmt --help` stays fast.
+`gmt` works with whatever is installed. Each command is registered from the module beside the code it drives;
+a command whose extra is not installed is registered as a stub that says which extra to install, so the entry
+point imports only typer and the light option definitions, never torch. Heavy imports happen inside commands.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from importlib import import_module
 from pathlib import Path
+from typing import Any
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
-from model.data.cli import app as data_app
+from clients.cli_support import fail
+from clients.extras import MissingExtra, missing
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One command (or group of commands) of `gmt`, imported only when it is run or its own help is asked for.
+
+    Attributes:
+        name: Its name on the command line.
+        target: "module:attribute" of the command function, or of a typer group (attribute `app`).
+        help: The line `gmt --help` shows (the command's docstring starts with it; a test checks).
+        extra: The extra it needs at all (None: the base install), checked before its module is imported;
+            without it the command says which extra to install. Sub-commands with needs of their own check
+            them when run (`clients.cli_support.needs`).
+    """
+
+    name: str
+    target: str
+    help: str
+    extra: str | None = None
+
+    def load(self) -> TyperCommand | TyperGroup:
+        """The click command: the real one, or a stub naming the missing extra."""
+        gone = missing(self.extra) if self.extra else []
+        if gone:
+            return _stub(self, MissingExtra(self.extra or "", f"gmt {self.name}", gone))
+        module, _, attr = self.target.partition(":")
+        obj = getattr(import_module(module), attr)
+        if not isinstance(obj, typer.Typer):
+            obj = _single(self.name, obj)
+        return typer.main.get_command(obj)
+
+
+def _single(name: str, fn: Callable[..., Any]) -> typer.Typer:
+    one = typer.Typer(add_completion=False)
+    one.command(name)(fn)
+    return one
+
+
+def _stub(entry: Entry, error: MissingExtra) -> TyperCommand:
+    def stub() -> None:
+        fail(error)
+
+    return TyperCommand(
+        entry.name,
+        callback=stub,
+        help=f"{entry.help} (Not installed: needs the `{entry.extra}` extra.)",
+        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+    )
+
+
+COMMANDS = (
+    Entry(
+        "data",
+        "model.data.cli:app",
+        "Offline datasets: behaviour agents, collection, statistics and goal relabelling.",
+    ),
+    Entry(
+        "train",
+        "model.cli:train_command",
+        "Train a Goal-Masked Transformer and write a checkpoint directory (safetensors + gmt.json).",
+    ),
+    Entry(
+        "eval",
+        "model.cli:eval_command",
+        "Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.",
+    ),
+    Entry(
+        "serve",
+        "service.serve_cli:serve_command",
+        "Serve every checkpoint under checkpoints/ over REST (OpenAPI at /docs) and gRPC.",
+        "serve",
+    ),
+    Entry(
+        "cluster",
+        "service.cluster:app",
+        "The scale-out topology on loopback: redis-server, two gmt serve replicas and nginx (docker/nginx.conf).",
+        "serve",
+    ),
+    Entry(
+        "run",
+        "clients.cli:run_command",
+        "Drive an agent remotely: send observations, apply actions, report each goal segment.",
+    ),
+    Entry(
+        "bench",
+        "service.cli:bench_command",
+        "Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.",
+        "serve",
+    ),
+)
+
+
+class _Lazy(TyperCommand):
+    """Stands for an entry in `gmt --help`; the real command is imported when it is run."""
+
+    def __init__(self, entry: Entry) -> None:
+        super().__init__(entry.name, help=entry.help, short_help=entry.help)
+        self.entry = entry
+
+    @cached_property
+    def real(self) -> TyperCommand | TyperGroup:
+        return self.entry.load()
+
+    def make_context(
+        self, info_name: str | None, args: list[str], parent: typer.Context | None = None, **kw: Any
+    ):
+        return self.real.make_context(info_name, args, parent=parent, **kw)
+
+    def invoke(self, ctx: typer.Context) -> Any:
+        return self.real.invoke(ctx)
+
+
+class LazyGroup(TyperGroup):
+    """`gmt`: the commands declared here plus every `COMMANDS` entry, each imported only when used."""
+
+    def list_commands(self, ctx: typer.Context) -> list[str]:
+        return [*super().list_commands(ctx), *(e.name for e in COMMANDS)]
+
+    def get_command(self, ctx: typer.Context, cmd_name: str) -> TyperCommand | TyperGroup | None:
+        entry = next((e for e in COMMANDS if e.name == cmd_name), None)
+        return _Lazy(entry) if entry else super().get_command(ctx, cmd_name)
+
 
 app = typer.Typer(
     name="gmt",
+    cls=LazyGroup,
     help="Train Goal-Masked Transformers on offline trajectories and serve them as controllable policies.",
     no_args_is_help=True,
     add_completion=False,
 )
-app.add_typer(data_app, name="data")
 
 
 @app.callback()
@@ -28,34 +158,20 @@ def _root() -> None:
 
 @app.command()
 def version() -> None:
-    """Print the versions of gmt and its main dependencies."""
+    """Print the versions of gmt and its main dependencies, and which extras are installed."""
+    from importlib.metadata import PackageNotFoundError
     from importlib.metadata import version as v
 
+    from clients.extras import extras
+
     for pkg in ("gmt-service", "torch", "gymnasium", "mujoco", "fastapi", "grpcio"):
-        typer.echo(f"{pkg} {v(pkg)}")
-
-
-def _register() -> None:
-    """Attach the command groups that live beside their code."""
-    from model.cli import eval_command, train_command
-    from model.data.cli import app as data_app
-
-    app.add_typer(data_app, name="data")
-    app.command("train")(train_command)
-    app.command("eval")(eval_command)
-
-    from service.serve_cli import serve_command
-
-    app.command("serve")(serve_command)
-
-    from service.cluster import app as cluster_app
-
-    app.add_typer(cluster_app, name="cluster")
-
-    from clients.cli import run_command
-
-    app.command("run")(run_command)
-    app.command("bench")(bench_command)
+        try:
+            typer.echo(f"{pkg} {v(pkg)}")
+        except PackageNotFoundError:
+            typer.echo(f"{pkg} not installed")
+    for extra in extras():
+        gone = missing(extra)
+        typer.echo(f"extra {extra}: " + (f"missing {', '.join(gone)}" if gone else "installed"))
 
 
 def bench_command(
@@ -71,7 +187,11 @@ def bench_command(
     out: Path = typer.Option(None, help="Also write the JSON here."),
     markdown: Path = typer.Option(None, help="Also write the tables (as in docs/performance.md) here."),
 ) -> None:
-    """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run."""
+    """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.
+
+    The `serve` extra runs it; the `bench` extra adds the alternatives (Ray Serve, Hugging Face's Decision
+    Transformer), which are skipped with a note when missing.
+    """
     import json
 
     from service.bench import run, to_markdown
@@ -88,9 +208,6 @@ def bench_command(
         out.write_text(text + "\n")
     if markdown:
         markdown.write_text(to_markdown(result) + "\n")
-
-
-_register()
 
 
 def main() -> None:

@@ -18,8 +18,8 @@ class Settings(BaseSettings):
     """Everything `gmt serve` can be told; each field is also `GMT_<FIELD>` in the environment.
 
     Attributes:
-        checkpoints: Checkpoint directories, or folders whose sub-directories are checkpoints
-            (comma-separated in GMT_CHECKPOINTS).
+        checkpoints: Checkpoint directories, or folders whose sub-directories are checkpoints (repeat the flag;
+            comma-separated in GMT_CHECKPOINTS).
         host: Interface both servers bind.
         rest_port: REST port (0 = any free port).
         grpc_port: gRPC port (0 = any free port).
@@ -38,7 +38,7 @@ class Settings(BaseSettings):
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
         replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC
-            initial metadata `x-served-by`) so that routing can be checked; default `hostname:pid`.
+            initial metadata `x-served-by`) so that routing can be checked.
     """
 
     model_config = SettingsConfigDict(env_prefix="GMT_", extra="ignore")
@@ -60,7 +60,7 @@ class Settings(BaseSettings):
     shutdown_grace_s: float = Field(5.0, ge=0)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
-    replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
 
     @field_validator("checkpoints", mode="before")
     @classmethod

@@ -1,21 +1,169 @@
-"""The `gmt` console command is installed and lists its command groups."""
+"""The `gmt` console command: every registered command answers --help, options come from the configurations they
+fill (same defaults), the command lines written in the repository still parse, and the entry point is lazy."""
 
-import shutil
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shlex
 import subprocess
 import sys
+from importlib import metadata
 from pathlib import Path
 
+import pytest
+from typer.main import get_command
+from typer.testing import CliRunner
 
-def _gmt() -> list[str]:
-    exe = Path(sys.executable).parent / "gmt"
-    return [str(exe)] if exe.exists() else [shutil.which("gmt") or "gmt"]
+from clients.extras import missing
+from service.cli import COMMANDS, app
+
+ROOT = Path(__file__).resolve().parents[1]
+runner = CliRunner()
 
 
-def test_help_lists_commands():
-    out = subprocess.run([*_gmt(), "--help"], capture_output=True, text=True, check=True).stdout
-    assert "version" in out
+def _gmt() -> str:
+    return str(Path(sys.executable).parent / "gmt")
 
 
-def test_version_prints_torch():
-    out = subprocess.run([*_gmt(), "version"], capture_output=True, text=True, check=True).stdout
-    assert "torch 2.13.0" in out
+def _root():
+    return get_command(app)
+
+
+def _every_command() -> list[tuple[str, ...]]:
+    """The path of every registered command and sub-command, read from the CLI itself."""
+    root, paths = _root(), []
+    ctx = root.make_context("gmt", ["--help"], resilient_parsing=True)
+    for name in root.list_commands(ctx):
+        cmd = root.get_command(ctx, name)
+        paths.append((name,))
+        real = getattr(cmd, "real", cmd)
+        if hasattr(real, "list_commands"):
+            paths += [(name, sub) for sub in real.list_commands(ctx)]
+    return paths
+
+
+def test_help_lists_every_registered_command():
+    out = subprocess.run([_gmt(), "--help"], capture_output=True, text=True, check=True).stdout
+    paths = _every_command()
+    assert {p[0] for p in paths} >= {e.name for e in COMMANDS} | {"version"}
+    for name, *_rest in paths:
+        assert re.search(rf"│ {name}\s", out), name
+
+
+@pytest.mark.parametrize("path", _every_command(), ids=" ".join)
+def test_every_command_answers_help(path):
+    r = runner.invoke(app, [*path, "--help"])
+    assert r.exit_code == 0, r.output
+    assert "Usage: gmt " + " ".join(path) in " ".join(r.output.split())
+
+
+def test_listed_help_is_the_commands_own_first_line():
+    for entry in COMMANDS:
+        if entry.extra and missing(entry.extra):
+            continue
+        real = entry.load()
+        assert (real.help or "").split("\n\n")[0].replace("\n", " ").strip() == entry.help, entry.name
+
+
+def test_version_prints_the_installed_versions():
+    out = subprocess.run([_gmt(), "version"], capture_output=True, text=True, check=True).stdout
+    assert f"torch {metadata.version('torch')}" in out
+    assert "extra serve: installed" in out
+
+
+def test_entry_point_imports_no_command_module():
+    code = (
+        "import sys, service.cli; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('torch', 'numpy', 'model', 'pydantic_settings', 'grpc', 'gymnasium')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+# ----- options generated from the configuration -----------------------------------------------------------------
+def _params(path: str) -> dict:
+    entry = next(e for e in COMMANDS if e.name == path)
+    return {p.name: p for p in entry.load().params}
+
+
+@pytest.mark.parametrize(
+    "command, config, skipped",
+    [
+        ("train", "model.config:TrainConfig", {"extra"}),
+        ("train", "model.config:GMTConfig", {"obs_shape", "act_dim", "discrete_actions", "n_goals"}),
+        ("run", "clients.runner:RunConfig", {"transport", "schedule", "goal"}),
+    ],
+)
+def test_every_flag_default_is_the_config_default(command, config, skipped):
+    module, _, name = config.partition(":")
+    cls = getattr(__import__(module, fromlist=[name]), name)
+    params = _params(command)
+    for f in dataclasses.fields(cls):
+        if f.name in skipped:
+            continue
+        assert f.name in params, f"{cls.__name__}.{f.name} has no flag"
+        assert params[f.name].default == f.default, (f.name, params[f.name].default, f.default)
+        assert params[f.name].help, f"{cls.__name__}.{f.name} has no help (document it under Attributes:)"
+    if command == "run":
+        assert params["goal"].default == str(cls.goal)
+
+
+def test_every_serve_flag_shows_the_settings_default():
+    from service.settings import Settings
+
+    params = _params("serve")
+    for name, info in Settings.model_fields.items():
+        p = params[name]
+        assert p.default is None, name  # an unset flag leaves GMT_<NAME> (or the default) in force
+        assert f"GMT_{name.upper()}" in p.help and len(p.help) > len(f"[GMT_{name.upper()}]")
+        if name == "replica_id":
+            continue  # computed per process
+        default = info.get_default(call_default_factory=True)
+        if default is None:
+            assert p.show_default is True, name
+        else:
+            shown = ", ".join(map(str, default)) if isinstance(default, list) else str(default)
+            assert p.show_default == shown, name
+
+
+# ----- the command lines written in the repository still parse ---------------------------------------------------
+def _written_command_lines() -> list[tuple[str, str]]:
+    texts = [("Makefile", (ROOT / "Makefile").read_text()), ("README.md", (ROOT / "README.md").read_text())]
+    texts += [(str(p.relative_to(ROOT)), p.read_text()) for p in ROOT.glob("checkpoints/*/PROVENANCE.md")]
+    for p in ROOT.glob("checkpoints/*/gmt.json"):
+        texts.append((str(p.relative_to(ROOT)), json.loads(p.read_text()).get("command", "")))
+    make_vars = dict(re.findall(r"^(\w+) \??:?= *(.*)$", texts[0][1], re.M))
+    lines = []
+    for where, text in texts:
+        text = re.sub(r"\\\n\s*", " ", text)
+        for line in text.splitlines():
+            m = re.match(
+                r"^\s*(?:\$\(BIN\)/)?(gmt (?:train|eval|serve|run|data \w+|cluster \w+|bench)\b[^#&|;`]*)",
+                line,
+            )
+            if m:
+                line = re.sub(r"\$\((\w+)\)", lambda v: make_vars.get(v.group(1), v.group(1)), m.group(1))
+                lines.append((where, line.strip()))
+    return lines
+
+
+def test_the_written_command_lines_find_commands():
+    wheres = {w for w, _ in _written_command_lines()}
+    assert {"Makefile", "README.md"} <= wheres and any(w.endswith("PROVENANCE.md") for w in wheres)
+
+
+@pytest.mark.parametrize("where, line", _written_command_lines(), ids=lambda x: x[:60])
+def test_written_command_line_parses(where, line):
+    args = shlex.split(line)[1:]
+    entry = next(e for e in COMMANDS if e.name == args[0])
+    if entry.extra and missing(entry.extra):
+        pytest.skip(f"the {entry.extra} extra is not installed")
+    cmd, args = entry.load(), args[1:]
+    if hasattr(cmd, "list_commands"):
+        cmd, args = cmd.get_command(None, args[0]), args[1:]
+    if "--" in args:  # `gmt cluster up ... -- more gmt serve flags`
+        args = args[: args.index("--")]
+    cmd.make_context(entry.name, args)  # raises on an unknown option or a bad value

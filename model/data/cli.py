@@ -1,6 +1,7 @@
 """`gmt data ...`: train behaviour agents, collect, describe and relabel offline datasets.
 
-Heavy imports (torch, gymnasium, sklearn, matplotlib) stay inside the commands so `gmt --help` is fast.
+Heavy imports (torch, gymnasium, sklearn, matplotlib) stay inside the commands so `gmt --help` is fast. `collect`,
+`describe` and `relabel` need the `data` extra, `behaviour` and `refine` the `train` extra; `statistics` nothing.
 """
 
 from __future__ import annotations
@@ -8,6 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+
+from clients.cli_support import needs
 
 app = typer.Typer(help="Offline datasets: behaviour agents, collection, statistics and goal relabelling.")
 
@@ -25,6 +28,7 @@ def _parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
 
 
 @app.command()
+@needs("train", "gmt data behaviour")
 def behaviour(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
     timesteps: int = typer.Option(1_000_000, help="PPO environment steps."),
@@ -66,6 +70,7 @@ def behaviour(
 
 
 @app.command()
+@needs("train", "gmt data refine")
 def refine(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
     level: str = typer.Option("slow", help="Level to refine; its snapshot is the starting actor."),
@@ -105,6 +110,7 @@ def refine(
 
 
 @app.command()
+@needs("data", "gmt data collect")
 def collect(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
     episodes_per_level: int = typer.Option(
@@ -185,6 +191,7 @@ def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: P
 
 
 @app.command()
+@needs("data", "gmt data describe")
 def describe(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
     statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
@@ -212,6 +219,7 @@ def describe(
 
 
 @app.command()
+@needs("data", "gmt data relabel")
 def relabel(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
     out: Path = typer.Option(..., help="Where to write the goal table (JSON)."),
@@ -230,7 +238,7 @@ def relabel(
 @app.command()
 def statistics() -> None:
     """List the registered per-trajectory statistics."""
-    from model.data.statistics import get_statistic, list_statistics
+    from clients.statistics import get_statistic, list_statistics
 
     for name in list_statistics():
         s = get_statistic(name)
