@@ -25,7 +25,8 @@ DTYPES = (
     "float32",
     "float64",
 )
-FLOAT32_MAX = float(np.finfo(np.float32).max)
+MAX_ABS_VALUE = 1e9  # largest |value| of an observation: far beyond any physical quantity, and small enough
+# that no finite observation can overflow normalisation or the forward pass (documented in the OpenAPI schema)
 MAX_DIMS = 8
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 
@@ -71,16 +72,19 @@ def decode_tensor(data: bytes, dtype: str, shape: Sequence[int]) -> np.ndarray:
     need = math.prod(dims) * dt.itemsize  # Python ints: a huge shape cannot overflow into a small number
     if need != len(data):
         raise InvalidArgument(f"observation data has {len(data)} bytes; shape {dims} of {dtype} needs {need}")
-    return np.frombuffer(data, dtype=dt).reshape(dims)
+    try:
+        return np.frombuffer(data, dtype=dt).reshape(dims)
+    except (ValueError, OverflowError):  # an empty array with a huge dimension, e.g. [0, 2**62]
+        raise InvalidArgument(f"observation shape {dims} is too large") from None
 
 
 def to_array(obs: object) -> np.ndarray:
-    """A nested list (or array) as an array; rejects ragged lists and floats outside the float32 range.
+    """A nested list (or array) as an array; rejects ragged lists and finite values beyond +-MAX_ABS_VALUE.
 
     Size, dtype kind and NaN/Inf are checked afterwards by the model's `prepare_observation`.
 
     Raises:
-        InvalidArgument: ragged nesting, or a finite value too large for float32.
+        InvalidArgument: ragged nesting, or a finite value whose magnitude exceeds MAX_ABS_VALUE.
     """
     if isinstance(obs, np.ndarray):
         x = obs
@@ -89,9 +93,12 @@ def to_array(obs: object) -> np.ndarray:
             x = np.asarray(obs)
         except (ValueError, TypeError, OverflowError) as e:
             raise InvalidArgument(f"observation is not a rectangular numeric array: {e}") from None
-    if x.dtype.kind == "f" and x.size:
-        big = np.isfinite(x) & (np.abs(x) > FLOAT32_MAX)
+    if x.size and (x.dtype.kind == "f" or (x.dtype.kind in "iu" and x.dtype.itemsize > 2)):
+        v = x if x.dtype.kind == "f" else x.astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            big = np.abs(v) > MAX_ABS_VALUE  # False for NaN; Inf is reported as non-finite later
+        big &= np.isfinite(v)
         if big.any():
             i = int(np.flatnonzero(big.ravel())[0])
-            raise InvalidArgument(f"observation value at index {i} is outside the float32 range")
+            raise InvalidArgument(f"observation value at index {i} is outside [-1e9, 1e9]")
     return x

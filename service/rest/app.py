@@ -19,6 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated
+from service.rest import openapi
 from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
 
@@ -81,13 +82,26 @@ def validation_message(errors) -> str:
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     code = HTTP_CODES.get(exc.status_code, "http_error")
+    headers = getattr(exc, "headers", None)
     if exc.status_code == 404:
         msg = f"no route {request.method} {request.url.path}; see /docs"
     elif exc.status_code == 405:
         msg = f"method {request.method} is not allowed on {request.url.path}"
+        allowed = _allowed_methods(request)
+        if allowed:
+            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
     else:
         msg = str(exc.detail)
-    return error_response(exc.status_code, code, msg, getattr(exc, "headers", None))
+    return error_response(exc.status_code, code, msg, headers)
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method the API documents on this path (Starlette's 405 names only the first matching route's)."""
+    path = request.scope["path"]
+    for template, item in request.app.openapi()["paths"].items():
+        if re.fullmatch(re.sub(r"\\{[^/]+?\\}", "[^/]+", re.escape(template)), path):
+            return sorted(m.upper() for m in item)
+    return []
 
 
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -151,7 +165,7 @@ class AuthFirst:
         if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
             return await self.app(scope, receive, send)
         auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
-        if auth is None or not auth.startswith(b"Bearer "):
+        if auth is None or auth[:7].lower() != b"bearer ":  # the scheme is case-insensitive (RFC 9110)
             e = Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
         elif not secrets.compare_digest(auth[7:].strip(), self.token):
             e = Unauthenticated("invalid bearer token")
@@ -272,6 +286,17 @@ class _App(FastAPI):
         inner = FastAct(super().build_middleware_stack(), self.settings)
         return ServedBy(AuthFirst(inner, self.settings.token), self.replica_id)
 
+    def openapi(self) -> dict:
+        """The document for the loaded models and the auth setting (`service.rest.openapi`), built once the
+        models are loaded."""
+        if self.openapi_schema is None:
+            core = getattr(self.state, "core", None)
+            doc = openapi.build(self, core)
+            if core is None or not core.started:
+                return doc
+            self.openapi_schema = doc
+        return self.openapi_schema
+
 
 class RequestMetrics:
     """Observes each request's latency by endpoint name and status."""
@@ -325,6 +350,8 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         version="1",
         description="Drive an agent with a Goal-Masked Transformer and change its goal mid-episode.",
         lifespan=lifespan,
+        # No trailing-slash redirects: Starlette builds their Location from the Host header.
+        redirect_slashes=False,
     )
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)

@@ -2,35 +2,39 @@
 
 from __future__ import annotations
 
-import secrets
 from typing import Annotated
 
 import orjson
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
 
 from service.core import Core
-from service.errors import ServiceError, Unauthenticated
+from service.errors import ServiceError
 from service.observations import check_act_items, decode_base64, decode_tensor
 from service.rest import schemas as S
 
 SESSION_HEADER = "X-Session-Id"
-ERRORS = {
-    400: {"model": S.ErrorOut, "description": "Invalid argument"},
-    401: {"model": S.ErrorOut, "description": "Missing or wrong bearer token"},
-    404: {"model": S.ErrorOut, "description": "Unknown or expired model or session"},
+_ERRORS = {
+    400: "Invalid argument",
+    404: "Unknown or expired model or session",
+    409: "Failed precondition (the act's step is not the session's) or aborted (another replica changed the "
+    "session: retry)",
+    413: "Request body larger than --max-request-bytes",
+    429: "The server holds --max-sessions live sessions",
+    503: "Unavailable: no model loaded, shutting down, or the session store is unreachable (retry)",
 }
+
+
+def errors(*codes: int) -> dict:
+    """The documented error answers of a route (401 is added by `openapi` when auth is on)."""
+    return {c: {"model": S.ErrorOut, "description": _ERRORS[c]} for c in codes}
 
 
 def session_header(sid: str | None) -> dict:
     """`X-Session-Id` for a response, when the id can be a header value (printable ASCII); else none."""
     return {SESSION_HEADER: sid} if sid and sid.isascii() and sid.isprintable() else {}
-
-
-_bearer = HTTPBearer(auto_error=False, description="Required when the server runs with --auth-token.")
 
 
 def get_core(request: Request) -> Core:
@@ -41,21 +45,9 @@ def get_core(request: Request) -> Core:
 CoreDep = Annotated[Core, Depends(get_core)]
 
 
-def require_token(
-    core: CoreDep, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-) -> None:
-    """Reject the request unless auth is off or it carries `Authorization: Bearer <token>`."""
-    token = core.settings.token
-    if token is None:
-        return
-    if creds is None:
-        raise Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
-    if not secrets.compare_digest(creds.credentials.encode(), token.encode()):
-        raise Unauthenticated("invalid bearer token")
-
-
+# Auth (with --auth-token) is checked by `app.AuthFirst` before anything reads a body; `openapi` declares it.
 public = APIRouter(tags=["health"])
-api = APIRouter(dependencies=[Depends(require_token)], responses=ERRORS)
+api = APIRouter()
 
 
 @public.get("/healthz", response_model=S.Health)
@@ -84,13 +76,19 @@ async def list_models(core: CoreDep) -> S.ModelList:
     return S.ModelList(models=[S.summary(v) for v in core.list_models()])
 
 
-@api.get("/models/{name}", response_model=S.ModelOut, tags=["models"])
+@api.get("/models/{name}", response_model=S.ModelOut, tags=["models"], responses=errors(404))
 async def get_model(name: str, core: CoreDep) -> S.ModelOut:
     """A model's spaces, goal table and context length."""
     return S.ModelOut.of(core.get_model(name))
 
 
-@api.post("/sessions", response_model=S.SessionOut, status_code=201, tags=["sessions"])
+@api.post(
+    "/sessions",
+    response_model=S.SessionOut,
+    status_code=201,
+    tags=["sessions"],
+    responses=errors(400, 404, 413, 429, 503),
+)
 async def create_session(body: S.CreateSession, core: CoreDep, response: Response) -> S.SessionOut:
     """Create a session on a model with a goal id, goal name, or target statistic value."""
     v = await core.create_session(body.model, body.goal, body.target, body.seed, body.action_mode)
@@ -98,7 +96,7 @@ async def create_session(body: S.CreateSession, core: CoreDep, response: Respons
     return S.SessionOut.of(v)
 
 
-@api.get("/sessions/{session_id}", response_model=S.SessionOut, tags=["sessions"])
+@api.get("/sessions/{session_id}", response_model=S.SessionOut, tags=["sessions"], responses=errors(404, 503))
 async def get_session(session_id: str, core: CoreDep, response: Response) -> S.SessionOut:
     """A session's state (does not reset its idle timer)."""
     response.headers.update(session_header(session_id))
@@ -119,7 +117,11 @@ def _act_body_schema() -> dict:
 
 
 @api.post(
-    "/sessions/{session_id}/act", response_model=S.ActOut, tags=["sessions"], openapi_extra=_act_body_schema()
+    "/sessions/{session_id}/act",
+    response_model=S.ActOut,
+    tags=["sessions"],
+    openapi_extra=_act_body_schema(),
+    responses=errors(400, 404, 409, 413, 503),
 )
 async def act(session_id: str, request: Request, core: CoreDep) -> Response:
     """One step: the observation in, the action out."""
@@ -144,7 +146,13 @@ async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
     return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
 
 
-@api.post("/act", response_model=S.ActManyOut, response_model_exclude_none=True, tags=["sessions"])
+@api.post(
+    "/act",
+    response_model=S.ActManyOut,
+    response_model_exclude_none=True,
+    tags=["sessions"],
+    responses=errors(400, 413, 503),
+)
 async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     """One step for each of many sessions in one forward pass; results in request order, a bad item fails alone
     (HTTP 200 for the call). A session may appear once per call."""
@@ -164,14 +172,24 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     )
 
 
-@api.put("/sessions/{session_id}/goal", response_model=S.SessionOut, tags=["sessions"])
+@api.put(
+    "/sessions/{session_id}/goal",
+    response_model=S.SessionOut,
+    tags=["sessions"],
+    responses=errors(400, 404, 409, 413, 503),
+)
 async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Response) -> S.SessionOut:
     """Change the goal from the next step on, optionally blended over `blend_steps` steps."""
     response.headers.update(session_header(session_id))
     return S.SessionOut.of(await core.set_goal(session_id, body.goal, body.target, body.blend_steps))
 
 
-@api.post("/sessions/{session_id}/reset", response_model=S.SessionOut, tags=["sessions"])
+@api.post(
+    "/sessions/{session_id}/reset",
+    response_model=S.SessionOut,
+    tags=["sessions"],
+    responses=errors(400, 404, 409, 413, 503),
+)
 async def reset_session(
     session_id: str, core: CoreDep, response: Response, body: S.ResetSession | None = None
 ) -> S.SessionOut:
@@ -181,7 +199,13 @@ async def reset_session(
     return S.SessionOut.of(await core.reset(session_id, body.goal, body.target))
 
 
-@api.delete("/sessions/{session_id}", status_code=204, tags=["sessions"], response_class=Response)
+@api.delete(
+    "/sessions/{session_id}",
+    status_code=204,
+    tags=["sessions"],
+    response_class=Response,
+    responses=errors(404, 503),
+)
 async def close_session(session_id: str, core: CoreDep) -> Response:
     """Close the session."""
     await core.close_session(session_id)

@@ -1,17 +1,35 @@
-"""JSON bodies of the REST API (pydantic v2), as DESIGN.md section 6 fixes them."""
+"""JSON bodies of the REST API (pydantic v2), as DESIGN.md section 6 fixes them.
+
+Request bodies are validated strictly: a number is never read from a string or a boolean, so that the server
+accepts exactly what its OpenAPI schema (`service.rest.openapi`) admits. Integers may be written as integral
+JSON numbers (`2.0`), which JSON Schema counts as integers too.
+"""
 
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, StrictInt, StrictStr, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, StrictStr, field_validator
 
-from service.core import ActResult, ModelView, SessionView
+from service.core import MAX_BLEND_STEPS, ActResult, ModelView, SessionView
 from service.errors import ServiceError
 from service.observations import MAX_ACT_ITEMS
 
-GoalRef = StrictInt | StrictStr
+
+def _integral(v: object) -> object:
+    return int(v) if isinstance(v, float) and v.is_integer() else v
+
+
+JsonInt = Annotated[StrictInt, BeforeValidator(_integral)]
+"""An integer: a JSON integer or an integral JSON number (`3.0`); never a string or a boolean."""
+GoalRef = JsonInt | StrictStr
+
+
+class _Request(BaseModel):
+    """A request body: strict types (unknown fields are ignored)."""
+
+    model_config = ConfigDict(strict=True)
 
 
 class Space(BaseModel):
@@ -97,13 +115,17 @@ def summary(v: ModelView) -> ModelSummary:
     )
 
 
-class CreateSession(BaseModel):
+class CreateSession(_Request):
     """`POST /sessions`: a model and a goal by id or name, or a target statistic value."""
 
     model: str | None = Field(None, description="Model name; may be omitted when one model is loaded.")
     goal: GoalRef | None = Field(None, description="Goal id or goal name.", examples=[0, "high"])
     target: float | None = Field(None, description="Target statistic value: the nearest goal mean is chosen.")
-    seed: int | None = Field(None, description="Seed of the session's sampler (sample/expert modes).")
+    seed: JsonInt | None = Field(
+        None,
+        description="Seed of the session's sampler (sample/expert modes).",
+        json_schema_extra={"minimum": 0, "maximum": 2**63 - 1},
+    )
     action_mode: Literal["argmax", "sample", "expert", "mean"] | None = Field(
         None,
         description="Discrete actions: argmax, sample or expert (default argmax). Continuous: mean, or sample "
@@ -112,15 +134,19 @@ class CreateSession(BaseModel):
     )
 
 
-class SetGoal(BaseModel):
+class SetGoal(_Request):
     """`PUT /sessions/{id}/goal`."""
 
     goal: GoalRef | None = Field(None, description="Goal id or goal name.", examples=[2, "low"])
     target: float | None = Field(None, description="Target statistic value: the nearest goal mean is chosen.")
-    blend_steps: StrictInt = Field(0, description="Fade the new goal in over this many steps (0 = at once).")
+    blend_steps: JsonInt = Field(
+        0,
+        description="Fade the new goal in over this many steps (0 = at once).",
+        json_schema_extra={"minimum": 0, "maximum": MAX_BLEND_STEPS},
+    )
 
 
-class ResetSession(BaseModel):
+class ResetSession(_Request):
     """`POST /sessions/{id}/reset`: optionally a new goal."""
 
     goal: GoalRef | None = None
@@ -149,19 +175,19 @@ class SessionOut(BaseModel):
         return cls(**vars(v))
 
 
-class Tensor(BaseModel):
+class Tensor(_Request):
     """A raw little-endian array, base64-encoded (images)."""
 
     data: str = Field(description="Standard base64 of the array's bytes.")
     dtype: str = Field(description="NumPy dtype name, e.g. uint8 or float32.", examples=["uint8"])
-    shape: list[StrictInt]
+    shape: list[JsonInt]
 
 
-class Act(BaseModel):
+class Act(_Request):
     """`POST /sessions/{id}/act`: one observation, as (nested) numbers or a base64 tensor."""
 
     observation: list[Any] | Tensor = Field(examples=[[0.0] * 17])
-    step: int | None = Field(
+    step: JsonInt | None = Field(
         None,
         ge=0,
         description="The step this act is for (0 for an episode's first act). A repeat of the last answered "
@@ -183,7 +209,7 @@ class ActItem(Act):
     session_id: StrictStr
 
 
-class ActMany(BaseModel):
+class ActMany(_Request):
     """`POST /act`: one step for each of many sessions, in one forward pass; a session may appear once."""
 
     requests: list[ActItem] = Field(description=f"At most {MAX_ACT_ITEMS} items.")

@@ -52,7 +52,8 @@ ACT_BODIES = [
     ("ragged", obs_json([[0.0] * 16, [0.0]]), "observation is not a rectangular numeric array"),
     ("extra dimension", obs_json([[0.0] * N]), "observation has shape [1, 17], expected [17]"),
     ("booleans", obs_json([True] * N), "observation must hold numbers, got booleans"),
-    ("huge", obs_json([3e38] * N), "the model produced a non-finite action for this observation"),
+    ("huge", obs_json([3e38] * N), "observation value at index 0 is outside [-1e9, 1e9]"),
+    ("huge integer", obs_json([0] * 16 + [10**10]), "observation value at index 16 is outside [-1e9, 1e9]"),
     ("strings", obs_json(["a"] * N), "observation must be numeric"),
     ("nulls", obs_json([None] * N), "observation must be numeric"),
     ("not a list", obs_json("fast"), "observation: Value error, must be a list of numbers or an object"),
@@ -66,7 +67,7 @@ ACT_BODIES = [
     (
         "float32 overflow",
         obs_json([0.0, 1e39] + [0.0] * 15),
-        "observation value at index 1 is outside the float32 range",
+        "observation value at index 1 is outside [-1e9, 1e9]",
     ),
     (
         "tensor dtype",
@@ -98,6 +99,11 @@ ACT_BODIES = [
         "tensor shape overflow",
         obs_json({"data": "", "dtype": "float32", "shape": [4294967296, 4294967296]}),
         "observation data has 0 bytes; shape [4294967296, 4294967296] of float32 needs",
+    ),
+    (
+        "tensor empty with a huge dimension",
+        obs_json({"data": "", "dtype": "float32", "shape": [0, 2**62]}),
+        "observation shape [0, 4611686018427387904] is too large",
     ),
     (
         "tensor 65 dimensions",

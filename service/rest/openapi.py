@@ -1,0 +1,308 @@
+"""The OpenAPI document, exact for the server that serves it.
+
+FastAPI's generated document describes the bodies by their pydantic types; what the server accepts depends
+also on the loaded models (goal ids and names, action modes, observation shapes) and on the auth setting. This
+module rewrites the request bodies from the loaded models, so that a body the schema admits is accepted and one
+it does not is refused (schemathesis checks both, `tests/service/test_schemathesis.py`), and declares bearer
+auth as a security scheme only when the server requires a token.
+
+What JSON Schema cannot say, and how the schema deals with it:
+- An observation is checked against the model of the session named in the path, which the body does not
+  name: with several models loaded the schema admits the observation of any of them.
+- Tensor bytes: an observation value must be finite and within +-1e9 (`observations.MAX_ABS_VALUE`), which a
+  pattern over base64 cannot check for float or 64-bit integer dtypes. The schema lists the tensor dtypes whose
+  every value is acceptable (8- and 16-bit integers; `uint8` for images); the server also accepts the other
+  numeric dtypes when their values are in range.
+- The body size limit (`--max-request-bytes`) is in the description and in the 413 answers.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from service.core import MAX_BLEND_STEPS, Core, ModelView
+from service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
+
+BEARER = "bearerAuth"
+OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token
+DBL_MAX = float(np.finfo(np.float64).max)
+VECTOR_TENSOR_DTYPES = ("uint8", "int8", "uint16", "int16")  # every value of these is within +-MAX_ABS_VALUE
+B64 = "[A-Za-z0-9+/]"
+
+
+def build(app: FastAPI, core: Core | None) -> dict:
+    """The document for `app` over `core`'s loaded models and auth setting."""
+    settings = app.settings
+    doc = get_openapi(
+        title=app.title,
+        version=app.version,
+        description=app.description
+        + f"\n\nRequest bodies are limited to {settings.max_request_bytes} bytes (413 payload_too_large)."
+        + ' Errors are `{"error": {"code", "message"}}`.',
+        routes=app.routes,
+    )
+    models = core.list_models() if core is not None and core.started else []
+    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):  # FastAPI's 422, which this server never answers
+        schemas.pop(name, None)
+    for item in doc["paths"].values():
+        for op in item.values():
+            op.get("responses", {}).pop("422", None)
+    if models:
+        _exact_bodies(doc, schemas, models)
+    if settings.token is not None:
+        _bearer_auth(doc)
+    return doc
+
+
+# ----- request bodies -----------------------------------------------------------------------------------------
+def _body(doc: dict, path: str, method: str) -> dict:
+    return doc["paths"][path][method]["requestBody"]["content"]["application/json"]
+
+
+def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
+    described = {n: schemas.get(n, {}).get("properties", {}) for n in ("CreateSession", "SetGoal", "Act")}
+    observation = _any_of([observation_schema(m) for m in models])
+    schemas["Observation"] = {
+        **observation,
+        "description": "The observation, in the shape of the model's observation space: nested lists of numbers "
+        "within +-1e9 (integers 0..255 for images), or a base64 raw array "
+        "`{data, dtype, shape}`. With several models loaded, the session's model decides which shape applies.",
+    }
+    schemas["CreateSession"] = _create_session(models, described["CreateSession"])
+    schemas["SetGoal"] = _set_goal(models, described["SetGoal"])
+    schemas["ResetSession"] = _reset(models)
+    schemas["Act"] = {
+        "title": "Act",
+        "description": "`POST /sessions/{id}/act`: one observation.",
+        "type": "object",
+        "properties": {
+            "observation": {"$ref": "#/components/schemas/Observation"},
+            "step": {
+                **_nullable(_STEP),
+                "description": described["Act"].get("step", {}).get("description", ""),
+            },
+        },
+        "required": ["observation"],
+    }
+    _body(doc, "/sessions/{session_id}/act", "post")["schema"] = {"$ref": "#/components/schemas/Act"}
+    # POST /act: a bad observation, tensor or session fails its item alone (in the answer), so the schema of an
+    # item's observation is the envelope the whole call is refused without.
+    schemas["Tensor"] = {
+        "title": "Tensor",
+        "description": "A raw little-endian array, base64-encoded (images).",
+        "type": "object",
+        "properties": {
+            "data": {"type": "string", "description": "Standard base64 of the array's bytes."},
+            "dtype": {"type": "string", "description": "NumPy dtype name, e.g. uint8 or float32."},
+            "shape": {"type": "array", "items": {"type": "integer"}},
+        },
+        "required": ["data", "dtype", "shape"],
+    }
+    schemas["ActItem"] = {
+        "title": "ActItem",
+        "description": "One item of `POST /act`: a session and its observation (as in `POST "
+        "/sessions/{id}/act`; a wrong one fails this item alone).",
+        "type": "object",
+        "properties": {
+            "session_id": {"type": "string"},
+            "observation": {"anyOf": [{"type": "array"}, {"$ref": "#/components/schemas/Tensor"}]},
+            "step": _nullable(_STEP),
+        },
+        "required": ["session_id", "observation"],
+    }
+    schemas["ActMany"] = {
+        "title": "ActMany",
+        "description": "`POST /act`: one step for each of many sessions, in one forward pass.",
+        "type": "object",
+        "properties": {
+            "requests": {
+                "type": "array",
+                "items": {"$ref": "#/components/schemas/ActItem"},
+                "maxItems": MAX_ACT_ITEMS,
+            }
+        },
+        "required": ["requests"],
+    }
+
+
+_STEP = {"type": "integer", "minimum": 0}
+_TARGET = {"type": "number", "minimum": -DBL_MAX, "maximum": DBL_MAX}  # finite
+
+
+def _nullable(schema: dict) -> dict:
+    return {"anyOf": [schema, {"type": "null"}]}
+
+
+def _any_of(schemas: list[dict]) -> dict:
+    unique: list[dict] = []
+    for s in schemas:
+        if s not in unique:
+            unique.append(s)
+    return unique[0] if len(unique) == 1 else {"anyOf": unique}
+
+
+def _goal(models: list[ModelView]) -> dict:
+    ids = sorted({g.id for m in models for g in m.goals})
+    names = sorted({g.name for m in models for g in m.goals})
+    return {
+        "anyOf": [{"type": "integer", "enum": ids}, {"type": "string", "enum": names}, {"type": "null"}],
+        "description": "Goal id or goal name (`GET /models/{name}` lists them).",
+    }
+
+
+def _exactly_one_goal() -> list[dict]:
+    """Exactly one of goal (an id or a name) and target is given (not null)."""
+    return [
+        {"required": ["goal"], "properties": {"goal": {"not": {"type": "null"}}}},
+        {"required": ["target"], "properties": {"target": {"type": "number"}}},
+    ]
+
+
+def _target(described: dict | None = None) -> dict:
+    d = (described or {}).get("target", {}).get("description")
+    return {
+        **_nullable(_TARGET),
+        "description": d or "Target statistic value: the nearest goal mean is chosen.",
+    }
+
+
+def _create_session(models: list[ModelView], described: dict) -> dict:
+    def one(m: ModelView, required: bool) -> dict:
+        model = {"const": m.name} if required else {"anyOf": [{"const": m.name}, {"type": "null"}]}
+        return {
+            "type": "object",
+            "properties": {
+                "model": {**model, "description": "Model name; may be omitted when one model is loaded."},
+                "goal": _goal([m]),
+                "target": _target(described),
+                "seed": {
+                    **_nullable({"type": "integer", "minimum": 0, "maximum": 2**63 - 1}),
+                    "description": described.get("seed", {}).get("description", ""),
+                },
+                "action_mode": {
+                    **_nullable({"type": "string", "enum": list(m.action_modes)}),
+                    "description": "One of the model's action modes (`GET /models/{name}`); the first is the "
+                    "default.",
+                },
+            },
+            **({"required": ["model"]} if required else {}),
+            "oneOf": _exactly_one_goal(),
+        }
+
+    body = one(models[0], False) if len(models) == 1 else {"oneOf": [one(m, True) for m in models]}
+    return {
+        "title": "CreateSession",
+        "description": "`POST /sessions`: a model and exactly one of a goal (id or name) and a target value.",
+        **body,
+    }
+
+
+def _set_goal(models: list[ModelView], described: dict) -> dict:
+    return {
+        "title": "SetGoal",
+        "description": "`PUT /sessions/{id}/goal`: exactly one of a goal (id or name of the session's model) and "
+        "a target value.",
+        "type": "object",
+        "properties": {
+            "goal": _goal(models),
+            "target": _target(described),
+            "blend_steps": {
+                "type": "integer",
+                "minimum": 0,
+                "maximum": MAX_BLEND_STEPS,
+                "default": 0,
+                "description": described.get("blend_steps", {}).get("description", ""),
+            },
+        },
+        "oneOf": _exactly_one_goal(),
+    }
+
+
+def _reset(models: list[ModelView]) -> dict:
+    return {
+        "title": "ResetSession",
+        "description": "`POST /sessions/{id}/reset`: optionally a new goal (an id or a name, or a target "
+        "value, not both).",
+        "type": "object",
+        "properties": {"goal": _goal(models), "target": _target()},
+        "not": {
+            "required": ["goal", "target"],
+            "properties": {"goal": {"not": {"type": "null"}}, "target": {"type": "number"}},
+        },
+    }
+
+
+def observation_schema(m: ModelView) -> dict:
+    """What the server accepts as an observation for model `m` (Box spaces; anything else is not narrowed)."""
+    space = m.observation_space
+    if space.get("type") != "box":
+        return {"anyOf": [{"type": "array"}, {"$ref": "#/components/schemas/Tensor"}]}
+    shape = [int(s) for s in space["shape"]]
+    image = space.get("dtype") == "uint8"
+    if image:
+        leaf: dict[str, Any] = {"type": "integer", "minimum": 0, "maximum": 255}
+        dtypes: tuple[str, ...] = ("uint8",)
+    else:
+        leaf = {"type": "number", "minimum": -MAX_ABS_VALUE, "maximum": MAX_ABS_VALUE}
+        dtypes = VECTOR_TENSOR_DTYPES
+    # A (1, H, W) image may also come as (H, W).
+    shapes = [shape] + ([shape[1:]] if len(shape) == 3 and shape[0] == 1 else [])
+    forms = [_nested(leaf, s) for s in shapes]
+    forms += [_tensor(d, s) for s in shapes for d in dtypes]
+    return {"anyOf": forms}
+
+
+def _nested(leaf: dict, shape: list[int]) -> dict:
+    schema = leaf
+    for n in reversed(shape):
+        schema = {"type": "array", "items": schema, "minItems": n, "maxItems": n}
+    return schema
+
+
+def _tensor(dtype: str, shape: list[int]) -> dict:
+    n = math.prod(shape) * np.dtype(dtype).itemsize
+    full, rest = divmod(n, 3)
+    tail = {0: "", 1: f"{B64}{{2}}==", 2: f"{B64}{{3}}="}[rest]
+    length = 4 * (full + (rest > 0))
+    return {
+        "type": "object",
+        "properties": {
+            "data": {
+                "type": "string",
+                "pattern": f"^(?:{B64}{{4}}){{{full}}}{tail}$",
+                "minLength": length,
+                "maxLength": length,
+                "description": f"Standard base64 of {n} bytes.",
+            },
+            "dtype": {"const": dtype},
+            "shape": {"const": shape},
+        },
+        "required": ["data", "dtype", "shape"],
+    }
+
+
+# ----- auth ---------------------------------------------------------------------------------------------------
+def _bearer_auth(doc: dict) -> None:
+    doc["components"]["securitySchemes"] = {
+        BEARER: {
+            "type": "http",
+            "scheme": "bearer",
+            "description": "The server's --auth-token: `Authorization: Bearer <token>`.",
+        }
+    }
+    unauthenticated = {
+        "description": "Missing or wrong bearer token",
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
+    }
+    for path, item in doc["paths"].items():
+        for method, op in item.items():
+            if (path, method) in OPEN_OPERATIONS:
+                continue
+            op["security"] = [{BEARER: []}]
+            op.setdefault("responses", {})["401"] = unauthenticated
