@@ -7,6 +7,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
+from clients.envs import VIDEO_SIZE
 from service.cli import app
 
 runner = CliRunner()
@@ -37,7 +38,8 @@ def test_video_is_an_mp4_with_one_frame_per_step(live_server, tmp_path):
     with imageio.get_reader(video) as reader:
         assert reader.count_frames() == 8
         frame = reader.get_data(0)
-    assert frame.shape == (320, 480, 3) and frame.std() > 10  # rendered, not blank
+    width, height = VIDEO_SIZE
+    assert frame.shape == (height, width, 3) and frame.std() > 10  # rendered, not blank
 
 
 def test_mismatched_environment_exits_with_a_message_naming_both(live_server):

@@ -14,7 +14,7 @@ from clients.errors import NotFound
 from clients.grpc import GrpcClient
 from clients.rest import RestClient
 from clients.runner import RunConfig, StatusLine, parse_goal, parse_schedule, run
-from clients.segments import runs, settle_in
+from clients.segments import SETTLE_MAX, runs, settle_in
 
 STEPS = 60
 SCHEDULE = "high@20,1@40"  # goal 0 (low) from the start, 2 (high) from step 20, 1 (medium) from step 40
@@ -163,7 +163,8 @@ def test_parse_schedule():
 def test_runs_and_settle_in():
     assert runs([0, 0, 2, 2, 2, 0]) == [(0, 0, 2), (2, 2, 5), (0, 5, 6)]
     assert runs([]) == []
-    assert [settle_in(n) for n in (1, 4, 60, 400, 500, 1000)] == [0, 1, 15, 100, 100, 100]
+    assert [settle_in(n) for n in (1, 4, 60)] == [0, 1, 15]  # a quarter of the segment ...
+    assert settle_in(4 * SETTLE_MAX) == settle_in(10 * SETTLE_MAX) == SETTLE_MAX  # ... at most SETTLE_MAX
 
 
 class Terminal(io.StringIO):

@@ -23,6 +23,7 @@ from clients.errors import (
 )
 from clients.grpc import GrpcClient, StreamSession
 from clients.rest import RestClient
+from service.observations import MAX_ACT_ITEMS
 
 TRANSPORTS = ["rest", "grpc", "grpc-stream"]
 OBS = np.linspace(-1, 1, 17)
@@ -411,8 +412,10 @@ def test_act_many_returns_per_item_errors_and_raises_whole_call_errors(client):
         r = b.act(OBS)  # the failed item left b as it was: it acts like a did on its first step
         np.testing.assert_array_equal(r.action, got[0].action)
         assert r.step == 0
-        with pytest.raises(InvalidArgument, match="at most 4096 sessions, got 4097 requests"):
-            client.act_many([(a.id, [0.0])] * 4097)
+        with pytest.raises(
+            InvalidArgument, match=f"at most {MAX_ACT_ITEMS} sessions, got {MAX_ACT_ITEMS + 1} requests"
+        ):
+            client.act_many([(a.id, [0.0])] * (MAX_ACT_ITEMS + 1))
         assert client.act_many([]) == []
         assert a.act(OBS).step == 1
 

@@ -82,21 +82,34 @@ def test_incremental_path_matches_the_reference_over_long_episodes(n_sessions):
 
 
 @pytest.mark.parametrize("attention", ["full", "window"])
-def test_batched_and_unbatched_actions_are_bit_identical(attention):
+def test_rows_are_independent_each_batched_row_equals_its_session_run_alone(attention):
+    """Sessions batched together (different goals, seeds, start steps, a blended switch) get, row for row, the
+    very actions the same session gets when it is run alone in an engine of its own."""
     ckpt = tiny_checkpoint(context_length=5, attention=attention, calibrated=True)
-    batched, alone = PolicyEngine(ckpt), PolicyEngine(ckpt)
+    n, steps, joins = 5, 30, (0, 0, 3, 7, 12)  # sessions 2..4 join the batch later, so their steps differ
     rng = np.random.default_rng(5)
-    cb = [batched.new_context(i % 3, seed=i) for i in range(5)]
-    ca = [alone.new_context(i % 3, seed=i) for i in range(5)]
-    for t in range(30):
-        obs = rng.normal(size=(5, 17)).astype(np.float32)
-        if t == 12:
-            batched.set_goal(cb[3], 0, 4)
-            alone.set_goal(ca[3], 0, 4)
-        together = batched.act(cb, list(obs))
-        for i in range(5):
-            (single,) = alone.act([ca[i]], [obs[i]])
-            assert np.array_equal(together[i], single), (t, i)
+    obs = rng.normal(size=(steps, n, 17)).astype(np.float32)
+    batched = PolicyEngine(ckpt)
+    rows: list = [None] * n
+    together = np.full((steps, n, 6), np.nan, np.float32)
+    for t in range(steps):
+        for i in range(n):
+            if t == joins[i]:
+                rows[i] = batched.new_context(i % 3, seed=i)
+        if t == 15:
+            batched.set_goal(rows[3], 0, 4)
+        live = [i for i in range(n) if rows[i] is not None]
+        for i, a in zip(live, batched.act([rows[i] for i in live], [obs[t, i] for i in live]), strict=True):
+            together[t, i] = a
+    for i in range(n):
+        alone = PolicyEngine(ckpt)
+        ctx = alone.new_context(i % 3, seed=i)
+        for t in range(joins[i], steps):
+            if t == 15 and i == 3:
+                alone.set_goal(ctx, 0, 4)
+            (single,) = alone.act([ctx], [obs[t, i]])
+            assert np.array_equal(together[t, i], single), (t, i)
+    assert not np.array_equal(together[-1, 0], together[-1, 1])  # the rows do differ
 
 
 def test_contexts_roll_and_report_their_history():

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import CheckpointError, load_checkpoint, state_dicts_equal
+from model.checkpoint import META, WEIGHTS, CheckpointError, load_checkpoint, state_dicts_equal
 from model.config import TrainConfig
 from model.fixtures import SyntheticDataset
 from model.losses import gmt_loss
-from model.train import build_sampler, model_config_for, train
+from model.train import RESUME_DIR, build_sampler, model_config_for, train
 
 SMALL = {"context_length": 4, "n_layer": 1, "n_head": 1, "n_embd": 32}
 
@@ -65,7 +65,7 @@ def test_resume_continues_exactly(tmp_path):
     full = train(ds, ds.labels, ds.goals, tmp_path / "full", _tc(steps=30), SMALL, progress=False)
     # Interrupted run: stop at 20 (resume state saved at step 20), then resume to 30.
     train(ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False)
-    assert (tmp_path / "part/_resume/state.json").exists()
+    assert (tmp_path / "part" / RESUME_DIR / "state.json").exists()
     resumed = train(
         ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False
     )
@@ -79,7 +79,7 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
     assert state_dicts_equal(ckpt.model, loaded.model)
     assert loaded.config == ckpt.config and loaded.goals == ckpt.goals and loaded.env_id == "HalfCheetah-v5"
     assert np.array_equal(loaded.obs_norm.mean, ckpt.obs_norm.mean)
-    meta = json.loads((tmp_path / "c/gmt.json").read_text())
+    meta = json.loads((tmp_path / "c" / META).read_text())
     for key in (
         "format_version",
         "model",
@@ -100,9 +100,9 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
 def test_malformed_action_noise_is_refused(tmp_path):
     ds = SyntheticDataset()
     train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=2), SMALL, progress=False)
-    meta = json.loads((tmp_path / "c/gmt.json").read_text())
+    meta = json.loads((tmp_path / "c" / META).read_text())
     meta["action_noise"]["std"] = [[0.1, 0.2]]
-    (tmp_path / "c/gmt.json").write_text(json.dumps(meta))
+    (tmp_path / "c" / META).write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match=r"action_noise.std must be \[3, 6\]"):
         load_checkpoint(tmp_path / "c")
 
@@ -115,13 +115,13 @@ def test_loading_refuses_pickle(tmp_path):
     with pytest.raises(CheckpointError, match="pickle"):
         load_checkpoint(pkl)
     # A pickle disguised as the weights file is refused before anything is deserialised.
-    (tmp_path / "c/model.safetensors").write_bytes(pickle.dumps({"weights": [1, 2, 3]}))
+    (tmp_path / "c" / WEIGHTS).write_bytes(pickle.dumps({"weights": [1, 2, 3]}))
     with pytest.raises(CheckpointError, match="pickle"):
         load_checkpoint(tmp_path / "c")
 
 
 def test_missing_files_give_clear_errors(tmp_path):
-    with pytest.raises(CheckpointError, match="has no model.safetensors"):
+    with pytest.raises(CheckpointError, match=f"has no {WEIGHTS}"):
         load_checkpoint(tmp_path)
 
 
@@ -139,9 +139,9 @@ def test_window_model_trains_on_longer_sequences_and_records_its_span(tmp_path):
     before = _eval_loss(untrained, ds)
     ckpt = train(ds, ds.labels, ds.goals, tmp_path / "w", _tc(steps=150), window, progress=False)
     assert _eval_loss(ckpt, ds) < 0.6 * before
-    meta = json.loads((tmp_path / "w" / "gmt.json").read_text())
+    meta = json.loads((tmp_path / "w" / META).read_text())
     assert meta["model"]["attention"] == "window" and meta["training"]["sequence_length"] == 0
     assert load_checkpoint(tmp_path / "w").config.attention == "window"
     del meta["model"]["attention"]  # a checkpoint written before the field existed reads as full
-    (tmp_path / "w" / "gmt.json").write_text(json.dumps(meta))
+    (tmp_path / "w" / META).write_text(json.dumps(meta))
     assert load_checkpoint(tmp_path / "w").config.attention == "full"

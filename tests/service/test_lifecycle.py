@@ -142,19 +142,34 @@ def test_concurrent_sessions_share_one_forward_pass(make_server, engine):
             np.testing.assert_array_equal(np.float32(got[t][i].json()["action"]), want)
 
 
-def test_bad_observation_fails_only_its_own_request(make_server, engine):
-    server = make_server(batch_wait_ms=300)
+def test_a_bad_row_inside_a_batch_fails_only_its_own_request(make_server, tmp_path):
+    """Three concurrent acts share one forward pass; the middle one passes validation (its normalised value is
+    finite, 3e38, through a checkpoint whose first observation dimension has a vanishing spread) but its row
+    overflows in the network: it alone fails, and its session stays where it was."""
+    from model.checkpoint import save_checkpoint
+    from model.engine import PolicyEngine
+    from model.fixtures import tiny_checkpoint
+
+    fragile = tiny_checkpoint()
+    fragile.obs_norm.mean[0], fragile.obs_norm.std[0] = 0.0, 1e9 / 3e38  # x0 = 1e9 normalises to 3e38
+    save_checkpoint(fragile, tmp_path / "tiny-gmt")
+    server = make_server(checkpoints=[tmp_path], batch_wait_ms=300)
     obs = np.random.default_rng(4).normal(size=(3, OBS_DIM)).astype(np.float32)
-    bad = obs.copy()
-    bad[1, 5] = np.nan
+    obs[:, 0] = 0.0
+    bad = obs[1].copy()
+    bad[0] = 1e9  # within the accepted range
     with httpx.Client(base_url=server.url) as http:
         sids = [create(http, goal=2) for _ in range(3)]
-        rs = asyncio.run(_act_all(server.url, sids, [bad[0], [0.0] * 4, bad[2]]))
+        rs = asyncio.run(_act_all(server.url, sids, [obs[0], bad, obs[2]]))
         assert [r.status_code for r in rs] == [200, 400, 200]
-        assert "observation has 4 values, expected 17" in rs[1].json()["error"]["message"]
+        assert rs[1].json()["error"]["code"] == "invalid_argument"
         batches = metric_samples(http, "gmt_batch_size")
-        assert batches[("gmt_batch_size_sum", (("model", "tiny-gmt"),))] == 2
-    for r, o in ((rs[0], obs[0]), (rs[2], obs[2])):
+        key = (("model", "tiny-gmt"),)
+        assert batches[("gmt_batch_size_count", key)] == 1 and batches[("gmt_batch_size_sum", key)] == 3
+        retry = act(http, sids[1], obs[1])  # the failed session is where it was: its step 0 again
+        assert retry.status_code == 200 and retry.json()["step"] == 0
+    engine = PolicyEngine(fragile)
+    for r, o in ((rs[0], obs[0]), (rs[2], obs[2]), (retry, obs[1])):
         np.testing.assert_array_equal(
             np.float32(r.json()["action"]), engine.act([engine.new_context(2)], [o])[0]
         )

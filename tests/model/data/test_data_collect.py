@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from model.data.collect import CollectConfig, collect
+from model.data.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
 from model.data.minari_io import load_dataset
 from model.data.statistics import per_trajectory
 
@@ -108,7 +108,8 @@ def test_stuck_step_finds_a_runner_that_stopped():
 
 
 def test_noise_scale_multiplies_the_behaviour_noise(tmp_path):
-    assert CollectConfig(ENV).noise_scale == 0.35 and CollectConfig("Hopper-v5").noise_scale == 1.0
+    assert CollectConfig(ENV).noise_scale == DEFAULT_NOISE_SCALE["halfcheetah"] != 1.0
+    assert "hopper" not in DEFAULT_NOISE_SCALE and CollectConfig("Hopper-v5").noise_scale == 1.0
     with pytest.raises(ValueError, match="noise_scale"):
         CollectConfig(ENV, noise_scale=-1.0)
     beh = tmp_path / "behaviour"

@@ -1,0 +1,62 @@
+"""The one definition of segment measurement, moving averages and tables, shared by `gmt eval` and `gmt run`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clients.base import GoalInfo
+from clients.segments import achieved, measure, measured_spans, moving_average, settle_in, tolerance, within
+from clients.tables import markdown_table, text_table
+
+
+def test_eval_uses_the_same_definitions_as_the_runner():
+    import model.eval_plot
+    import model.evaluate
+
+    assert model.evaluate.tolerance is tolerance
+    assert model.eval_plot.moving_average is moving_average
+    hold = model.evaluate.protocol(2, steps=400, multi_every=(150,))
+    for c in hold:
+        goals = [c.goal_at(t) for t in range(400)]
+        assert c.segments == measured_spans(goals)
+    every = next(c for c in hold if c.kind == "multi_switch")
+    # cycles of 150 steps: two whole ones measured after 150 // 4, the last 100 steps after 100 // 4
+    starts = [s for s, _ in every.schedule]
+    assert [a - s for (_, a, _), s in zip(every.segments, starts, strict=True)] == [37, 37, 25]
+
+
+def test_moving_average_is_trailing_and_ignores_nan():
+    x = np.array([1.0, 2.0, 3.0, np.nan, 5.0])
+    np.testing.assert_allclose(moving_average(x, 2), [1.0, 1.5, 2.5, 3.0, 5.0])
+    two = moving_average(np.stack([x, 2 * x]), 3)
+    np.testing.assert_allclose(two[1], 2 * moving_average(x, 3))
+    assert np.isnan(moving_average([np.nan, np.nan], 5)).all()
+
+
+def test_achieved_and_within_ignore_steps_after_an_early_end():
+    sig = np.array([[1.0, 2.0, 3.0, 4.0], [1.0, 1.0, np.nan, np.nan], [np.nan] * 4])
+    np.testing.assert_allclose(achieved(sig, 1, 4)[:2], [3.0, 1.0])
+    assert np.isnan(achieved(sig, 1, 4)[2]) and achieved(sig[0], 0, 2) == 1.5
+    assert list(within(achieved(sig, 1, 4), 3.0, 0.5)) == [True, False, False]  # NaN is never within
+
+
+def test_measure_reads_any_goal_table():
+    from model.checkpoint import Goal
+
+    signal = np.r_[np.zeros(40), np.full(40, 2.0)]
+    for row in (GoalInfo, Goal):
+        table = [row(0, "low", 0.0, 0.1, 0, 0, 1), row(1, "high", 2.0, 0.1, 2, 2, 1)]
+        segs = measure([0] * 40 + [1] * 40, signal, table)
+        assert [(s.goal, s.name, s.start, s.measured_from, s.end) for s in segs] == [
+            (0, "low", 0, settle_in(40), 40),
+            (1, "high", 40, 40 + settle_in(40), 80),
+        ]
+        assert all(s.within for s in segs) and segs[1].tolerance == pytest.approx(tolerance(table[1], table))
+
+
+def test_tables():
+    assert text_table(("a", "bb"), [(1, "x"), (22, "")], align="><") == " a  bb\n--  --\n 1  x\n22"
+    assert markdown_table(("a", "b"), [(1, 2)]) == "| a | b |\n| --- | --- |\n| 1 | 2 |"
+    with pytest.raises(ValueError):
+        text_table(("a",), [(1, 2)])
