@@ -1,5 +1,9 @@
 """Shared fixtures: tiny random-weight checkpoints built in milliseconds."""
 
+import json
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -17,3 +21,15 @@ def tiny_ckpt_dir(tmp_path):
     d = tmp_path / "checkpoints" / "tiny-gmt"
     tiny_checkpoint(d)
     return d
+
+
+@pytest.fixture
+def imports_of():
+    """imports_of("a", "b.c") -> the top-level packages a fresh interpreter has loaded after importing them."""
+
+    def run(*modules: str) -> set[str]:
+        code = f"import json, sys\nimport {', '.join(modules)}\nprint(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}})))"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+        return set(json.loads(out))
+
+    return run

@@ -73,14 +73,15 @@ def test_version_prints_the_installed_versions():
     assert "extra serve: installed" in out
 
 
-def test_entry_point_imports_no_command_module():
-    code = (
-        "import sys, service.cli; "
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
-        "('torch', 'numpy', 'model', 'pydantic_settings', 'grpc', 'gymnasium')))"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+def test_entry_point_imports_no_command_module(imports_of):
+    assert not imports_of("service.cli") & {
+        "torch",
+        "numpy",
+        "model",
+        "pydantic_settings",
+        "grpc",
+        "gymnasium",
+    }
 
 
 # ----- options generated from the configuration -----------------------------------------------------------------

@@ -18,16 +18,9 @@ ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "scikit-learn", "minari", "stable-baselines3", "safetensors", "mujoco", "matplotlib")
 
 
-def test_clients_import_neither_torch_nor_model():
-    code = (
-        "import json, sys\n"
-        "import clients.rest, clients.grpc, clients.runner, clients.envs, clients.segments, clients.cli\n"
-        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))"
-    )
-    loaded = set(
-        json.loads(
-            subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-        )
+def test_clients_import_neither_torch_nor_model(imports_of):
+    loaded = imports_of(
+        "clients.rest", "clients.grpc", "clients.runner", "clients.envs", "clients.segments", "clients.cli"
     )
     assert "torch" not in loaded and "model" not in loaded
     assert not loaded & {"sklearn", "minari", "safetensors", "stable_baselines3", "mujoco", "matplotlib"}
