@@ -161,6 +161,24 @@ def _step_infos(infos: dict | None, n_steps: int) -> dict[str, np.ndarray]:
     return out
 
 
+# Where the root's x-velocity (qvel[0]) sits in each MuJoCo task's observation vector, for the v2-v5 layouts with
+# the current x (and, for Ant, y) position excluded (Gymnasium's default): the positions qpos[1:] (qpos[2:] for
+# Ant) come first, then the velocities. Keyed by the id's name before "-v"; with the positions included the
+# index moves by the number of excluded coordinates. Used when a dataset has no `x_velocity` infos.
+X_VELOCITY_OBS_INDEX = {"HalfCheetah": (8, 1), "Hopper": (5, 1), "Walker2d": (8, 1), "Ant": (13, 2)}
+
+
+def x_velocity_obs_index(env_id: str, env_kwargs: dict | None = None) -> int | None:
+    """Index of the x-velocity entry in `env_id`'s observation vector, or None for other tasks."""
+    name = env_id.split("/")[-1].split("-v")[0]
+    if name not in X_VELOCITY_OBS_INDEX:
+        return None
+    index, excluded = X_VELOCITY_OBS_INDEX[name]
+    if (env_kwargs or {}).get("exclude_current_positions_from_observation", True) is False:
+        index += excluded
+    return index
+
+
 def _actions_dtype(space: gym.spaces.Space) -> type:
     return np.int64 if isinstance(space, gym.spaces.Discrete) else np.float32
 
@@ -184,10 +202,17 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
     if not isinstance(obs_space, gym.spaces.Box):
         raise ValueError(f"{dataset}: only Box observation spaces are supported, got {obs_space}")
     act_dtype = _actions_dtype(act_space)
+    env_id = ds.env_spec.id if ds.env_spec is not None else "unknown"
+    vx = x_velocity_obs_index(env_id, ds.env_spec.kwargs if ds.env_spec is not None else None)
     episodes = []
     for raw in ds.iterate_episodes():
         n = len(raw.rewards)
         obs = np.asarray(raw.observations)
+        infos = _step_infos(raw.infos, n)
+        if "x_velocity" not in infos and vx is not None and obs.ndim == 2 and len(obs) == n + 1:
+            # Recorded without infos (Minari's D4RL ports): the velocity after each step, read from the next
+            # observation, stands in for env.step's finite-difference x_velocity (the same within a few %).
+            infos["x_velocity"] = obs[1:, vx].astype(np.float64)
         episodes.append(
             Episode(
                 observations=obs[:n],
@@ -195,12 +220,11 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
                 rewards=np.asarray(raw.rewards, dtype=np.float32),
                 terminated=bool(n and raw.terminations[-1]),
                 truncated=bool(n and raw.truncations[-1]),
-                infos=_step_infos(raw.infos, n),
+                infos=infos,
                 final_observation=obs[n] if len(obs) > n else None,
                 episode_id=int(raw.id),
             )
         )
-    env_id = ds.env_spec.id if ds.env_spec is not None else "unknown"
     return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes))
 
 
