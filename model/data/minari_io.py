@@ -209,7 +209,13 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
         n = len(raw.rewards)
         obs = np.asarray(raw.observations)
         infos = _step_infos(raw.infos, n)
-        if "x_velocity" not in infos and vx is not None and obs.ndim == 2 and len(obs) == n + 1:
+        if (
+            "x_velocity" not in infos
+            and vx is not None
+            and obs.ndim == 2
+            and obs.shape[1] > vx
+            and len(obs) == n + 1
+        ):
             # Recorded without infos (Minari's D4RL ports): the velocity after each step, read from the next
             # observation, stands in for env.step's finite-difference x_velocity (the same within a few %).
             infos["x_velocity"] = obs[1:, vx].astype(np.float64)
