@@ -69,6 +69,8 @@ def train_command(
             "command": command,
         },
     )
+    if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
+        return
     info = ckpt.meta["training"]
     typer.echo(
         f"wrote {out} ({info['wall_time_s']} s, {info['steps_per_s']} steps/s, final loss {info['final']['loss']:.4f})"

@@ -7,6 +7,7 @@ from typing import Literal
 
 MaskingMode = Literal["token", "trajectory", "none"]
 AttentionSpan = Literal["full", "window"]
+Device = Literal["auto", "cpu", "cuda"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,8 @@ class TrainConfig:
         bf16: Run matrix products under bfloat16 autocast (pays off only on CPUs with AMX).
         sequence_length: Timesteps per training sequence; 0 = K for `full` attention and 2K for `window`
             attention (a window model must learn from sequences longer than its span).
+        device: Where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda. Under
+            `torchrun`, every process trains on its share of each batch (`model.distributed`).
     """
 
     steps: int = 20000
@@ -133,6 +136,7 @@ class TrainConfig:
     calibration_batches: int = 200
     bf16: bool = False
     sequence_length: int = 0
+    device: Device = "auto"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -146,6 +150,8 @@ class TrainConfig:
             raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
         if self.sequence_length < 0:
             raise ValueError(f"sequence_length must be >= 0, got {self.sequence_length}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
         if self.warmup_steps < 0 or self.lr <= 0:
             raise ValueError("warmup_steps must be >= 0 and lr > 0")
 

@@ -26,6 +26,7 @@ def gmt_loss(
     valid: torch.Tensor,
     discrete_actions: bool,
     alpha: float = 1.0,
+    counts: tuple[int, int] | None = None,
 ) -> LossParts:
     """Action loss on every real step plus next-goal cross-entropy.
 
@@ -40,21 +41,35 @@ def gmt_loss(
         valid: [B, T] True for real steps.
         discrete_actions: Cross-entropy on actions instead of MSE.
         alpha: Weight of the goal loss.
+        counts: For one share of a larger batch (data-parallel training): the whole batch's number of action
+            targets (real steps, times act_dim for continuous actions) and of next-goal pairs. Each part is
+            then this share's sum divided by them, so the shares' losses add up to the whole batch's loss.
     """
     action_pred = action_pred.float()
     goal_logits = goal_logits.float()
-    if discrete_actions:
-        a_loss = F.cross_entropy(action_pred[valid], actions[valid])
-    else:
-        a_loss = ((action_pred - actions) ** 2)[valid].mean()
     pair = valid[:, :-1] & valid[:, 1:]  # [B, T-1]: a_t and g_{t+1} both real
     logits = goal_logits[:, :-1][pair]  # [N, G]
     target = goals[:, 1:][pair]  # [N]
-    if target.numel() > 0:
-        g_loss = F.cross_entropy(logits, target)
-        acc = (logits.argmax(-1) == target).float().mean().item()
+    if counts is None:
+        if discrete_actions:
+            a_loss = F.cross_entropy(action_pred[valid], actions[valid])
+        else:
+            a_loss = ((action_pred - actions) ** 2)[valid].mean()
+        g_loss = F.cross_entropy(logits, target) if target.numel() > 0 else goal_logits.sum() * 0.0
     else:
-        g_loss = goal_logits.sum() * 0.0
-        acc = float("nan")
+        n_action, n_pairs = counts
+        if discrete_actions:
+            a_loss = F.cross_entropy(action_pred[valid], actions[valid], reduction="sum") / n_action
+        else:
+            a_loss = ((action_pred - actions) ** 2)[valid].sum() / n_action
+        g_loss = F.cross_entropy(logits, target, reduction="sum") / max(n_pairs, 1)
+    acc = (logits.argmax(-1) == target).float().mean().item() if target.numel() > 0 else float("nan")
     total = a_loss + alpha * g_loss
     return LossParts(total=total, action=a_loss.item(), goal=g_loss.item(), goal_accuracy=acc)
+
+
+def loss_counts(actions: torch.Tensor, valid: torch.Tensor, discrete_actions: bool) -> tuple[int, int]:
+    """A batch's (action targets, next-goal pairs): the `counts` of `gmt_loss` for its shares."""
+    steps = int(valid.sum())
+    pairs = int((valid[:, :-1] & valid[:, 1:]).sum())
+    return (steps if discrete_actions else steps * actions.shape[-1]), pairs

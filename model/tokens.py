@@ -119,6 +119,14 @@ class Windows:
         """Positional arguments of `GMT.forward`."""
         return self.goals, self.states, self.actions, self.timesteps, self.valid
 
+    def select(self, rows: slice) -> Windows:
+        """Rows `rows` of the batch."""
+        return Windows(*(x[rows] for x in self.model_inputs()))
+
+    def to(self, device: torch.device) -> Windows:
+        """The batch on `device`."""
+        return Windows(*(x.to(device) for x in self.model_inputs()))
+
 
 def pad_left(
     goals: list[np.ndarray],

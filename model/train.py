@@ -17,8 +17,9 @@ from clients.spaces import space_to_dict
 from model.calibrate import action_noise
 from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from model.config import GMTConfig, TrainConfig
+from model.distributed import Parallel
 from model.gmt import GMT
-from model.losses import gmt_loss
+from model.losses import gmt_loss, loss_counts
 from model.masking import mask_goals
 from model.tokens import ActionCodec, ObsNormalizer, WindowSampler
 
@@ -115,7 +116,7 @@ def train(
     extra_meta: dict | None = None,
     resume: bool = True,
     progress: bool = True,
-) -> Checkpoint:
+) -> Checkpoint | None:
     """Train a GMT on a relabelled dataset and write its checkpoint directory.
 
     Args:
@@ -131,55 +132,78 @@ def train(
         progress: Show a progress bar.
 
     Continuous-action checkpoints are calibrated at the end (`model.calibrate.action_noise`).
+
+    Under `torchrun` every process calls this; each trains on its share of every batch (`model.distributed`)
+    and only rank 0 writes the checkpoint, which the other processes get as None.
     """
     out = Path(out_dir)
     if tc.threads:
         torch.set_num_threads(tc.threads)
+    par = Parallel.from_env(tc.device)
     torch.manual_seed(tc.seed)
     cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
-    model = GMT(cfg)
+    model = GMT(cfg).to(par.device)
+    rows = par.rows(tc.batch_size)
+    net = par.wrap(model)
     opt = make_optimizer(model, tc)
     gen = torch.Generator().manual_seed(tc.seed)
     start = 0
     resume_dir = out / RESUME_DIR
     if resume and (resume_dir / "state.json").exists():
         start = _load_resume(resume_dir, model, opt, gen)
-    writer = _summary_writer(out / "tb")
+    writer = _summary_writer(out / "tb") if par.is_main else None
     model.train()
-    t0, last = time.time(), {}
-    bar = tqdm(range(start, tc.steps), initial=start, total=tc.steps, disable=not progress, desc="train")
+    t0, last, curve = time.time(), {}, []
+    bar = tqdm(
+        range(start, tc.steps),
+        initial=start,
+        total=tc.steps,
+        disable=not (progress and par.is_main),
+        desc="train",
+    )
     for step in bar:
         for g in opt.param_groups:
             g["lr"] = lr_at(step, tc)
+        # Every process draws the same global batch (same generator) and trains on its rows of it.
         w = sampler.sample(tc.batch_size, gen)
         goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=tc.bf16):
-            pred, goal_logits = model(goals_in, w.states, w.actions, w.timesteps, w.valid)
-        parts = gmt_loss(pred, goal_logits, w.actions, w.goals, w.valid, cfg.discrete_actions, tc.alpha)
+        counts = loss_counts(w.actions, w.valid, cfg.discrete_actions) if par.world > 1 else None
+        w, goals_in = w.select(rows).to(par.device), goals_in[rows].to(par.device)
+        with torch.autocast(par.device.type, dtype=torch.bfloat16, enabled=tc.bf16):
+            pred, goal_logits = net(goals_in, w.states, w.actions, w.timesteps, w.valid)
+        parts = gmt_loss(
+            pred, goal_logits, w.actions, w.goals, w.valid, cfg.discrete_actions, tc.alpha, counts
+        )
         opt.zero_grad(set_to_none=True)
-        parts.total.backward()
+        (parts.total * par.world).backward()  # DDP averages gradients over processes: this undoes it
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
         opt.step()
-        last = {
-            "loss": parts.total.item(),
-            "action_loss": parts.action,
-            "goal_loss": parts.goal,
-            "goal_accuracy": parts.goal_accuracy,
-            "grad_norm": float(gnorm),
-            "lr": lr_at(step, tc),
-        }
         if step % tc.log_every == 0 or step == tc.steps - 1:
-            bar.set_postfix(loss=f"{last['loss']:.4f}", act=f"{parts.action:.4f}", goal=f"{parts.goal:.3f}")
+            loss, a_loss, g_loss = par.sum([parts.total.item(), parts.action, parts.goal])
+            last = {
+                "loss": loss,
+                "action_loss": a_loss,
+                "goal_loss": g_loss,
+                "goal_accuracy": parts.goal_accuracy,
+                "grad_norm": float(gnorm),
+                "lr": lr_at(step, tc),
+            }
+            curve.append([step, round(loss, 6)])
+            bar.set_postfix(loss=f"{loss:.4f}", act=f"{a_loss:.4f}", goal=f"{g_loss:.3f}")
             if writer is not None:
                 for k, v in last.items():
                     writer.add_scalar(f"train/{k}", v, step)
-        if (step + 1) % tc.save_every == 0 and step + 1 < tc.steps:
+        if (step + 1) % tc.save_every == 0 and step + 1 < tc.steps and par.is_main:
             _save_resume(resume_dir, step + 1, model, opt, gen)
     if writer is not None:
         writer.close()
     model.eval()
     elapsed = time.time() - t0
+    if not par.is_main:
+        par.close()
+        return None
+    model.cpu()
     noise = (
         None
         if cfg.discrete_actions
@@ -192,6 +216,9 @@ def train(
             "final": last,
             "wall_time_s": round(elapsed, 1),
             "steps_per_s": round((tc.steps - start) / max(elapsed, 1e-9), 2),
+            "loss_curve": curve,
+            "processes": par.world,
+            "device": str(par.device.type),
         },
         "dataset": {
             "id": dataset.dataset_id,
@@ -215,6 +242,7 @@ def train(
         action_noise=noise,
     )
     save_checkpoint(ckpt, out)
+    par.close()
     return ckpt
 
 
