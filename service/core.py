@@ -21,7 +21,7 @@ from model.runtime import InvalidObservation, StepFailed
 from service.batcher import MicroBatcher
 from service.errors import FailedPrecondition, InvalidArgument, NotFound, ServiceError, Unavailable
 from service.metrics import Metrics
-from service.observations import to_array
+from service.observations import MAX_ABS_VALUE, to_array
 from service.registry import LoadedModel, ModelRegistry
 from service.sessions import Clock, MemorySessionStore, Session, SessionStore
 from service.settings import Settings
@@ -258,6 +258,10 @@ class Core:
         if target is not None:
             if isinstance(target, bool) or not isinstance(target, int | float) or not math.isfinite(target):
                 raise InvalidArgument(f"target must be a finite number, got {target!r}")
+            if (
+                abs(target) > MAX_ABS_VALUE
+            ):  # a bound the OpenAPI schema can state exactly (no float rounding)
+                raise InvalidArgument(f"target must be within [-1e9, 1e9], got {target!r}")
             return min(goals, key=lambda g: (abs(g.mean - target), g.id)).id
         if isinstance(goal, bool):
             raise InvalidArgument(f"goal must be an id or a name, got {goal!r}")
@@ -454,8 +458,9 @@ class Core:
     async def act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
         """One step for each (session id, observation[, expected step]), all in one forward pass.
 
-        A bad item fails alone. A session may appear once per call; a repeat fails as invalid_argument. An
-        expected step works as in `act`.
+        A bad item fails alone. A session may appear once per call; a repeat fails as invalid_argument (also
+        when its first item failed). An expected step works as in `act`. An observation that is a ServiceError
+        (an adapter could not decode it) fails its item with that error.
 
         Returns:
             In request order: the item's ActResult, or the ServiceError that failed it.
@@ -475,6 +480,9 @@ class Core:
             ready: list[tuple[int, Session, LoadedModel, Context, np.ndarray]] = []
             for i in order:
                 sid, observation, step = (*items[i], None)[:3]
+                if isinstance(observation, ServiceError):
+                    out[i] = observation
+                    continue
                 await stack.enter_async_context(self._lock(sid))
                 try:
                     s, m, ctx, x, repeat = await self._prepare(sid, observation, step)

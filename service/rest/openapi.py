@@ -9,11 +9,13 @@ auth as a security scheme only when the server requires a token.
 What JSON Schema cannot say, and how the schema deals with it:
 - An observation is checked against the model of the session named in the path, which the body does not
   name: with several models loaded the schema admits the observation of any of them.
-- Tensor bytes: an observation value must be finite and within +-1e9 (`observations.MAX_ABS_VALUE`), which a
-  pattern over base64 cannot check for float or 64-bit integer dtypes. The schema lists the tensor dtypes whose
-  every value is acceptable (8- and 16-bit integers; `uint8` for images); the server also accepts the other
-  numeric dtypes when their values are in range.
-- The body size limit (`--max-request-bytes`) is in the description and in the 413 answers.
+- Numbers: observation values and targets must be within +-1e9 (`observations.MAX_ABS_VALUE`), a bound both
+  sides compare exactly (a bound at the float64 maximum is not: a larger integer literal rounds to it).
+- Tensor bytes: a pattern over base64 cannot check that float or 64-bit integer values are finite and in range.
+  The schema lists the tensor dtypes whose every value is acceptable (8- and 16-bit integers; `uint8` for
+  images); the server also accepts the other numeric dtypes when their values are in range.
+- The body size limit (`--max-request-bytes`) is in the description and in the 413 answers; `schemathesis.toml`
+  counts 413 as a refusal.
 """
 
 from __future__ import annotations
@@ -30,7 +32,6 @@ from service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
 
 BEARER = "bearerAuth"
 OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token
-DBL_MAX = float(np.finfo(np.float64).max)
 VECTOR_TENSOR_DTYPES = ("uint8", "int8", "uint16", "int16")  # every value of these is within +-MAX_ABS_VALUE
 B64 = "[A-Za-z0-9+/]"
 
@@ -132,7 +133,7 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
 
 
 _STEP = {"type": "integer", "minimum": 0}
-_TARGET = {"type": "number", "minimum": -DBL_MAX, "maximum": DBL_MAX}  # finite
+_TARGET = {"type": "number", "minimum": -MAX_ABS_VALUE, "maximum": MAX_ABS_VALUE}
 
 
 def _nullable(schema: dict) -> dict:
@@ -174,7 +175,8 @@ def _target(described: dict | None = None) -> dict:
 
 def _create_session(models: list[ModelView], described: dict) -> dict:
     def one(m: ModelView, required: bool) -> dict:
-        model = {"const": m.name} if required else {"anyOf": [{"const": m.name}, {"type": "null"}]}
+        # With one model loaded, an empty or missing name means that model (as an unset gRPC field does).
+        model = {"const": m.name} if required else {"anyOf": [{"enum": [m.name, ""]}, {"type": "null"}]}
         return {
             "type": "object",
             "properties": {

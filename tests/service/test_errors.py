@@ -138,6 +138,8 @@ GOAL_BODIES = [
         "goal: Input should be a valid integer or Input should be a valid string",
     ),
     ("goal and target", {"goal": 1, "target": 1.0}, "give either goal (an id or a name) or target, not both"),
+    ("huge target", {"target": -1.5e9}, "target must be within [-1e9, 1e9], got -1500000000.0"),
+    ("target as a string", {"target": "1.0"}, "target: Input should be a valid number"),
     ("no goal", {"blend_steps": 3}, "give a goal (an id or a name) or a target statistic value"),
     (
         "negative blend_steps",
