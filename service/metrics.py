@@ -54,6 +54,17 @@ class Metrics:
             buckets=LATENCY_BUCKETS,
             registry=r,
         )
+        self.in_flight = Gauge(
+            "gmt_requests_in_flight",
+            "Requests (and Control stream commands) received and not yet answered, by transport; scrapes of "
+            "/metrics are not counted.",
+            ["transport"],
+            registry=r,
+        )
+        self.in_flight_rest, self.in_flight_grpc = (
+            self.in_flight.labels("rest"),
+            self.in_flight.labels("grpc"),
+        )
         self.live_sessions = Gauge("gmt_live_sessions", "Live sessions in the session store.", registry=r)
         self.models_loaded = Gauge("gmt_models_loaded", "Models this server answers for.", registry=r)
         self.sessions_created = Counter("gmt_sessions_created", "Sessions created.", ["model"], registry=r)

@@ -12,7 +12,7 @@ from grpc_reflection.v1alpha import reflection
 
 from service.core import Core
 from service.errors import Unauthenticated
-from service.grpc.servicer import PolicyServicer
+from service.grpc.servicer import PolicyServicer, Undecodable
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
 OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
@@ -66,6 +66,102 @@ class ServedBy(grpc.aio.ServerInterceptor):
             (True, True): grpc.stream_stream_rpc_method_handler,
         }[(handler.request_streaming, handler.response_streaming)]
         return make(wrapped, handler.request_deserializer, handler.response_serializer)
+
+
+_MAKE_HANDLER = {
+    (False, False): grpc.unary_unary_rpc_method_handler,
+    (False, True): grpc.unary_stream_rpc_method_handler,
+    (True, False): grpc.stream_unary_rpc_method_handler,
+    (True, True): grpc.stream_stream_rpc_method_handler,
+}
+IN_BAND_UNDECODABLE = frozenset({f"/{POLICY_SERVICE}/Control"})  # answers undecodable messages in-band
+
+
+def _tolerant(deserialize):
+    """`deserialize`, returning an `Undecodable` instead of raising (grpcio answers UNKNOWN for that)."""
+    owner = getattr(deserialize, "__self__", None)
+    descriptor = getattr(owner, "DESCRIPTOR", None)
+    type_name = getattr(descriptor, "full_name", None) or "request"
+
+    def tolerant(data: bytes):
+        try:
+            return deserialize(data)
+        except Exception as e:  # noqa: BLE001 - protobuf's DecodeError, or whatever a foreign deserializer raises
+            return Undecodable(type_name, e)
+
+    return tolerant
+
+
+class RefuseUndecodable(grpc.aio.ServerInterceptor):
+    """A request whose bytes are not a valid message of the method's type answers INVALID_ARGUMENT, on every
+    service (grpcio itself answers UNKNOWN); on the Control stream the servicer answers it in-band and the
+    stream goes on. It is the innermost interceptor, so that auth is still checked first."""
+
+    async def intercept_service(self, continuation, handler_call_details):
+        handler = await continuation(handler_call_details)
+        if handler is None or handler.request_deserializer is None:
+            return handler
+        deserialize = _tolerant(handler.request_deserializer)
+        kind = (handler.request_streaming, handler.response_streaming)
+        behavior = (
+            handler.unary_unary or handler.unary_stream or handler.stream_unary or handler.stream_stream
+        )
+        if handler_call_details.method in IN_BAND_UNDECODABLE:
+            wrapped = behavior
+        elif not handler.request_streaming:
+
+            async def refuse(request, context):
+                if isinstance(request, Undecodable):
+                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.message)
+
+            if handler.response_streaming:
+
+                async def wrapped(request, context):
+                    await refuse(request, context)
+                    async for message in _responses(behavior(request, context)):
+                        yield message
+
+            else:
+
+                async def wrapped(request, context):
+                    await refuse(request, context)
+                    out = behavior(request, context)
+                    return await out if inspect.isawaitable(out) else out
+
+        else:
+
+            async def checked(requests, context):
+                async for message in requests:
+                    if isinstance(message, Undecodable):
+                        await context.abort(grpc.StatusCode.INVALID_ARGUMENT, message.message)
+                    yield message
+
+            if handler.response_streaming:
+
+                async def wrapped(requests, context):
+                    async for message in _responses(behavior(checked(requests, context), context)):
+                        yield message
+
+            else:
+
+                async def wrapped(requests, context):
+                    out = behavior(checked(requests, context), context)
+                    return await out if inspect.isawaitable(out) else out
+
+        return _MAKE_HANDLER[kind](wrapped, deserialize, handler.response_serializer)
+
+
+async def _responses(out):
+    """The messages of a response-streaming behaviour (an async generator, a coroutine that writes with
+    `context.write`, or a plain iterable)."""
+    if inspect.isasyncgen(out):
+        async for message in out:
+            yield message
+    elif inspect.isawaitable(out):
+        await out
+    else:
+        for message in out:
+            yield message
 
 
 class BearerAuth(grpc.aio.ServerInterceptor):
@@ -122,14 +218,19 @@ class GrpcServer:
     def __init__(self, core: Core, host: str, port: int) -> None:
         s = core.settings
         self.core = core
-        # ServedBy first: it wraps whatever the others answer, a refused call included.
-        interceptors = [ServedBy(s.replica_id), *([BearerAuth(s.token)] if s.token else [])]
+        # ServedBy first: it wraps whatever the others answer, a refused call included; auth before decoding.
+        interceptors = [
+            ServedBy(s.replica_id),
+            *([BearerAuth(s.token)] if s.token else []),
+            RefuseUndecodable(),
+        ]
         limit = s.max_request_bytes
         self.server = grpc.aio.server(
             interceptors=interceptors,
             options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", 4 * limit)],
         )
-        policy_pb2_grpc.add_PolicyServiceServicer_to_server(PolicyServicer(core), self.server)
+        self.servicer = PolicyServicer(core)
+        policy_pb2_grpc.add_PolicyServiceServicer_to_server(self.servicer, self.server)
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
         names = (POLICY_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME)
@@ -151,6 +252,8 @@ class GrpcServer:
             await self.health.set(name, status)
 
     async def stop(self, grace: float) -> None:
-        """Report NOT_SERVING, refuse new calls and give in-flight ones `grace` seconds."""
+        """Report NOT_SERVING, refuse new calls, end Control streams once their command in flight is answered
+        (UNAVAILABLE: reopen elsewhere) and give in-flight calls `grace` seconds."""
         await self.health.enter_graceful_shutdown()
+        self.servicer.stop_streams()
         await self.server.stop(grace)

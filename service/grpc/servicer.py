@@ -17,6 +17,17 @@ from service.grpc import convert
 from service.observations import check_act_items
 
 T = TypeVar("T")
+SHUTTING_DOWN = "server is shutting down: open the stream again (a proxy sends it to another replica)"
+
+
+class Undecodable:
+    """What a request deserializes to when its bytes are not a valid message of the method's type (see
+    `server.RefuseUndecodable`): unary calls answer INVALID_ARGUMENT, the Control stream answers in-band."""
+
+    __slots__ = ("message",)
+
+    def __init__(self, type_name: str, error: Exception) -> None:
+        self.message = f"request is not a valid {type_name} message: {error}"
 
 
 async def within_deadline(context: grpc.aio.ServicerContext, work: Awaitable[T]) -> T:
@@ -36,17 +47,31 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     def __init__(self, core: Core) -> None:
         self.core = core
+        self._stopping = False
+        self._idle_streams: set[asyncio.Task] = set()  # Control streams waiting for their next command
+        self._woken: set[asyncio.Task] = set()  # ... of which `stop_streams` cancelled these
+
+    def stop_streams(self) -> None:
+        """Shutting down: every Control stream ends with UNAVAILABLE once its command in flight is answered
+        (at once when it waits for a command), instead of holding the server for the whole grace period."""
+        self._stopping = True
+        for task in list(self._idle_streams):
+            self._woken.add(task)
+            task.cancel()
 
     async def _unary(
         self, method: str, context: grpc.aio.ServicerContext, call: Callable[[], Awaitable[T]]
     ) -> T:
         t0, code = time.perf_counter(), "OK"
+        in_flight = self.core.metrics.in_flight_grpc
+        in_flight.inc()
         try:
             return await within_deadline(context, call())
         except ServiceError as e:
             code = e.grpc_code
             await context.abort(grpc.StatusCode[e.grpc_code], e.message)
         finally:
+            in_flight.dec()
             self.core.metrics.observe_request("grpc", method, code, time.perf_counter() - t0)
 
     async def ListModels(self, request: pb.ListModelsRequest, context) -> pb.ListModelsResponse:
@@ -86,18 +111,14 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
         check_act_items(len(request.requests))
-        out: list = [None] * len(request.requests)
-        good: list[tuple[int, tuple[str, object, int | None]]] = []
-        for i, r in enumerate(request.requests):
+        items = []
+        for r in request.requests:
             try:
-                good.append(
-                    (i, (r.session_id, convert.observation(r), r.step if r.HasField("step") else None))
-                )
+                obs = convert.observation(r)
             except ServiceError as e:  # an undecodable observation fails its item alone
-                out[i] = e
-        results = await self.core.act_many([item for _, item in good])
-        for (i, _), res in zip(good, results, strict=True):
-            out[i] = res
+                obs = e
+            items.append((r.session_id, obs, r.step if r.HasField("step") else None))
+        out = await self.core.act_many(items)
         return pb.ActBatchResponse(
             results=[
                 convert.act_batch_result(r.session_id, o) for r, o in zip(request.requests, out, strict=True)
@@ -138,12 +159,25 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
     async def Control(
         self, request_iterator: AsyncIterator[pb.ControlRequest], context
     ) -> AsyncIterator[pb.ControlResponse]:
-        """Apply one session's commands in order; errors answer in-band and the stream stays open."""
+        """Apply one session's commands in order; errors answer in-band and the stream stays open.
+
+        A message that is not a valid ControlRequest is an in-band invalid_argument too. When the server shuts
+        down, the stream ends with UNAVAILABLE after answering the command in flight.
+        """
         bound: str | None = None
-        async for req in request_iterator:
-            kind = req.WhichOneof("command")
+        commands = request_iterator.__aiter__()
+        in_flight = self.core.metrics.in_flight_grpc
+        while True:
+            req = await self._next_command(commands, context)
+            if req is None:
+                return
+            undecodable = isinstance(req, Undecodable)
+            kind = "undecodable" if undecodable else req.WhichOneof("command")
             t0, code = time.perf_counter(), "OK"
+            in_flight.inc()
             try:
+                if undecodable:
+                    raise InvalidArgument(req.message)
                 if kind is None:
                     raise InvalidArgument("empty command: set act, set_goal or reset")
                 cmd = getattr(req, kind)
@@ -162,5 +196,27 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             except ServiceError as e:
                 code = e.grpc_code
                 out = pb.ControlResponse(error=pb.ControlError(code=e.code, message=e.message))
+            finally:
+                in_flight.dec()
             self.core.metrics.observe_request("grpc", f"Control.{kind}", code, time.perf_counter() - t0)
             yield out
+
+    async def _next_command(self, commands: AsyncIterator, context) -> pb.ControlRequest | Undecodable | None:
+        """The stream's next message (None once the client closed its side); ends the call with UNAVAILABLE when
+        the server is shutting down, also while waiting."""
+        if self._stopping:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, SHUTTING_DOWN)
+        task = asyncio.current_task()
+        self._idle_streams.add(task)
+        try:
+            return await commands.__anext__()
+        except StopAsyncIteration:
+            return None
+        except asyncio.CancelledError:
+            if task not in self._woken:
+                raise  # the client went away
+            task.uncancel()
+        finally:
+            self._idle_streams.discard(task)
+            self._woken.discard(task)
+        await context.abort(grpc.StatusCode.UNAVAILABLE, SHUTTING_DOWN)

@@ -157,16 +157,14 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     """One step for each of many sessions in one forward pass; results in request order, a bad item fails alone
     (HTTP 200 for the call). A session may appear once per call."""
     check_act_items(len(body.requests))
-    out: list = [None] * len(body.requests)
-    good: list[tuple[int, tuple[str, object, int | None]]] = []
-    for i, r in enumerate(body.requests):
+    items = []
+    for r in body.requests:
         try:
-            good.append((i, (r.session_id, _observation(r), r.step)))
+            obs = _observation(r)
         except ServiceError as e:  # an undecodable tensor fails its item alone
-            out[i] = e
-    results = await core.act_many([item for _, item in good])
-    for (i, _), res in zip(good, results, strict=True):
-        out[i] = res
+            obs = e
+        items.append((r.session_id, obs, r.step))
+    out = await core.act_many(items)
     return S.ActManyOut(
         results=[S.ActItemOut.of(r.session_id, o) for r, o in zip(body.requests, out, strict=True)]
     )

@@ -213,7 +213,7 @@ def test_grpc_bad_items_fail_alone_and_leave_their_sessions_unchanged(stub):
         grpc_request(many[2], obs[1][2]),
         grpc_request(many[2], obs[1][2]),
         pb.ActRequest(session_id=many[3], tensor=bad_tensor),
-        pb.ActRequest(session_id=many[3]),  # no observation (and a repeat: the decode error comes first)
+        pb.ActRequest(session_id=many[3]),  # a repeat (whatever the first item's fate) and no observation
     ]
     res = stub.ActBatch(pb.ActBatchRequest(requests=requests)).results
     assert [x.session_id for x in res] == [r.session_id for r in requests]
@@ -242,7 +242,7 @@ def test_grpc_bad_items_fail_alone_and_leave_their_sessions_unchanged(stub):
     assert res[5].error.message == "observation data has 64 bytes; shape [17] of float32 needs 68"
     assert (res[6].error.code, res[6].error.message) == (
         "invalid_argument",
-        "observation is required: set values or tensor",
+        f"session '{many[3]}' appears more than once in this call",
     )
     assert (res[4].error.code, res[4].error.message) == (
         "invalid_argument",
@@ -254,6 +254,28 @@ def test_grpc_bad_items_fail_alone_and_leave_their_sessions_unchanged(stub):
     for i, step in ((0, 2), (1, 1), (2, 2), (3, 1)):
         got, want = (stub.Act(grpc_request(s, obs[2][i])) for s in (many[i], twins[i]))
         assert list(got.action) == list(want.action) and got.step == want.step == step
+
+
+def test_rest_repeat_fails_even_when_the_first_item_did_not_decode(http, observations):
+    victim, twin = rest_create(http, goal=1), rest_create(http, goal=1)
+    for sid in (victim, twin):
+        assert rest_act(http, sid, observations[0]).status_code == 200
+    body = {
+        "requests": [
+            {"session_id": victim, "observation": {"data": "%%%", "dtype": "float32", "shape": [17]}},
+            {"session_id": victim, "observation": observations[1].tolist()},
+        ]
+    }
+    r = http.post("/act", json=body)
+    assert r.status_code == 200, r.text
+    first, second = r.json()["results"]
+    assert "observation.data is not valid base64" in first["error"]["message"]
+    assert second["error"] == {
+        "code": "invalid_argument",
+        "message": f"session '{victim}' appears more than once in this call",
+    }
+    got, want = (rest_act(http, sid, observations[1]).json() for sid in (victim, twin))
+    assert (got["action"], got["step"]) == (want["action"], want["step"]) == (want["action"], 1)
 
 
 # ----- a malformed or oversized call fails as a whole -----------------------------------------------------------
