@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 import secrets
@@ -18,7 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.core import Core
-from service.errors import PayloadTooLarge, ServiceError, Unauthenticated
+from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from service.rest import openapi
 from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
@@ -203,6 +204,36 @@ class ServedBy:
         await self.app(scope, receive, send_with_header)
 
 
+class AnswerCutOff:
+    """A request still running when the shutdown grace period ends is cancelled by uvicorn, which would answer
+    500; during shutdown this answers it `503 unavailable` instead (retryable: with the act's `step`, a retry
+    never steps twice), unless its answer had started."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started = False
+
+        async def send_started(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_started)
+        except asyncio.CancelledError:
+            core = getattr(scope["app"].state, "core", None)
+            if started or core is None or not core.closing:
+                raise
+            asyncio.current_task().uncancel()
+            e = Unavailable("server shut down before this request was answered; retry it")
+            headers = {"Connection": "close", **session_header(_path_session(scope.get("path", "")))}
+            await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
+
+
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
@@ -225,11 +256,16 @@ class FastAct:
         core = scope["app"].state.core
         t0 = time.perf_counter()
         sid = unquote(m.group(1))
-        status, body, headers = await self._answer(core, scope, receive, sid)
-        raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
-        await send({"type": "http.response.start", "status": status, "headers": raw})
-        await send({"type": "http.response.body", "body": body})
+        in_flight = core.metrics.in_flight_rest
+        in_flight.inc()
+        try:
+            status, body, headers = await self._answer(core, scope, receive, sid)
+            raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+            raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
+            await send({"type": "http.response.start", "status": status, "headers": raw})
+            await send({"type": "http.response.body", "body": body})
+        finally:
+            in_flight.dec()
         core.metrics.observe_request("rest", "act", str(status), time.perf_counter() - t0)
 
     async def _answer(self, core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
@@ -284,7 +320,7 @@ class _App(FastAPI):
 
     def build_middleware_stack(self) -> ASGIApp:
         inner = FastAct(super().build_middleware_stack(), self.settings)
-        return ServedBy(AuthFirst(inner, self.settings.token), self.replica_id)
+        return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings.token)), self.replica_id)
 
     def openapi(self) -> dict:
         """The document for the loaded models and the auth setting (`service.rest.openapi`), built once the
@@ -315,12 +351,17 @@ class RequestMetrics:
                 status = message["status"]
             await send(message)
 
+        core = getattr(scope["app"].state, "core", None) if "app" in scope else None
+        in_flight = core.metrics.in_flight_rest if core is not None and scope["path"] != "/metrics" else None
+        if in_flight is not None:
+            in_flight.inc()
         try:
             await self.app(scope, receive, send_status)
         finally:
+            if in_flight is not None:
+                in_flight.dec()
             endpoint = scope.get("endpoint")
             name = getattr(endpoint, "__name__", "unmatched")
-            core = getattr(scope["app"].state, "core", None) if "app" in scope else None
             if core is not None:
                 core.metrics.observe_request("rest", name, str(status), time.perf_counter() - t0)
 
