@@ -93,6 +93,10 @@ def to_array(obs: object) -> np.ndarray:
             x = np.asarray(obs)
         except (ValueError, TypeError, OverflowError) as e:
             raise InvalidArgument(f"observation is not a rectangular numeric array: {e}") from None
+    if x.dtype == object and x.size:  # integers past int64 (anything else is refused as non-numeric later)
+        for i, v in enumerate(x.ravel()):
+            if type(v) is int and abs(v) > MAX_ABS_VALUE:
+                raise InvalidArgument(f"observation value at index {i} is outside [-1e9, 1e9]")
     if x.size and (x.dtype.kind == "f" or (x.dtype.kind in "iu" and x.dtype.itemsize > 2)):
         v = x if x.dtype.kind == "f" else x.astype(np.float64)
         with np.errstate(invalid="ignore"):

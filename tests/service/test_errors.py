@@ -54,6 +54,11 @@ ACT_BODIES = [
     ("booleans", obs_json([True] * N), "observation must hold numbers, got booleans"),
     ("huge", obs_json([3e38] * N), "observation value at index 0 is outside [-1e9, 1e9]"),
     ("huge integer", obs_json([0] * 16 + [10**10]), "observation value at index 16 is outside [-1e9, 1e9]"),
+    (
+        "integer past int64",
+        obs_json([0] * 15 + [10**30, 0]),
+        "observation value at index 15 is outside [-1e9, 1e9]",
+    ),
     ("strings", obs_json(["a"] * N), "observation must be numeric"),
     ("nulls", obs_json([None] * N), "observation must be numeric"),
     ("not a list", obs_json("fast"), "observation: Value error, must be a list of numbers or an object"),
