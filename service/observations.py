@@ -25,8 +25,8 @@ DTYPES = (
     "float32",
     "float64",
 )
-MAX_ABS_VALUE = 1e9  # largest |value| of an observation: far beyond any physical quantity, and small enough
-# that no finite observation can overflow normalisation or the forward pass (documented in the OpenAPI schema)
+MAX_ABS_VALUE = 1e9  # largest |value| of an observation (and target): far beyond any physical quantity, far
+# below where the shipped model's forward pass overflows (about 1e19), and a bound the OpenAPI schema states exactly
 MAX_DIMS = 8
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 

@@ -24,7 +24,7 @@ from service_harness import OBS_DIM
 SERVICE = pb.DESCRIPTOR.services_by_name["PolicyService"]
 MODEL = "tiny-gmt"
 GOALS = 3
-ROUNDS = 12  # per kind of bad input and method
+ROUNDS = 40  # per kind of bad input and method
 ANSWERED = {  # every status a malformed or wrong request may get
     grpc.StatusCode.OK,
     grpc.StatusCode.INVALID_ARGUMENT,
@@ -354,7 +354,7 @@ def test_control_stream_answers_garbage_in_band_and_goes_on(channel, twins, obse
     messages.append(command(act=pb.ActRequest(session_id=victim, values=pb.FloatVector(values=good[0]))))
     expected.append("act")
     for o in good[1:]:
-        for _ in range(4):
+        for _ in range(ROUNDS // 4):
             kind = rng.randrange(4)
             if kind == 0:
                 messages.append(garbage(command(act=pb.ActRequest(values=pb.FloatVector(values=o)))))
