@@ -28,7 +28,6 @@ from service import cluster
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = "tiny-cheetah"
 BATCH_WAIT_MS = 400  # a lone act waits this long in the batcher (other sessions could join): time to kill it
-KILL_AFTER_S = 0.15
 STEPS, KILL_AT = 8, 4
 
 needs_programs = pytest.mark.skipif(
@@ -181,6 +180,18 @@ class Recorder(httpx.HTTPTransport):
         return r
 
 
+def held_by_victim(url: str, rest: int, grpc: int, timeout_s: float = 30.0) -> None:
+    """Return once the replica at `url` reports at least `rest` REST and `grpc` gRPC requests in flight."""
+    pattern = re.compile(r'^gmt_requests_in_flight\{transport="(rest|grpc)"\} (\S+)$', re.M)
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(base_url=url, timeout=5) as c:
+        while time.monotonic() < deadline:
+            now = {k: float(v) for k, v in pattern.findall(c.get("/metrics").text)}
+            if now.get("rest", 0) >= rest and now.get("grpc", 0) >= grpc:
+                return
+    raise AssertionError(f"the acts never reached {url}: in flight {now}")
+
+
 def _episode(session, obs, barrier, timings, out, errors) -> None:
     try:
         for t, o in enumerate(obs):
@@ -252,7 +263,10 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
         for t in threads:
             t.start()
         barrier.wait(30)
-        sleep(KILL_AFTER_S)  # both acts of step KILL_AT are now held in the victim's batcher
+        t_release = time.monotonic()
+        # Kill once both acts of step KILL_AT are in flight on the victim (held in its batcher): its gauge says so.
+        held_by_victim(f"http://127.0.0.1:{running.replica(victim).rest_port}", rest=1, grpc=1)
+        held_for = time.monotonic() - t_release
         victim_pid = running.pids[victim]
         os.kill(victim_pid, signal.SIGKILL)
         for t in threads:
@@ -264,7 +278,7 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
             assert [r.step for r in got[kind]] == list(range(STEPS)), kind
             for t, (g, w) in enumerate(zip(got[kind], want[kind], strict=True)):
                 np.testing.assert_array_equal(g.action, w, err_msg=f"{kind} step {t}")
-        assert min(timings) > KILL_AFTER_S  # each act of step KILL_AT was waiting when the victim died
+        assert min(timings) >= held_for  # each act of step KILL_AT was waiting when the victim died
         assert set(backoffs) == {
             "rest",
             "grpc",
