@@ -97,16 +97,29 @@ class RefuseUndecodable(grpc.aio.ServerInterceptor):
     service (grpcio itself answers UNKNOWN); on the Control stream the servicer answers it in-band and the
     stream goes on. It is the innermost interceptor, so that auth is still checked first."""
 
+    def __init__(self) -> None:
+        self._wrapped: dict[str, tuple] = {}  # method -> (its handler, the tolerant handler built for it)
+
     async def intercept_service(self, continuation, handler_call_details):
         handler = await continuation(handler_call_details)
         if handler is None or handler.request_deserializer is None:
             return handler
+        method = handler_call_details.method
+        cached = self._wrapped.get(method)
+        if cached is not None and cached[0] is handler:  # built once per method, not once per call
+            return cached[1]
+        wrapped_handler = self._wrap(handler, method)
+        self._wrapped[method] = (handler, wrapped_handler)
+        return wrapped_handler
+
+    @staticmethod
+    def _wrap(handler, method: str):
         deserialize = _tolerant(handler.request_deserializer)
         kind = (handler.request_streaming, handler.response_streaming)
         behavior = (
             handler.unary_unary or handler.unary_stream or handler.stream_unary or handler.stream_stream
         )
-        if handler_call_details.method in IN_BAND_UNDECODABLE:
+        if method in IN_BAND_UNDECODABLE:
             wrapped = behavior
         elif not handler.request_streaming:
 
