@@ -73,6 +73,7 @@ class Server:
             access_log=False,
             lifespan="on",
             timeout_graceful_shutdown=max(int(s.shutdown_grace_s), 1),
+            timeout_keep_alive=int(s.keep_alive_s),
         )
         self._uvicorn = _Uvicorn(config)
         self._uvicorn_task = asyncio.create_task(self._uvicorn.serve(sockets=[sock]), name="uvicorn")

@@ -34,6 +34,9 @@ class Settings(BaseSettings):
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
+        keep_alive_s: An idle HTTP keep-alive connection is closed after this long. Longer than a proxy's
+            upstream keep-alive (60 s in docker/nginx.conf), so that the proxy never reuses a connection the
+            server is just closing (which it answers with a 502).
         event_loop: `uvloop` (the default: a faster loop for both transports) or `asyncio`.
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
@@ -58,6 +61,7 @@ class Settings(BaseSettings):
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
+    keep_alive_s: float = Field(75.0, ge=1)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
