@@ -14,6 +14,7 @@ then samples actions for all rows at once and commits the rows that succeeded. B
 
 from __future__ import annotations
 
+import ctypes
 import math
 import secrets
 
@@ -60,6 +61,15 @@ def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
     """[B, n] standard normals from (seed, step) by Box-Muller."""
     u1, u2 = uniforms(seed, step, n, 1), uniforms(seed, step, n, 2)
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * math.pi * u2)
+
+
+def _return_freed_memory() -> None:
+    """Ask glibc to give freed heap pages back to the OS (a no-op elsewhere): the pool's arrays were freed in
+    several malloc arenas (the event loop's and the inference threads'), which glibc otherwise keeps."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 class SessionPool:
@@ -130,6 +140,7 @@ class SessionPool:
         self.free.append(slot)
         if not self.live and self.n_slots > self._initial:
             self._allocate_arrays(self._initial)
+            _return_freed_memory()
 
 
 class PolicyEngine(PolicyRuntime):
