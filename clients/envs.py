@@ -51,12 +51,13 @@ def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: boo
     if list(raw.observation_space.shape) == shape:
         return raw
     raw.close()
-    env = gym.make(env_id, frameskip=1, max_episode_steps=max_steps, **kw)
+    env = gym.make(env_id, frameskip=1, **kw)
     size = shape[-1] if shape else 84
     env = gym.wrappers.AtariPreprocessing(env, frame_skip=4, screen_size=size, grayscale_obs=True)
     if len(shape) == 3:  # [stack, H, W]
         env = gym.wrappers.FrameStackObservation(env, stack_size=shape[0])
-    return env
+    # The limit counts agent steps: on the raw game it would count frames, reset's no-ops included.
+    return gym.wrappers.TimeLimit(env, max_steps) if max_steps else env
 
 
 def _make_plain(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:

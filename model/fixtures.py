@@ -27,14 +27,21 @@ def tiny_checkpoint(
     calibrated: bool = False,
     attention: str = "full",
     n_layer: int = 2,
+    observation_space: gym.spaces.Space | None = None,
+    statistic: str = "mean_x_velocity",
 ) -> Checkpoint:
     """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
 
     The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded. `calibrated` gives a
     continuous-action model a synthetic action noise (std 0.1 * (goal + 1)), enabling its `sample` mode.
+    `observation_space` replaces the environment's (e.g. preprocessed Atari frames [stack, H, W]).
     """
+    if env_id.startswith("ALE/"):
+        import ale_py
+
+        gym.register_envs(ale_py)
     env = gym.make(env_id)
-    obs_space, act_space = env.observation_space, env.action_space
+    obs_space, act_space = observation_space or env.observation_space, env.action_space
     env.close()
     discrete = isinstance(act_space, gym.spaces.Discrete)
     obs_shape = obs_space.shape if len(obs_space.shape) != 2 else (1, *obs_space.shape)
@@ -81,7 +88,7 @@ def tiny_checkpoint(
         action_space=space_to_dict(act_space),
         obs_norm=norm,
         action_codec=codec,
-        statistic="mean_x_velocity",
+        statistic=statistic,
         goals=goals,
         meta={"note": "random weights for tests"},
         action_noise=(

@@ -91,3 +91,17 @@ def start_server() -> Iterator[Callable[..., LiveServer]]:
     yield start
     for s in started:
         s.stop()
+
+
+@pytest.fixture(scope="module")
+def serve_root() -> Iterator[Callable[[Path], LiveServer]]:
+    """Start a server over another checkpoints folder (stopped after the module)."""
+    servers: list[LiveServer] = []
+
+    def start(root: Path) -> LiveServer:
+        servers.append(LiveServer(settings_for(root)))
+        return servers[-1]
+
+    yield start
+    for srv in servers:
+        srv.stop()
