@@ -135,7 +135,22 @@ def collect(
         "repeat. Default per env (HalfCheetah: slow=0.5). LEVEL=0 turns it off.",
     ),
 ) -> None:
-    """Roll out every behaviour snapshot and a random policy into a Minari dataset."""
+    """Roll out every behaviour snapshot and a random policy into a Minari dataset.
+
+    For ALE/Breakout-v5 the behaviour is scripted agents reading the game's RAM (`model.data.breakout`; more
+    options: `python -m model.data.breakout --help`).
+    """
+    if env.startswith("ALE/Breakout"):
+        from model.data.breakout import DEFAULT_EPISODES
+        from model.data.breakout import main as collect_breakout
+
+        argv = ["--seed", str(seed)]
+        argv += ["--out-id", out_id] if out_id else []
+        argv += ["--data-dir", str(data_dir)] if data_dir else []
+        argv += ["--max-steps", str(max_steps)] if max_steps else []
+        if episodes_per_level:
+            argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in DEFAULT_EPISODES)]
+        raise typer.Exit(collect_breakout(argv))
     from model.data.collect import CollectConfig, collect
 
     shares = None

@@ -150,3 +150,17 @@ def test_main_collects_and_measures(tmp_path, capsys):
     assert b.main([*argv, "--measure", "1"]) == 0
     out = capsys.readouterr().out
     assert "2 episodes, 20 transitions" in out and '"mean_length": 10.0' in out
+
+
+def test_gmt_data_collect_dispatches_breakout_to_the_scripted_agents(tmp_path):
+    from typer.testing import CliRunner
+
+    from model.data.minari_io import load_dataset
+    from service.cli import app
+
+    args = ["data", "collect", "--env", "ALE/Breakout-v5", "--episodes-per-level", "1", "--max-steps", "12"]
+    r = CliRunner().invoke(app, [*args, "--data-dir", str(tmp_path), "--out-id", "t/breakout/cli-v0"])
+    assert r.exit_code == 0, r.output
+    ds = load_dataset("t/breakout/cli-v0", tmp_path)
+    assert len(ds.episodes) == 5 and all(len(ep) <= 12 for ep in ds.episodes)
+    assert ds.episodes[0].observations.dtype == np.uint8
