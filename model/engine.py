@@ -28,7 +28,8 @@ from model.runtime import InvalidObservation, PolicyRuntime, RuntimeInfo, StepFa
 
 __all__ = ["InvalidObservation", "PolicyEngine", "SessionPool", "StepFailed"]
 
-ACTION_MODES = ("argmax", "sample", "expert")  # discrete actions, default first
+# Discrete actions, default first: `expert` (paper A.1.3: sample among the logits above their 0.6 quantile).
+ACTION_MODES = ("expert", "argmax", "sample")
 CONTINUOUS_MODES = ("sample", "mean")  # continuous actions of a calibrated checkpoint, default first
 MODES = ("argmax", "sample", "expert", "mean")  # index stored per slot
 # Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
