@@ -91,7 +91,11 @@ def eval_command(
         help="mean or sample (continuous), argmax/sample/expert (discrete); default: the model's default.",
     ),
 ) -> None:
-    """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps."""
+    """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
+
+    A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`model.evaluate_return`):
+    hold every goal, switch at step 300 between the low, middle and high goals, against the expected return.
+    """
     import torch
 
     from model.checkpoint import load_checkpoint
@@ -105,7 +109,15 @@ def eval_command(
         raise typer.BadParameter(
             f"{action_mode!r} is not one of this model's modes {modes}", param_hint="--action-mode"
         )
-    result = evaluate(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
+    if ckpt.statistic == "return":
+        from model.evaluate_return import evaluate_returns, plot_returns
+
+        result = evaluate_returns(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
+        plot_eval = plot_returns
+    else:
+        from model.eval_plot import plot_eval
+
+        result = evaluate(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
     table = result.markdown()
     typer.echo(table)
     if json_out:
@@ -114,7 +126,5 @@ def eval_command(
     if markdown_out:
         markdown_out.write_text(table + "\n")
     if plot:
-        from model.eval_plot import plot_eval
-
         plot_eval(result, plot)
         typer.echo(f"plot: {plot}")

@@ -1,0 +1,311 @@
+"""Return-goal evaluation for games (paper section 3.2 and A.2.2): hold every goal, and switch at one step
+between a low, a middle and a high goal in both directions, against the return the paper expects.
+
+Goals of a `return` checkpoint are clusters of episode returns, so a goal is judged by the return of whole
+episodes (the environment's own ends, game over included, capped at `steps` agent steps), not per segment
+against a tolerance:
+- **hold g**: the mean return over the seeds; the holds should rise with the goal id.
+- **switch a->b at step S**: expected return = w x R(a) + (1 - w) x R(b), with R the holds' mean returns and
+  w the measured share of the switch episodes' steps taken before S (0.3 for 1000-step episodes switched at 300,
+  more when games end early). Success: the mean return within 20% of the expected one.
+The return of a segment is the sum of its rewards, so the two parts of a switch episode add up to its return
+(the `return` statistic of `clients.statistics` is the same sum over a whole trajectory).
+
+JSON schema (`ReturnEvalResult.to_dict`): checkpoint, env_id, statistic, action_mode, seeds, episode_steps,
+switch_at, wall_time_s, goals [{id, name, mean, std, ...}], holds [{goal, returns, lengths, mean, std, sem}],
+switches [{first, second, returns, before, after, lengths, mean, share_first, expected, relative_error,
+within_20pct}], summary {holds_rise, high_minus_low, high_minus_low_z, switches_within_20pct}.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from clients.base import GoalInfo, ModelInfo
+from clients.envs import make_env
+from clients.tables import markdown_table
+from model.checkpoint import Checkpoint
+from model.engine import PolicyEngine
+
+SWITCH_AT = 300
+TOLERANCE = 0.2  # a switch's mean return within 20% of the expected return
+
+
+@dataclass(frozen=True)
+class ReturnCondition:
+    """Play `first` from the start, then `second` from step `switch_at` (a hold when `second` is None)."""
+
+    first: int
+    second: int | None = None
+    switch_at: int = SWITCH_AT
+
+    @property
+    def name(self) -> str:
+        """e.g. "hold 2" or "switch 0->2"."""
+        return f"hold {self.first}" if self.second is None else f"switch {self.first}->{self.second}"
+
+    def goal_at(self, step: int) -> int:
+        """The goal played at `step`."""
+        return self.first if self.second is None or step < self.switch_at else self.second
+
+
+def switch_goals(n_goals: int) -> list[int]:
+    """The low, middle and high goals (ids are ordered by mean return): fewer when there are fewer goals."""
+    return sorted({0, n_goals // 2, n_goals - 1})
+
+
+def return_protocol(n_goals: int, switch_at: int = SWITCH_AT) -> list[ReturnCondition]:
+    """Every hold, then every ordered switch among the low, middle and high goals."""
+    picks = switch_goals(n_goals)
+    holds = [ReturnCondition(g) for g in range(n_goals)]
+    return holds + [ReturnCondition(a, b, switch_at) for a in picks for b in picks if a != b]
+
+
+def expected_return(hold_a: float, hold_b: float, share_first: float) -> float:
+    """The paper's expected return of a switch: the holds' returns weighted by the share of steps under each."""
+    return share_first * hold_a + (1.0 - share_first) * hold_b
+
+
+@dataclass
+class ReturnEvalResult:
+    """Every episode's rewards and what they say."""
+
+    checkpoint: str
+    env_id: str
+    statistic: str
+    action_mode: str
+    seeds: list[int]
+    episode_steps: int
+    switch_at: int
+    goals: list
+    conditions: list[ReturnCondition]
+    rewards: np.ndarray  # [C, E, steps] reward at each step (0 after the episode ended)
+    lengths: np.ndarray  # [C, E] agent steps of each episode
+    wall_time_s: float
+
+    def returns(self, ci: int, start: int = 0, end: int | None = None) -> np.ndarray:
+        """[E] sums of condition `ci`'s rewards over steps [start, end)."""
+        return self.rewards[ci, :, start:end].sum(axis=1)
+
+    def hold_means(self) -> dict[int, float]:
+        """Mean return of each held goal."""
+        return {
+            c.first: float(self.returns(i).mean()) for i, c in enumerate(self.conditions) if c.second is None
+        }
+
+    def to_dict(self) -> dict:
+        """The documented JSON form."""
+        holds, switches = [], []
+        means = self.hold_means()
+        for i, c in enumerate(self.conditions):
+            ret, n = self.returns(i), self.lengths[i]
+            if c.second is None:
+                holds.append(
+                    {
+                        "goal": c.first,
+                        "returns": ret.tolist(),
+                        "lengths": n.tolist(),
+                        "mean": float(ret.mean()),
+                        "std": float(ret.std()),
+                        "sem": float(ret.std(ddof=1) / np.sqrt(len(ret))) if len(ret) > 1 else 0.0,
+                    }
+                )
+                continue
+            share = float(np.mean(np.minimum(n, c.switch_at) / np.maximum(n, 1)))
+            exp = expected_return(means[c.first], means[c.second], share)
+            err = abs(float(ret.mean()) - exp) / max(abs(exp), 1e-9)
+            switches.append(
+                {
+                    "first": c.first,
+                    "second": c.second,
+                    "returns": ret.tolist(),
+                    "before": self.returns(i, 0, c.switch_at).tolist(),
+                    "after": self.returns(i, c.switch_at).tolist(),
+                    "lengths": n.tolist(),
+                    "mean": float(ret.mean()),
+                    "share_first": share,
+                    "expected": exp,
+                    "relative_error": err,
+                    "within_20pct": bool(err <= TOLERANCE),
+                }
+            )
+        ordered = [means[g] for g in sorted(means)]
+        low, high = holds[0], holds[-1]
+        diff = high["mean"] - low["mean"]
+        z = diff / max(np.hypot(high["sem"], low["sem"]), 1e-9)
+        return {
+            "checkpoint": self.checkpoint,
+            "env_id": self.env_id,
+            "statistic": self.statistic,
+            "action_mode": self.action_mode,
+            "seeds": self.seeds,
+            "episode_steps": self.episode_steps,
+            "switch_at": self.switch_at,
+            "wall_time_s": round(self.wall_time_s, 1),
+            "goals": [asdict(g) if hasattr(g, "__dataclass_fields__") else dict(g) for g in self.goals],
+            "holds": holds,
+            "switches": switches,
+            "summary": {
+                "holds_rise": bool(all(b > a for a, b in zip(ordered, ordered[1:], strict=False))),
+                "high_minus_low": diff,
+                "high_minus_low_z": float(z),
+                "switches_within_20pct": sum(s["within_20pct"] for s in switches),
+                "switches": len(switches),
+            },
+        }
+
+    def markdown(self) -> str:
+        """Tables of the holds and the switches."""
+        d = self.to_dict()
+        names = {g["id"]: g["name"] for g in d["goals"]}
+        n = len(self.seeds)
+        hold_rows = [
+            (
+                f"{h['goal']} {names.get(h['goal'], '')}",
+                f"{self.goals[h['goal']].mean:.1f}",
+                f"{h['mean']:.1f} ± {h['sem']:.1f}",
+                f"{np.mean(h['lengths']):.0f}",
+            )
+            for h in d["holds"]
+        ]
+        switch_rows = [
+            (
+                f"{s['first']} -> {s['second']}",
+                f"{s['share_first']:.2f}",
+                f"{s['expected']:.1f}",
+                f"{s['mean']:.1f}",
+                f"{100 * s['relative_error']:.0f}%",
+                "yes" if s["within_20pct"] else "no",
+            )
+            for s in d["switches"]
+        ]
+        sm = d["summary"]
+        return (
+            f"Evaluation of `{self.checkpoint}` on {self.env_id} (return goals), {n} seeds, episodes capped at "
+            f"{self.episode_steps} agent steps, switch at step {self.switch_at}, action mode {self.action_mode}\n\n"
+            + markdown_table(
+                ("hold goal", "dataset mean return", "mean return ± s.e.", "mean length"), hold_rows
+            )
+            + "\n\n"
+            + markdown_table(
+                ("switch", "share before", "expected return", "mean return", "error", "within 20%"),
+                switch_rows,
+            )
+            + f"\n\nHolds rise with the goal: {'yes' if sm['holds_rise'] else 'no'}; highest minus lowest "
+            f"{sm['high_minus_low']:.1f} (z = {sm['high_minus_low_z']:.1f}); switches within 20%: "
+            f"{sm['switches_within_20pct']}/{sm['switches']}.\n"
+        )
+
+
+def model_info(ckpt: Checkpoint) -> ModelInfo:
+    """The checkpoint as a client sees it (`GET /models/{name}`): enough to build its environment."""
+    return ModelInfo(
+        name=ckpt.name,
+        env_id=ckpt.env_id,
+        observation_space=ckpt.observation_space,
+        action_space=ckpt.action_space,
+        context_length=ckpt.config.context_length,
+        statistic=ckpt.statistic,
+        goals=[GoalInfo(g.id, g.name, g.mean, g.std, g.min, g.max, g.count) for g in ckpt.goals],
+    )
+
+
+def evaluate_returns(
+    ckpt: Checkpoint,
+    seeds: int | list[int] = 15,
+    steps: int = 1000,
+    switch_at: int = SWITCH_AT,
+    conditions: list[ReturnCondition] | None = None,
+    progress: bool = True,
+    action_mode: str | None = None,
+) -> ReturnEvalResult:
+    """Play every condition for every seed, all episodes in lockstep through one engine.
+
+    Args:
+        ckpt: A checkpoint whose goals are return clusters.
+        seeds: Number of seeds (0..n-1) or an explicit list (the environment's reset seed and the sampler's).
+        steps: Cap on agent steps per episode.
+        switch_at: Step of every switch.
+        conditions: Defaults to `return_protocol(n_goals, switch_at)`.
+        progress: Show a progress bar.
+        action_mode: The engine's action mode (default: the model's, `expert` for discrete actions).
+    """
+    seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
+    conds = conditions or return_protocol(len(ckpt.goals), switch_at)
+    spec = model_info(ckpt)
+    engine = PolicyEngine(ckpt)
+    mode = action_mode or engine.default_action_mode
+    runs = [(c, s) for c in conds for s in seed_list]
+    envs = [make_env(spec, max_steps=steps) for _ in runs]
+    t0 = time.time()
+    obs = [env.reset(seed=s)[0] for env, (_, s) in zip(envs, runs, strict=True)]
+    ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
+    rewards = np.zeros((len(runs), steps))
+    lengths = np.full(len(runs), steps)
+    alive = np.ones(len(runs), dtype=bool)
+    for t in tqdm(range(steps), disable=not progress, desc="eval"):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        for i in idx:
+            g = runs[i][0].goal_at(t)
+            if g != ctxs[i].goal:
+                engine.set_goal(ctxs[i], g)
+        actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
+        failed = [a for a in actions if isinstance(a, Exception)]
+        if failed:
+            raise failed[0]
+        for i, a in zip(idx, actions, strict=True):
+            obs[i], r, term, trunc, _ = envs[i].step(a)
+            rewards[i, t] = r
+            if term or trunc:
+                alive[i], lengths[i] = False, t + 1
+    for env in envs:
+        env.close()
+    E = len(seed_list)
+    return ReturnEvalResult(
+        checkpoint=ckpt.name,
+        env_id=ckpt.env_id,
+        statistic=ckpt.statistic,
+        action_mode=mode,
+        seeds=seed_list,
+        episode_steps=steps,
+        switch_at=switch_at,
+        goals=ckpt.goals,
+        conditions=conds,
+        rewards=rewards.reshape(len(conds), E, steps),
+        lengths=lengths.reshape(len(conds), E),
+        wall_time_s=time.time() - t0,
+    )
+
+
+def plot_returns(result: ReturnEvalResult, path) -> None:
+    """Holds (mean return ± s.e. per goal, dataset mean marked) and switches (expected vs achieved), one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = result.to_dict()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    ids = [h["goal"] for h in d["holds"]]
+    a1.bar(ids, [h["mean"] for h in d["holds"]], yerr=[h["sem"] for h in d["holds"]], color="tab:blue")
+    a1.plot(ids, [result.goals[g].mean for g in ids], "k_", markersize=30, label="dataset mean")
+    a1.set_xticks(ids, [f"{g} {result.goals[g].name}" for g in ids])
+    a1.set_ylabel("episode return")
+    a1.set_title(f"hold, {len(result.seeds)} seeds")
+    a1.legend()
+    x = np.arange(len(d["switches"]))
+    a2.bar(x - 0.2, [s["expected"] for s in d["switches"]], 0.4, label="expected", color="tab:gray")
+    a2.bar(x + 0.2, [s["mean"] for s in d["switches"]], 0.4, label="achieved", color="tab:orange")
+    a2.set_xticks(x, [f"{s['first']}->{s['second']}" for s in d["switches"]])
+    a2.set_title(f"switch at step {result.switch_at}")
+    a2.legend()
+    fig.suptitle(f"{result.checkpoint}: {result.env_id}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

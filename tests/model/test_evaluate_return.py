@@ -1,0 +1,81 @@
+"""The game protocol (paper A.2.2) on a random-weight Breakout model: holds, switches, the expected return."""
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from model.evaluate_return import evaluate_returns, expected_return, return_protocol, switch_goals
+from model.fixtures import tiny_checkpoint
+
+pytest.importorskip("ale_py")
+pytest.importorskip("cv2")
+
+FRAMES = gym.spaces.Box(0, 255, (4, 64, 64), np.uint8)
+
+
+def _ckpt(directory=None):
+    return tiny_checkpoint(
+        directory,
+        env_id="ALE/Breakout-v5",
+        name="tiny-breakout",
+        observation_space=FRAMES,
+        statistic="return",
+        context_length=4,
+    )
+
+
+def test_the_protocol_holds_every_goal_and_switches_low_middle_high_both_ways():
+    assert switch_goals(3) == [0, 1, 2] and switch_goals(5) == [0, 2, 4] and switch_goals(2) == [0, 1]
+    conds = return_protocol(5, switch_at=300)
+    assert [c.name for c in conds[:5]] == [f"hold {g}" for g in range(5)]
+    assert sorted((c.first, c.second) for c in conds[5:]) == [
+        (0, 2), (0, 4), (2, 0), (2, 4), (4, 0), (4, 2)
+    ]  # fmt: skip
+    c = conds[5]
+    assert c.goal_at(299) == c.first and c.goal_at(300) == c.second
+
+
+def test_switch_returns_add_up_and_are_judged_against_the_share_weighted_holds():
+    res = evaluate_returns(_ckpt(), seeds=[0, 1], steps=60, switch_at=20, progress=False)
+    d = res.to_dict()
+    assert [h["goal"] for h in d["holds"]] == [0, 1, 2] and len(d["switches"]) == 6
+    means = {h["goal"]: h["mean"] for h in d["holds"]}
+    for ci in range(len(res.conditions)):  # rewards stop where each episode stopped
+        for e, n in enumerate(res.lengths[ci]):
+            assert 1 <= n <= 60 and not res.rewards[ci, e, n:].any()
+    for s in d["switches"]:
+        np.testing.assert_allclose(np.add(s["before"], s["after"]), s["returns"])
+        n = np.asarray(s["lengths"])
+        share = np.mean(np.minimum(n, 20) / n)
+        assert s["share_first"] == pytest.approx(share)
+        assert s["expected"] == pytest.approx(share * means[s["first"]] + (1 - share) * means[s["second"]])
+        assert s["within_20pct"] == (abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))
+    assert expected_return(10.0, 40.0, 0.3) == pytest.approx(31.0)  # the paper's 0.3 / 0.7 example
+
+
+def test_gmt_eval_uses_the_game_protocol_for_return_goals(tmp_path):
+    from service.cli import app
+
+    _ckpt(tmp_path / "ckpt")
+    out = tmp_path / "eval.json"
+    args = [
+        "eval",
+        str(tmp_path / "ckpt"),
+        "--seeds",
+        "2",
+        "--steps",
+        "30",
+        "--threads",
+        "1",
+        "--json",
+        str(out),
+    ]
+    r = CliRunner().invoke(app, [*args, "--plot", str(tmp_path / "eval.png")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    assert doc["statistic"] == "return" and doc["action_mode"] == "expert" and "switches" in doc
+    assert (tmp_path / "eval.png").stat().st_size > 1000
+    assert "switch" in r.output and "within 20%" in r.output
