@@ -69,6 +69,8 @@ class RunConfig:
         steps: Maximum steps per episode (the environment's time limit is set to it).
         out: Folder for the episode-<i>.json/.csv traces, .png plots and videos (default: write nothing).
         video: Also record episode-<i>.mp4 into `out` (MuJoCo renders offscreen).
+        strip_every: With `video`, also write episode-<i>-strip.png: every Nth frame side by side, captioned
+            with its step and goal (0 = no strip).
         transport: Description of how the server is reached, for the summary.
     """
 
@@ -81,6 +83,7 @@ class RunConfig:
     steps: int = 1000
     out: Path | None = None
     video: bool = False
+    strip_every: int = 0
     transport: str = ""
 
     def __post_init__(self) -> None:
@@ -186,7 +189,7 @@ def run_episode(
             sig = signal_from_step(spec.statistic, reward, info)
             trace.append(t, res.step, res.goal, sig, reward, res.action)
             if video is not None:
-                video.append(env.render())
+                video.append(env.render(), f"step {t}  goal {spec.goal(res.goal).name}")
             if status is not None:
                 g, recent = spec.goal(res.goal), trace.signal[-MOVING_AVERAGE:]
                 status.update(
@@ -267,13 +270,15 @@ def run(
             if cfg.video and cfg.out is not None:
                 from clients.video import VideoWriter
 
-                video = VideoWriter(cfg.out / f"episode-{ep}.mp4", fps=env.metadata.get("render_fps") or 30)
+                fps = env.metadata.get("render_fps") or 30
+                video = VideoWriter(cfg.out / f"episode-{ep}.mp4", fps=fps, strip_every=cfg.strip_every)
             with client.create_session(spec.name, cfg.goal, seed=seed) as session:
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
                 try:
                     trace, terminated = run_episode(session, env, spec, cfg, seed, on_step, status, video)
                 finally:
-                    files = [video.close()] if video is not None else []
+                    files = [video.close(), video.write_strip()] if video is not None else []
+                    files = [f for f in files if f is not None]
             res = EpisodeResult(
                 ep, seed, session.id, trace, measure(trace.goal, trace.signal, spec.goals), terminated
             )

@@ -26,12 +26,13 @@ def test_run_over_grpc_stream_prints_the_table_and_writes_the_files(live_server,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["episode-0.csv", "episode-0.json", "episode-0.png"]
 
 
-def test_video_is_an_mp4_with_one_frame_per_step(live_server, tmp_path):
+def test_video_is_an_mp4_with_one_frame_per_step_and_a_strip_of_every_third(live_server, tmp_path):
     imageio = pytest.importorskip("imageio.v2")
     pytest.importorskip("imageio_ffmpeg")
-    r = runner.invoke(
-        app, ["run", "--server", live_server.rest_url, "--steps", "8", "--out", str(tmp_path), "--video"]
-    )
+    from PIL import Image
+
+    args = ["run", "--server", live_server.rest_url, "--steps", "8", "--out", str(tmp_path), "--video"]
+    r = runner.invoke(app, [*args, "--strip-every", "3"])
     assert r.exit_code == 0, r.output
     video = tmp_path / "episode-0.mp4"
     assert f"wrote {video}" in r.output
@@ -40,6 +41,9 @@ def test_video_is_an_mp4_with_one_frame_per_step(live_server, tmp_path):
         frame = reader.get_data(0)
     width, height = VIDEO_SIZE
     assert frame.shape == (height, width, 3) and frame.std() > 10  # rendered, not blank
+    strip = Image.open(tmp_path / "episode-0-strip.png")  # steps 0, 3 and 6, captioned above
+    assert strip.size[0] == 3 * width + 2 * 4 and strip.size[1] > height
+    assert f"wrote {tmp_path / 'episode-0-strip.png'}" in r.output
 
 
 def test_mismatched_environment_exits_with_a_message_naming_both(live_server):
