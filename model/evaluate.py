@@ -21,6 +21,7 @@ JSON schema (`EvalResult.to_dict`):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -164,6 +165,56 @@ class EvalResult:
         )
 
 
+def play_lockstep(
+    engine: PolicyEngine,
+    envs: list,
+    obs: list,
+    ctxs: list,
+    goal_at: list[Callable[[int], int]],
+    steps: int,
+    record: Callable[[int, int, float, dict], None],
+    progress: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step every episode together through one engine until each ends or `steps` steps are played.
+
+    Args:
+        engine: The engine acting for every context.
+        envs: One environment per episode, already reset; `obs` holds their first observations.
+        obs: Current observation per episode (updated in place).
+        ctxs: One engine context per episode.
+        goal_at: Per episode, the goal to pursue at a step (set before acting when it changes).
+        steps: Most steps per episode.
+        record: Called with (episode, step, reward, info) after every environment step.
+        progress: Show a progress bar.
+
+    Returns:
+        [E] whether each episode terminated (the environment's own end), and [E] the steps each played.
+    """
+    n = len(envs)
+    terminated = np.zeros(n, dtype=bool)
+    lengths = np.full(n, steps)
+    alive = np.ones(n, dtype=bool)
+    for t in tqdm(range(steps), disable=not progress, desc="eval"):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        for i in idx:
+            g = goal_at[i](t)
+            if g != ctxs[i].goal:
+                engine.set_goal(ctxs[i], g)
+        actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
+        failed = [a for a in actions if isinstance(a, Exception)]
+        if failed:
+            raise failed[0]
+        for i, a in zip(idx, actions, strict=True):
+            obs[i], r, term, trunc, info = envs[i].step(a)
+            record(i, t, r, info)
+            if term or trunc:
+                terminated[i] = term
+                alive[i], lengths[i] = False, t + 1
+    return terminated, lengths
+
+
 def evaluate(
     ckpt: Checkpoint,
     seeds: int | list[int] = 15,
@@ -196,28 +247,13 @@ def evaluate(
     mode = action_mode or engine.default_action_mode
     ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     signal = np.full((len(runs), steps), np.nan)
-    terminated = np.zeros(len(runs), dtype=bool)
-    alive = np.ones(len(runs), dtype=bool)
-    for t in tqdm(range(steps), disable=not progress, desc="eval"):
-        idx = np.flatnonzero(alive)
-        if len(idx) == 0:
-            break
-        for i in idx:
-            g = runs[i][0].goal_at(t)
-            if g != ctxs[i].goal:
-                engine.set_goal(ctxs[i], g)
-        actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
-        failed = [a for a in actions if isinstance(a, Exception)]
-        if failed:
-            raise failed[0]
-        for i, a in zip(idx, actions, strict=True):
-            o, r, term, trunc, info = envs[i].step(a)
-            obs[i] = o
-            signal[i, t] = signal_from_step(ckpt.statistic, r, info)
-            if term:
-                terminated[i], alive[i] = True, False
-            elif trunc and t < steps - 1:
-                alive[i] = False
+
+    def record(i: int, t: int, reward: float, info: dict) -> None:
+        signal[i, t] = signal_from_step(ckpt.statistic, reward, info)
+
+    terminated, _ = play_lockstep(
+        engine, envs, obs, ctxs, [c.goal_at for c, _ in runs], steps, record, progress
+    )
     for env in envs:
         env.close()
     results = []

@@ -23,13 +23,13 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from clients.base import GoalInfo, ModelInfo
 from clients.envs import make_env
 from clients.tables import markdown_table
 from model.checkpoint import Checkpoint
 from model.engine import PolicyEngine
+from model.evaluate import play_lockstep
 
 SWITCH_AT = 300
 TOLERANCE = 0.2  # a switch's mean return within 20% of the expected return
@@ -245,25 +245,11 @@ def evaluate_returns(
     obs = [env.reset(seed=s)[0] for env, (_, s) in zip(envs, runs, strict=True)]
     ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     rewards = np.zeros((len(runs), steps))
-    lengths = np.full(len(runs), steps)
-    alive = np.ones(len(runs), dtype=bool)
-    for t in tqdm(range(steps), disable=not progress, desc="eval"):
-        idx = np.flatnonzero(alive)
-        if len(idx) == 0:
-            break
-        for i in idx:
-            g = runs[i][0].goal_at(t)
-            if g != ctxs[i].goal:
-                engine.set_goal(ctxs[i], g)
-        actions = engine.act([ctxs[i] for i in idx], [obs[i] for i in idx])
-        failed = [a for a in actions if isinstance(a, Exception)]
-        if failed:
-            raise failed[0]
-        for i, a in zip(idx, actions, strict=True):
-            obs[i], r, term, trunc, _ = envs[i].step(a)
-            rewards[i, t] = r
-            if term or trunc:
-                alive[i], lengths[i] = False, t + 1
+
+    def record(i: int, t: int, reward: float, info: dict) -> None:
+        rewards[i, t] = reward
+
+    _, lengths = play_lockstep(engine, envs, obs, ctxs, [c.goal_at for c, _ in runs], steps, record, progress)
     for env in envs:
         env.close()
     E = len(seed_list)
