@@ -32,6 +32,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from model.data.collect import CollectResult
 from model.data.minari_io import Episode, data_root, write_dataset
 
 ENV_ID = "ALE/Breakout-v5"
@@ -407,19 +408,6 @@ class CollectConfig:
             raise ValueError(f"max_attempts must be >= 1, got {self.max_attempts}")
         if not 0 <= self.compress <= 9:
             raise ValueError(f"compress must be a gzip level 0-9, got {self.compress}")
-
-
-@dataclass
-class CollectResult:
-    """What a collection wrote."""
-
-    dataset_id: str
-    path: Path
-    levels: dict[str, dict]
-    episodes: int
-    transitions: int
-    seconds: float
-    bytes: int
 
 
 def collect_breakout(cfg: CollectConfig | None = None, progress: bool = True) -> CollectResult:

@@ -104,6 +104,7 @@ class CollectResult:
     episodes: int
     transitions: int
     seconds: float
+    bytes: int = 0  # size on disk, where the collector measured it
 
 
 def collect_level(
