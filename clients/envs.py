@@ -51,13 +51,38 @@ def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: boo
     if list(raw.observation_space.shape) == shape:
         return raw
     raw.close()
-    env = gym.make(env_id, frameskip=1, **kw)
     size = shape[-1] if shape else 84
-    env = gym.wrappers.AtariPreprocessing(env, frame_skip=4, screen_size=size, grayscale_obs=True)
-    if len(shape) == 3:  # [stack, H, W]
-        env = gym.wrappers.FrameStackObservation(env, stack_size=shape[0])
+    env = atari_env(env_id, size, shape[0] if len(shape) == 3 else 0, **kw)
     # The limit counts agent steps: on the raw game it would count frames, reset's no-ops included.
     return gym.wrappers.TimeLimit(env, max_steps) if max_steps else env
+
+
+def atari_env(
+    env_id: str,
+    screen_size: int,
+    stack: int = 0,
+    frame_skip: int = 4,
+    noop_max: int = 30,
+    repeat_action_probability: float = 0.25,
+    **make_kwargs,
+) -> gym.Env:
+    """An ALE game with the DQN preprocessing the project's Atari data and clients share (one definition).
+
+    `gym.make(env_id, frameskip=1, repeat_action_probability)` -> `AtariPreprocessing` (max-pool of the last two
+    frames, grayscale, INTER_AREA resize to `screen_size`, up to `noop_max` no-ops after reset, no terminal on a
+    lost life) -> `FrameStackObservation(stack)` when `stack` > 0. Observations: uint8 [stack, H, W] or [H, W].
+    """
+    env = gym.make(env_id, frameskip=1, repeat_action_probability=repeat_action_probability, **make_kwargs)
+    env = gym.wrappers.AtariPreprocessing(
+        env,
+        noop_max=noop_max,
+        frame_skip=frame_skip,
+        screen_size=screen_size,
+        grayscale_obs=True,
+        terminal_on_life_loss=False,
+        scale_obs=False,
+    )
+    return gym.wrappers.FrameStackObservation(env, stack_size=stack) if stack else env
 
 
 def _make_plain(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:

@@ -32,6 +32,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from clients.envs import atari_env
 from model.data.collect import CollectResult
 from model.data.minari_io import Episode, data_root, write_dataset
 
@@ -107,17 +108,14 @@ def make_env(prep: Preprocessing | None = None) -> gym.Env:
 
     prep = prep or Preprocessing()
     gym.register_envs(ale_py)
-    env = gym.make(prep.env_id, frameskip=1, repeat_action_probability=prep.repeat_action_probability)
-    env = gym.wrappers.AtariPreprocessing(
-        env,
-        noop_max=prep.noop_max,
+    return atari_env(
+        prep.env_id,
+        prep.screen_size,
+        prep.stack,
         frame_skip=prep.frame_skip,
-        screen_size=prep.screen_size,
-        grayscale_obs=True,
-        terminal_on_life_loss=False,
-        scale_obs=False,
+        noop_max=prep.noop_max,
+        repeat_action_probability=prep.repeat_action_probability,
     )
-    return gym.wrappers.FrameStackObservation(env, stack_size=prep.stack)
 
 
 def _bcd(byte: int) -> int:
