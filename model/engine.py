@@ -152,9 +152,17 @@ class PolicyEngine(PolicyRuntime):
         incremental: Use the key/value-cache path (None = whenever the model has `window` attention);
             False forces the reference recompute.
         n_slots: Initial pool size (it grows as sessions arrive).
+        native: Compute the incremental step with the native kernel (`model.native`; None = whenever it is
+            available and the model has vector observations); False keeps the torch step.
     """
 
-    def __init__(self, checkpoint: Checkpoint, incremental: bool | None = None, n_slots: int = 16) -> None:
+    def __init__(
+        self,
+        checkpoint: Checkpoint,
+        incremental: bool | None = None,
+        n_slots: int = 16,
+        native: bool | None = None,
+    ) -> None:
         self.ckpt = checkpoint
         self.model = checkpoint.model.eval()
         self.cfg = checkpoint.config
@@ -177,12 +185,31 @@ class PolicyEngine(PolicyRuntime):
             self.action_modes = CONTINUOUS_MODES if self.noise_var is not None else ("mean",)
         self.pool = SessionPool(self, n_slots)
         self._arange_h = np.arange(self.pool.H)
+        self._native = self._native_step(native) if self.incremental else None
+
+    def _native_step(self, native: bool | None):
+        """The native step for this model, or None (torch step). Raises if `native` is True and it cannot run."""
+        if native is False:
+            return None
+        if self.cfg.is_image:
+            if native:
+                raise ValueError("the native step serves vector observations only")
+            return None
+        from model import native as native_module
+
+        lib = native_module.load()
+        if lib is None:
+            if native:
+                raise RuntimeError("the native step is unavailable (no C compiler, or GMT_NATIVE=0)")
+            return None
+        return native_module.NativeStep(self.model, lib)
 
     def describe(self) -> RuntimeInfo:
         return RuntimeInfo(
             action_modes=self.action_modes,
             history_steps=self.pool.H,
             path="incremental" if self.incremental else "recompute",
+            kernel="native" if self._native is not None else "torch",
         )
 
     @property
@@ -452,6 +479,15 @@ class PolicyEngine(PolicyRuntime):
         return env_actions, ok
 
     def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
+        if self._native is not None:  # batch invariant by construction: no lone-row or slot-order handling
+            p = self.pool
+            prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
+            prev[t == 0] = 0
+            blend = bool((w > 0).any())
+            pred = self._native(
+                prev, g, states, t, p.cache, slots, goal if blend else None, w if blend else None
+            )
+            return torch.from_numpy(pred)
         if len(slots) == 1:
             # A lone row is run twice (same slot, same values): a one-row matrix product takes a GEMV path
             # whose last bit differs from the batched GEMM, and batched == unbatched must hold exactly.

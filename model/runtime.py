@@ -32,11 +32,13 @@ class RuntimeInfo:
         action_modes: Modes a session may choose, the default first.
         history_steps: Steps of history that determine an action (and that a stored context keeps).
         path: `incremental` (key/value cache, newest tokens only) or `recompute` (the reference forward).
+        kernel: What computes the incremental step: `native` (`model/native/gmt_step.c`) or `torch`.
     """
 
     action_modes: tuple[str, ...]
     history_steps: int
     path: str
+    kernel: str = "torch"
 
 
 class PolicyRuntime(abc.ABC):

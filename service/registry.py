@@ -80,6 +80,7 @@ class ModelRegistry:
                     "goals": len(ckpt.goals),
                     "attention": ckpt.config.attention,
                     "engine": engine.describe().path,
+                    "kernel": engine.describe().kernel,
                 },
             )
         return reg

@@ -1,0 +1,216 @@
+"""The native incremental step: `gmt_step.c`, compiled on first use with the system C compiler, called by ctypes.
+
+The torch step (`GMT.step`) is the reference; this one does the same arithmetic in one C call, which matters for
+one session's latency (see `gmt_step.c`). Without a C compiler, or with `GMT_NATIVE=0`, `load()` returns None
+and the engine keeps the torch step.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.gmt import GMT
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("gmt_step.c")
+CFLAGS = [
+    "-O3",
+    "-march=native",
+    "-mprefer-vector-width=512",
+    "-fPIC",
+    "-shared",
+    "-std=c11",
+    "-ffp-contract=fast",
+]
+
+_f32p = ctypes.POINTER(ctypes.c_float)
+_f32pp = ctypes.POINTER(_f32p)
+_i64p = ctypes.POINTER(ctypes.c_int64)
+
+
+_INTS = ("n_embd", "n_head", "n_layer", "obs_dim", "act_dim", "discrete", "n_goals", "max_timestep")
+_INTS += ("context_length",)
+_TABLES = ("goal_emb", "state_w", "state_b", "action_w", "action_b", "time_emb", "ln_in_w", "ln_in_b")
+_LAYERS = ("ln1_w", "ln1_b", "qkv_w", "qkv_b", "proj_w", "proj_b", "ln2_w", "ln2_b", "fc_w", "fc_b")
+_LAYERS += ("out_w", "out_b")
+_HEADS = ("ln_f_w", "ln_f_b", "head_w", "head_b")
+
+
+class _Model(ctypes.Structure):
+    """Mirror of `Model` in gmt_step.c (same field order)."""
+
+    _fields_ = (
+        [(n, ctypes.c_int64) for n in _INTS]
+        + [(n, _f32p) for n in _TABLES]
+        + [(n, _f32pp) for n in _LAYERS]
+        + [(n, _f32p) for n in _HEADS]
+    )
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("GMT_NATIVE_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "gmt-native"
+    )
+    return Path(root)
+
+
+_lib: ctypes.CDLL | None = None
+_tried = False
+
+
+def load() -> ctypes.CDLL | None:
+    """The compiled library (built once per source, flags and machine, cached on disk), or None if unavailable."""
+    global _lib, _tried
+    if _tried:
+        return _lib
+    _tried = True
+    if os.environ.get("GMT_NATIVE", "1") == "0":
+        log.info("native step disabled by GMT_NATIVE=0")
+        return None
+    cc = os.environ.get("CC", "cc")
+    key = hashlib.sha256(
+        SOURCE.read_bytes() + " ".join([cc, *CFLAGS, platform.machine(), platform.node()]).encode()
+    ).hexdigest()[:16]
+    so = _cache_dir() / f"gmt_step-{key}.so"
+    try:
+        if not so.exists():
+            so.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
+                built = Path(tmp) / so.name
+                subprocess.run(
+                    [cc, *CFLAGS, str(SOURCE), "-o", str(built), "-lm"],
+                    check=True,
+                    capture_output=True,
+                    text=True,
+                )
+                os.replace(built, so)  # atomic: concurrent builders never see a partial file
+        lib = ctypes.CDLL(str(so))
+    except (OSError, subprocess.CalledProcessError) as e:
+        detail = e.stderr if isinstance(e, subprocess.CalledProcessError) else e
+        log.warning("native step unavailable, using the torch step: %s", detail)
+        return None
+    lib.gmt_step.restype = ctypes.c_int
+    lib.gmt_step.argtypes = [ctypes.POINTER(_Model), ctypes.c_int64, _f32p, _i64p, _i64p, _i64p, _f32p, _f32p]
+    lib.gmt_step.argtypes += [_f32p, _i64p, _i64p, _f32p, _f32p, _i64p, ctypes.c_int64, ctypes.c_int64, _f32p]
+    _lib = lib
+    return lib
+
+
+def _ptr(a: np.ndarray | None, kind=_f32p):
+    return None if a is None else a.ctypes.data_as(kind)
+
+
+def _tensor_ptr(t: torch.Tensor, kind=_f32p):
+    return ctypes.cast(ctypes.c_void_p(t.data_ptr()), kind)
+
+
+class NativeStep:
+    """`GMT.step` of one vector-observation `window` model, computed by `gmt_step.c`.
+
+    Args:
+        model: The model (its weights are copied, transposed, once).
+        lib: The library from `load()`.
+    """
+
+    def __init__(self, model: GMT, lib: ctypes.CDLL) -> None:
+        cfg = model.cfg
+        if cfg.attention != "window" or cfg.is_image:
+            raise ValueError("the native step serves window models with vector observations")
+        self.cfg, self._lib = cfg, lib
+        self._keep: list = []  # every array the struct points into
+
+        def arr(t: torch.Tensor, transpose: bool = False) -> np.ndarray:
+            a = t.detach().float().cpu().numpy()
+            a = np.ascontiguousarray(a.T if transpose else a, dtype=np.float32)
+            self._keep.append(a)
+            return a
+
+        def per_layer(get, transpose: bool = False):
+            ptrs = (_f32p * cfg.n_layer)(*(_ptr(arr(get(b), transpose)) for b in model.blocks))
+            self._keep.append(ptrs)
+            return ctypes.cast(ptrs, _f32pp)
+
+        m = _Model()
+        m.n_embd, m.n_head, m.n_layer = cfg.n_embd, cfg.n_head, cfg.n_layer
+        m.obs_dim, m.act_dim, m.discrete = cfg.obs_shape[0], cfg.act_dim, int(cfg.discrete_actions)
+        m.n_goals, m.max_timestep, m.context_length = cfg.n_goals, cfg.max_timestep, cfg.context_length
+        m.goal_emb, m.time_emb = _ptr(arr(model.goal_emb.weight)), _ptr(arr(model.time_emb.weight))
+        m.state_w, m.state_b = _ptr(arr(model.state_emb.weight, True)), _ptr(arr(model.state_emb.bias))
+        if cfg.discrete_actions:  # the embedding table [act_dim, C]
+            m.action_w, m.action_b = _ptr(arr(model.action_emb.weight)), None
+        else:
+            m.action_w, m.action_b = (
+                _ptr(arr(model.action_emb.weight, True)),
+                _ptr(arr(model.action_emb.bias)),
+            )
+        m.ln_in_w, m.ln_in_b = _ptr(arr(model.ln_in.weight)), _ptr(arr(model.ln_in.bias))
+        m.ln1_w, m.ln1_b = per_layer(lambda b: b.ln1.weight), per_layer(lambda b: b.ln1.bias)
+        m.qkv_w, m.qkv_b = per_layer(lambda b: b.attn.qkv.weight, True), per_layer(lambda b: b.attn.qkv.bias)
+        m.proj_w = per_layer(lambda b: b.attn.proj.weight, True)
+        m.proj_b = per_layer(lambda b: b.attn.proj.bias)
+        m.ln2_w, m.ln2_b = per_layer(lambda b: b.ln2.weight), per_layer(lambda b: b.ln2.bias)
+        m.fc_w, m.fc_b = per_layer(lambda b: b.fc.weight, True), per_layer(lambda b: b.fc.bias)
+        m.out_w, m.out_b = per_layer(lambda b: b.out.weight, True), per_layer(lambda b: b.out.bias)
+        m.ln_f_w, m.ln_f_b = _ptr(arr(model.ln_f.weight)), _ptr(arr(model.ln_f.bias))
+        m.head_w, m.head_b = _ptr(arr(model.action_head.weight, True)), _ptr(arr(model.action_head.bias))
+        self._model = m
+
+    def __call__(
+        self,
+        prev_actions: np.ndarray,
+        goals: np.ndarray,
+        states: np.ndarray,
+        timesteps: np.ndarray,
+        cache,
+        slots: np.ndarray,
+        blend_to: np.ndarray | None = None,
+        blend_w: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """As `GMT.step`, on numpy arrays: [B, act_dim] float32 predictions."""
+        B = len(slots)
+        i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
+        f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+        goals, timesteps, slots, states = i64(goals), i64(timesteps), i64(slots), f32(states)
+        if self.cfg.discrete_actions:
+            prev_f, prev_i = None, i64(prev_actions)
+        else:
+            prev_f, prev_i = f32(prev_actions), None
+        if blend_to is not None:
+            blend_to, blend_w = i64(blend_to), f32(blend_w)
+        for t in (cache.k, cache.v, cache.tok):
+            if not t.is_contiguous():
+                raise ValueError("the key/value cache must be contiguous")
+        out = np.empty((B, self.cfg.act_dim), dtype=np.float32)
+        rc = self._lib.gmt_step(
+            ctypes.byref(self._model),
+            B,
+            _ptr(prev_f),
+            _ptr(prev_i, _i64p),
+            _ptr(goals, _i64p),
+            _ptr(blend_to, _i64p),
+            _ptr(blend_w),
+            _ptr(states),
+            None,
+            _ptr(timesteps, _i64p),
+            _ptr(slots, _i64p),
+            _tensor_ptr(cache.k),
+            _tensor_ptr(cache.v),
+            _tensor_ptr(cache.tok, _i64p),
+            cache.n_slots,
+            cache.width,
+            _ptr(out),
+        )
+        if rc != 0:
+            raise MemoryError("the native step could not allocate its scratch memory")
+        return out

@@ -1,0 +1,319 @@
+/* One incremental step of a `window` GMT (model/gmt.py, GMT.step) for a batch of sessions, in plain C.
+ *
+ * Why: the torch step is ~130 small operations, each 5-20 us through the dispatcher on a small CPU, so one
+ * session's act cost milliseconds for ~4 MFLOP of arithmetic. This file does the same arithmetic in one call.
+ *
+ * Batch invariance by construction: every output element of every product is one sequential fused
+ * multiply-add chain over the reduction index, started at zero, whatever the batch size or the blocking, and
+ * every other operation is per row. A row's result therefore never depends on which other rows share the call
+ * (batched and unbatched answers agree bit for bit), and agrees with torch's step to float rounding.
+ *
+ * Layouts (float32, row-major, contiguous): every weight matrix is given transposed, [in, out]; the key/value
+ * caches are [n_layer, n_slots, n_head, W, d] and `tok` is [n_slots, W] (model/kv_cache.py).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+typedef struct {
+    int64_t n_embd, n_head, n_layer, obs_dim, act_dim, discrete, n_goals, max_timestep, context_length;
+    const float *goal_emb;             /* [n_goals + 1, C] */
+    const float *state_w, *state_b;    /* [obs_dim, C], [C] (unused when state embeddings are given) */
+    const float *action_w, *action_b;  /* [act_dim, C], [C]; discrete: action_w is the table [act_dim, C] */
+    const float *time_emb;             /* [max_timestep, C] */
+    const float *ln_in_w, *ln_in_b;
+    const float *const *ln1_w, *const *ln1_b, *const *qkv_w, *const *qkv_b, *const *proj_w, *const *proj_b;
+    const float *const *ln2_w, *const *ln2_b, *const *fc_w, *const *fc_b, *const *out_w, *const *out_b;
+    const float *ln_f_w, *ln_f_b, *head_w, *head_b; /* action head [C, act_dim], [act_dim] */
+} Model;
+
+#define NB 32 /* output columns per tile */
+#define MB 4  /* rows per tile */
+
+/* y[m, n0:n0+nb] = b + x[m, :] . w[:, n]: one row block of up to MB rows, one column tile. */
+static inline __attribute__((always_inline)) void tile(const float *x, int64_t K, const float *w, int64_t N,
+                                                       const float *b, float *y, int64_t n0, int mb, int nb) {
+    float acc[MB][NB];
+    for (int r = 0; r < mb; r++)
+        for (int j = 0; j < NB; j++) acc[r][j] = 0.0f;
+    for (int64_t k = 0; k < K; k++) {
+        const float *wk = w + k * N + n0;
+        for (int r = 0; r < mb; r++) {
+            float xv = x[r * K + k];
+            if (nb == NB) {
+                for (int j = 0; j < NB; j++) acc[r][j] = fmaf(xv, wk[j], acc[r][j]);
+            } else {
+                for (int j = 0; j < nb; j++) acc[r][j] = fmaf(xv, wk[j], acc[r][j]);
+            }
+        }
+    }
+    for (int r = 0; r < mb; r++)
+        for (int j = 0; j < nb; j++) y[r * N + n0 + j] = acc[r][j] + (b ? b[n0 + j] : 0.0f);
+}
+
+/* y [M, N] = x [M, K] @ w [K, N] + b. */
+static void linear(const float *x, int64_t M, int64_t K, const float *w, const float *b, int64_t N, float *y) {
+    for (int64_t n0 = 0; n0 < N; n0 += NB) {
+        int nb = (int)(N - n0 < NB ? N - n0 : NB);
+        int64_t m = 0;
+        if (nb == NB) {
+            for (; m + MB <= M; m += MB) tile(x + m * K, K, w, N, b, y + m * N, n0, MB, NB);
+            switch (M - m) { /* the last rows as one block: each weight is read once per block */
+            case 3: tile(x + m * K, K, w, N, b, y + m * N, n0, 3, NB); break;
+            case 2: tile(x + m * K, K, w, N, b, y + m * N, n0, 2, NB); break;
+            case 1: tile(x + m * K, K, w, N, b, y + m * N, n0, 1, NB); break;
+            }
+        } else {
+            for (; m < M; m++) tile(x + m * K, K, w, N, b, y + m * N, n0, 1, nb);
+        }
+    }
+}
+
+/* Sum of a[0:n] with 8 fixed lanes (vectorisable without reassociation). */
+static float sum8(const float *a, int64_t n) {
+    float l[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    int64_t i = 0;
+    for (; i + 8 <= n; i += 8)
+        for (int j = 0; j < 8; j++) l[j] += a[i + j];
+    float s = ((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7]));
+    for (; i < n; i++) s += a[i];
+    return s;
+}
+
+typedef float v16 __attribute__((vector_size(64)));
+typedef float v16u __attribute__((vector_size(64), aligned(4))); /* unaligned loads and stores */
+
+/* Sum of the 16 lanes, in a fixed tree order. */
+static inline float hsum16(v16 a) {
+    v16 b = a + __builtin_shufflevector(a, a, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7);
+    b = b + __builtin_shufflevector(b, b, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11);
+    b = b + __builtin_shufflevector(b, b, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13);
+    return b[0] + b[1];
+}
+
+/* a . b over n values (16 lanes, then a fixed tree, then the tail). */
+static inline float dot16(const float *a, const float *b, int64_t n) {
+    v16 acc = {0};
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16) acc += *(const v16u *)(a + i) * *(const v16u *)(b + i);
+    float s = hsum16(acc);
+    for (; i < n; i++) s = fmaf(a[i], b[i], s);
+    return s;
+}
+
+typedef int32_t v16i __attribute__((vector_size(64)));
+
+static inline v16 select16(v16i mask, v16 a, v16 b) { /* mask ? a : b, lane-wise */
+    return (v16)(((v16i)a & mask) | ((v16i)b & ~mask));
+}
+
+/* exp(x) lane-wise (Cephes expf: range reduction by ln 2 and a degree-6 polynomial, ~1 ulp; inputs are
+ * clamped to [-87, 88], so exp(-inf) gives ~1.6e-38, i.e. 0 after any sum with a normal value). */
+static inline v16 vexp(v16 x) {
+    const v16 lo = (v16){0} - 87.0f, hi = (v16){0} + 88.0f;
+    x = select16(x < lo, lo, x);
+    x = select16(x > hi, hi, x);
+    v16 t = x * 1.44269504088896341f + 0.5f;
+    v16i ni = __builtin_convertvector(t, v16i); /* truncation: floor needs one less where it rounded up */
+    ni += (v16i)(__builtin_convertvector(ni, v16) > t);
+    v16 n = __builtin_convertvector(ni, v16);
+    v16 r = x - n * 0.693359375f + n * 2.12194440e-4f;
+    v16 p = (v16){0} + 1.9875691500e-4f;
+    p = p * r + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    p = p * r * r + r + 1.0f;
+    return p * (v16)((ni + 127) << 23);
+}
+
+/* GELU, tanh approximation (torch's approximate="tanh"), lane-wise; tanh(z) = 1 - 2 / (exp(2z) + 1). */
+static inline v16 vgelu(v16 u) {
+    v16 z = 0.7978845608028654f * (u + 0.044715f * u * u * u);
+    v16 th = 1.0f - 2.0f / (vexp(2.0f * z) + 1.0f);
+    return 0.5f * u * (1.0f + th);
+}
+
+/* a[i] = f(a[i] + shift) for i < n, in 16-lane chunks (the tail through a padded copy). */
+#define MAP16(a, n, shift, f)                                                                                  \
+    do {                                                                                                       \
+        int64_t i_ = 0;                                                                                        \
+        for (; i_ + 16 <= (n); i_ += 16) *(v16u *)((a) + i_) = f(*(const v16u *)((a) + i_) + (shift));          \
+        if (i_ < (n)) {                                                                                        \
+            float pad_[16] = {0};                                                                              \
+            memcpy(pad_, (a) + i_, sizeof(float) * ((n) - i_));                                                \
+            v16 r_ = f(*(const v16u *)pad_ + (shift));                                                         \
+            memcpy((a) + i_, &r_, sizeof(float) * ((n) - i_));                                                 \
+        }                                                                                                      \
+    } while (0)
+
+/* o[j, :D] = sum_p att[j, p] v[p, :D] for the 3 queries j (rows of o C apart), one pass over the values. */
+static inline __attribute__((always_inline)) void attend_values(const float *att, const float *v, int64_t W,
+                                                                int64_t D, float *o, int64_t C) {
+    if (D % 16 == 0 && D <= 128) {
+        v16 acc[3][8];
+        for (int j = 0; j < 3; j++)
+            for (int64_t c = 0; c < D / 16; c++) acc[j][c] = (v16){0};
+        for (int64_t p = 0; p < W; p++) {
+            const float a0 = att[p], a1 = att[W + p], a2 = att[2 * W + p];
+            for (int64_t c = 0; c < D / 16; c++) {
+                v16 vv = *(const v16u *)(v + p * D + 16 * c);
+                acc[0][c] += a0 * vv;
+                acc[1][c] += a1 * vv;
+                acc[2][c] += a2 * vv;
+            }
+        }
+        for (int j = 0; j < 3; j++)
+            for (int64_t c = 0; c < D / 16; c++) *(v16u *)(o + j * C + 16 * c) = acc[j][c];
+        return;
+    }
+    for (int j = 0; j < 3; j++)
+        for (int64_t c = 0; c < D; c++) {
+            float acc = 0.0f;
+            for (int64_t p = 0; p < W; p++) acc = fmaf(att[j * W + p], v[p * D + c], acc);
+            o[j * C + c] = acc;
+        }
+}
+
+/* LayerNorm of each row of x [M, C] into y (eps 1e-5, biased variance, as torch). */
+static void layer_norm(const float *x, int64_t M, int64_t C, const float *w, const float *b, float *y,
+                       float *tmp) {
+    for (int64_t m = 0; m < M; m++) {
+        const float *r = x + m * C;
+        float mean = sum8(r, C) / (float)C;
+        for (int64_t i = 0; i < C; i++) tmp[i] = (r[i] - mean) * (r[i] - mean);
+        float rstd = 1.0f / sqrtf(sum8(tmp, C) / (float)C + 1e-5f);
+        for (int64_t i = 0; i < C; i++) y[m * C + i] = (r[i] - mean) * rstd * w[i] + b[i];
+    }
+}
+
+static inline int64_t floordiv3(int64_t a) { return a >= 0 ? a / 3 : -((-a + 2) / 3); }
+
+static inline const float *row_of(const float *table, int64_t rows, int64_t i, int64_t C) {
+    if (i < 0) i = 0;
+    if (i > rows - 1) i = rows - 1;
+    return table + i * C;
+}
+
+/* One step for B sessions; returns 0, or -1 when scratch memory could not be allocated.
+ *
+ * prev_action: [B, act_dim] floats (continuous) or prev_ids [B] (discrete) of timestep t - 1 (ignored at t = 0
+ *   by the caller's zeroing); goals, blend_to [B] (blend_to may be NULL), blend_w [B]; states [B, obs_dim]
+ *   normalised, or state_emb [B, C] precomputed (then states is ignored); t [B]; slots [B] distinct;
+ *   out [B, act_dim] (tanh for continuous, logits for discrete).
+ */
+int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t *prev_ids, const int64_t *goals,
+             const int64_t *blend_to, const float *blend_w, const float *states, const float *state_emb,
+             const int64_t *t, const int64_t *slots, float *kc, float *vc, int64_t *tok, int64_t n_slots,
+             int64_t W, float *out) {
+    const int64_t C = md->n_embd, H = md->n_head, D = C / H, M = 3 * B, T = md->max_timestep;
+    const int64_t Kc = md->context_length;
+    const float scale = 1.0f / sqrtf((float)D);
+    float *x = malloc(sizeof(float) * M * C);         /* residual stream [B, 3, C] */
+    float *h = malloc(sizeof(float) * M * C);         /* normed */
+    float *big = malloc(sizeof(float) * M * 4 * C);   /* qkv [M, 3C] / fc [M, 4C] */
+    float *y = malloc(sizeof(float) * M * C);         /* attention output / proj */
+    float *e = malloc(sizeof(float) * B * C);         /* state embeddings */
+    float *att = malloc(sizeof(float) * (3 * W + C)); /* scores of 3 queries, then tmp */
+    int64_t *idx = malloc(sizeof(int64_t) * M), *pos = malloc(sizeof(int64_t) * M);
+    if (!x || !h || !big || !y || !e || !att || !idx || !pos) {
+        free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos);
+        return -1;
+    }
+    float *tmp = att + 3 * W;
+
+    /* Embeddings: a_{t-1}, g_t, s_t (+ timestep embeddings), then ln_in. */
+    if (state_emb) {
+        memcpy(e, state_emb, sizeof(float) * B * C);
+    } else {
+        linear(states, B, md->obs_dim, md->state_w, md->state_b, C, e);
+    }
+    if (!md->discrete) linear(prev_action, B, md->act_dim, md->action_w, md->action_b, C, y); /* [B, C] */
+    for (int64_t r = 0; r < B; r++) {
+        const float *te = row_of(md->time_emb, T, t[r], C), *tpe = row_of(md->time_emb, T, t[r] - 1, C);
+        const float *ae = md->discrete ? md->action_w + prev_ids[r] * C : y + r * C;
+        const float *g0 = md->goal_emb + goals[r] * C;
+        float *xa = x + (3 * r) * C, *xg = xa + C, *xs = xg + C;
+        for (int64_t i = 0; i < C; i++) xa[i] = ae[i] + tpe[i];
+        if (blend_to && blend_w[r] != 0.0f) {
+            const float *g1 = md->goal_emb + blend_to[r] * C;
+            float w = blend_w[r];
+            for (int64_t i = 0; i < C; i++) {
+                float d = g1[i] - g0[i]; /* torch.lerp */
+                xg[i] = (w < 0.5f ? g0[i] + w * d : g1[i] - d * (1.0f - w)) + te[i];
+            }
+        } else {
+            for (int64_t i = 0; i < C; i++) xg[i] = g0[i] + te[i];
+        }
+        for (int64_t i = 0; i < C; i++) xs[i] = e[r * C + i] + te[i];
+        for (int j = 0; j < 3; j++) {
+            int64_t n = 3 * t[r] - 1 + j;
+            idx[3 * r + j] = n;
+            pos[3 * r + j] = ((n % W) + W) % W;
+            tok[slots[r] * W + pos[3 * r + j]] = n < 0 ? -1 : n;
+        }
+    }
+    layer_norm(x, M, C, md->ln_in_w, md->ln_in_b, x, tmp);
+
+    for (int64_t l = 0; l < md->n_layer; l++) {
+        layer_norm(x, M, C, md->ln1_w[l], md->ln1_b[l], h, tmp);
+        linear(h, M, C, md->qkv_w[l], md->qkv_b[l], 3 * C, big); /* [M, 3C]: q | k | v */
+        for (int64_t r = 0; r < B; r++) {
+            const int64_t *tk = tok + slots[r] * W;
+            for (int64_t hd = 0; hd < H; hd++) {
+                /* cache block of (layer, slot, head): [W, D] */
+                float *kb = kc + ((l * n_slots + slots[r]) * H + hd) * W * D;
+                float *vb = vc + ((l * n_slots + slots[r]) * H + hd) * W * D;
+                for (int j = 0; j < 3; j++) {
+                    const float *q = big + (3 * r + j) * 3 * C;
+                    memcpy(kb + pos[3 * r + j] * D, q + C + hd * D, sizeof(float) * D);
+                    memcpy(vb + pos[3 * r + j] * D, q + 2 * C + hd * D, sizeof(float) * D);
+                }
+                const float *q0 = big + (3 * r) * 3 * C + hd * D;
+                const float *qq[3] = {q0, q0 + 3 * C, q0 + 6 * C};
+                float mx[3] = {-INFINITY, -INFINITY, -INFINITY}, sum[3] = {0, 0, 0};
+                for (int64_t p = 0; p < W; p++) {
+                    const int64_t kt = tk[p], ks = floordiv3(kt);
+                    for (int j = 0; j < 3; j++) {
+                        const int64_t qi = idx[3 * r + j];
+                        int see = (kt >= 0 && kt <= qi && floordiv3(qi) - ks < Kc) || p == pos[3 * r + j];
+                        float sc = see ? dot16(qq[j], kb + p * D, D) * scale : -INFINITY;
+                        att[j * W + p] = sc;
+                        if (sc > mx[j]) mx[j] = sc;
+                    }
+                }
+                for (int j = 0; j < 3; j++) {
+                    float *aj = att + j * W;
+                    MAP16(aj, W, -mx[j], vexp);
+                    sum[j] = sum8(aj, W);
+                    for (int64_t p = 0; p < W; p++) aj[p] /= sum[j];
+                }
+                float *o0 = y + (3 * r) * C + hd * D;
+                switch (D) { /* constant widths keep the 3 x D/16 accumulators in registers */
+                case 128: attend_values(att, vb, W, 128, o0, C); break;
+                case 64: attend_values(att, vb, W, 64, o0, C); break;
+                case 32: attend_values(att, vb, W, 32, o0, C); break;
+                case 16: attend_values(att, vb, W, 16, o0, C); break;
+                default: attend_values(att, vb, W, D, o0, C);
+                }
+            }
+        }
+        linear(y, M, C, md->proj_w[l], md->proj_b[l], C, h);
+        for (int64_t i = 0; i < M * C; i++) x[i] += h[i];
+        layer_norm(x, M, C, md->ln2_w[l], md->ln2_b[l], h, tmp);
+        linear(h, M, C, md->fc_w[l], md->fc_b[l], 4 * C, big);
+        MAP16(big, M * 4 * C, 0.0f, vgelu);
+        linear(big, M, 4 * C, md->out_w[l], md->out_b[l], C, h);
+        for (int64_t i = 0; i < M * C; i++) x[i] += h[i];
+    }
+    /* Heads at the state token only. */
+    for (int64_t r = 0; r < B; r++) memcpy(y + r * C, x + (3 * r + 2) * C, sizeof(float) * C);
+    layer_norm(y, B, C, md->ln_f_w, md->ln_f_b, h, tmp);
+    linear(h, B, C, md->head_w, md->head_b, md->act_dim, out);
+    if (!md->discrete)
+        for (int64_t i = 0; i < B * md->act_dim; i++) out[i] = tanhf(out[i]); /* exact libm tanh */
+    free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos);
+    return 0;
+}
