@@ -21,6 +21,7 @@ import secrets
 import numpy as np
 import torch
 
+from model import native as native_kernel
 from model.checkpoint import Checkpoint
 from model.context import Context, StoredContext
 from model.kv_cache import KVCache
@@ -49,7 +50,19 @@ def _mix(x: np.ndarray) -> np.ndarray:
 
 
 def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
-    """[B, n] uniforms in (0, 1), a pure function of (seed, step, stream): sampling needs no stored RNG state."""
+    """[B, n] uniforms in (0, 1), a pure function of (seed, step, stream): sampling needs no stored RNG state.
+
+    Computed by the native library when it is available (one call instead of ~20 array operations; the same
+    bits), else here.
+    """
+    out = native_kernel.uniforms(seed, step, n, stream)
+    if out is not None:
+        return out
+    return numpy_uniforms(seed, step, n, stream)
+
+
+def numpy_uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
+    """`uniforms` in numpy."""
     with np.errstate(over="ignore"):
         key = _mix(
             seed.astype(np.uint64) * _GOLDEN + _mix(step.astype(np.uint64) + np.uint64(stream) * _GOLDEN)
@@ -59,8 +72,16 @@ def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.
 
 
 def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
-    """[B, n] standard normals from (seed, step) by Box-Muller."""
-    u1, u2 = uniforms(seed, step, n, 1), uniforms(seed, step, n, 2)
+    """[B, n] standard normals from (seed, step) by Box-Muller (native when available, as `uniforms`)."""
+    out = native_kernel.normals(seed, step, n)
+    if out is not None:
+        return out
+    return numpy_normals(seed, step, n)
+
+
+def numpy_normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
+    """`normals` in numpy."""
+    u1, u2 = numpy_uniforms(seed, step, n, 1), numpy_uniforms(seed, step, n, 2)
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * math.pi * u2)
 
 
@@ -195,14 +216,12 @@ class PolicyEngine(PolicyRuntime):
             if native:
                 raise ValueError("the native step serves vector observations only")
             return None
-        from model import native as native_module
-
-        lib = native_module.load()
+        lib = native_kernel.load()
         if lib is None:
             if native:
                 raise RuntimeError("the native step is unavailable (no C compiler, or GMT_NATIVE=0)")
             return None
-        return native_module.NativeStep(self.model, lib)
+        return native_kernel.NativeStep(self.model, lib)
 
     def describe(self) -> RuntimeInfo:
         return RuntimeInfo(

@@ -22,6 +22,8 @@ from model.runtime import PolicyRuntime
 from service.errors import Unavailable
 
 log = logging.getLogger("gmt.batcher")
+import os
+_INLINE = os.path.exists("/tmp/exp/inline")
 
 
 @dataclass
@@ -172,7 +174,7 @@ class MicroBatcher:
             self._running = batch
             ctxs, obs = [it.ctx for it in batch], [it.obs for it in batch]
             try:
-                if self.executor is None:
+                if self.executor is None or (len(batch) == 1 and self.expected() <= 1 and _INLINE):
                     actions = self.engine.act(ctxs, obs, True)
                 else:
                     actions = await loop.run_in_executor(self.executor, self.engine.act, ctxs, obs, True)

@@ -24,6 +24,7 @@ from model.gmt import GMT
 log = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("gmt_step.c")
+TILE = 32  # NB in gmt_step.c: output columns per packed weight tile
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -101,18 +102,54 @@ def load() -> ctypes.CDLL | None:
         log.warning("native step unavailable, using the torch step: %s", detail)
         return None
     lib.gmt_step.restype = ctypes.c_int
-    lib.gmt_step.argtypes = [ctypes.POINTER(_Model), ctypes.c_int64, _f32p, _i64p, _i64p, _i64p, _f32p, _f32p]
-    lib.gmt_step.argtypes += [_f32p, _i64p, _i64p, _f32p, _f32p, _i64p, ctypes.c_int64, ctypes.c_int64, _f32p]
+    # Pointers pass as plain addresses (`ndarray.ctypes.data`): a third of the cost of typed pointers per call.
+    vp, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.gmt_step.argtypes = [ctypes.POINTER(_Model), i64, *[vp] * 12, i64, i64, vp]
+    lib.gmt_uniforms.restype = lib.gmt_normals.restype = None
+    lib.gmt_uniforms.argtypes = [vp, vp, i64, i64, i64, vp]
+    lib.gmt_normals.argtypes = [vp, vp, i64, i64, vp]
     _lib = lib
     return lib
+
+
+def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray | None:
+    """`model.engine.uniforms` computed natively ([B, n] float64), or None without the library."""
+    lib = load()
+    if lib is None:
+        return None
+    seed, step = np.ascontiguousarray(seed, np.uint64), np.ascontiguousarray(step, np.int64)
+    out = np.empty((len(seed), n))
+    lib.gmt_uniforms(seed.ctypes.data, step.ctypes.data, len(seed), n, stream, out.ctypes.data)
+    return out
+
+
+def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray | None:
+    """`model.engine.normals` computed natively ([B, n] float64), or None without the library."""
+    lib = load()
+    if lib is None:
+        return None
+    seed, step = np.ascontiguousarray(seed, np.uint64), np.ascontiguousarray(step, np.int64)
+    out = np.empty((len(seed), n))
+    lib.gmt_normals(seed.ctypes.data, step.ctypes.data, len(seed), n, out.ctypes.data)
+    return out
 
 
 def _ptr(a: np.ndarray | None, kind=_f32p):
     return None if a is None else a.ctypes.data_as(kind)
 
 
-def _tensor_ptr(t: torch.Tensor, kind=_f32p):
-    return ctypes.cast(ctypes.c_void_p(t.data_ptr()), kind)
+def pack(w: np.ndarray) -> np.ndarray:
+    """A matrix [K, N] as ceil(N / TILE) contiguous column tiles [K, TILE], zero-padded: the layout `linear`
+    in gmt_step.c streams."""
+    K, N = w.shape
+    n_tiles = -(-N // TILE)
+    padded = np.zeros((K, n_tiles * TILE), np.float32)
+    padded[:, :N] = w
+    return np.ascontiguousarray(padded.reshape(K, n_tiles, TILE).transpose(1, 0, 2))  # [tiles, K, TILE]
+
+
+def _addr(a: np.ndarray | None) -> int | None:
+    return None if a is None else a.ctypes.data
 
 
 class NativeStep:
@@ -131,8 +168,9 @@ class NativeStep:
         self._keep: list = []  # every array the struct points into
 
         def arr(t: torch.Tensor, transpose: bool = False) -> np.ndarray:
+            """A table as is; a Linear's weight [out, in] transposed and packed (`pack`)."""
             a = t.detach().float().cpu().numpy()
-            a = np.ascontiguousarray(a.T if transpose else a, dtype=np.float32)
+            a = pack(a.T) if transpose else np.ascontiguousarray(a, dtype=np.float32)
             self._keep.append(a)
             return a
 
@@ -165,6 +203,7 @@ class NativeStep:
         m.ln_f_w, m.ln_f_b = _ptr(arr(model.ln_f.weight)), _ptr(arr(model.ln_f.bias))
         m.head_w, m.head_b = _ptr(arr(model.action_head.weight, True)), _ptr(arr(model.action_head.bias))
         self._model = m
+        self._model_ref = ctypes.byref(m)
 
     def __call__(
         self,
@@ -193,23 +232,23 @@ class NativeStep:
                 raise ValueError("the key/value cache must be contiguous")
         out = np.empty((B, self.cfg.act_dim), dtype=np.float32)
         rc = self._lib.gmt_step(
-            ctypes.byref(self._model),
+            self._model_ref,
             B,
-            _ptr(prev_f),
-            _ptr(prev_i, _i64p),
-            _ptr(goals, _i64p),
-            _ptr(blend_to, _i64p),
-            _ptr(blend_w),
-            _ptr(states),
+            _addr(prev_f),
+            _addr(prev_i),
+            goals.ctypes.data,
+            _addr(blend_to),
+            _addr(blend_w),
+            states.ctypes.data,
             None,
-            _ptr(timesteps, _i64p),
-            _ptr(slots, _i64p),
-            _tensor_ptr(cache.k),
-            _tensor_ptr(cache.v),
-            _tensor_ptr(cache.tok, _i64p),
+            timesteps.ctypes.data,
+            slots.ctypes.data,
+            cache.k.data_ptr(),
+            cache.v.data_ptr(),
+            cache.tok.data_ptr(),
             cache.n_slots,
             cache.width,
-            _ptr(out),
+            out.ctypes.data,
         )
         if rc != 0:
             raise MemoryError("the native step could not allocate its scratch memory")

@@ -8,7 +8,8 @@
  * every other operation is per row. A row's result therefore never depends on which other rows share the call
  * (batched and unbatched answers agree bit for bit), and agrees with torch's step to float rounding.
  *
- * Layouts (float32, row-major, contiguous): every weight matrix is given transposed, [in, out]; the key/value
+ * Layouts (float32, row-major, contiguous): every weight matrix is given transposed, [in, out], and packed in
+ * column tiles of NB (see `linear`; model/native/__init__.py `pack`); the key/value
  * caches are [n_layer, n_slots, n_head, W, d] and `tok` is [n_slots, W] (model/kv_cache.py).
  */
 #include <math.h>
@@ -28,44 +29,38 @@ typedef struct {
     const float *ln_f_w, *ln_f_b, *head_w, *head_b; /* action head [C, act_dim], [act_dim] */
 } Model;
 
-#define NB 32 /* output columns per tile */
+#define NB 32 /* output columns per tile (must match model/native/__init__.py TILE) */
 #define MB 4  /* rows per tile */
 
-/* y[m, n0:n0+nb] = b + x[m, :] . w[:, n]: one row block of up to MB rows, one column tile. */
-static inline __attribute__((always_inline)) void tile(const float *x, int64_t K, const float *w, int64_t N,
+/* y[m, n0:n0+nb] = b + x[m, :] . w[:, n] for up to MB rows; `wt` is the packed tile [K, NB]. */
+static inline __attribute__((always_inline)) void tile(const float *x, int64_t K, const float *wt, int64_t N,
                                                        const float *b, float *y, int64_t n0, int mb, int nb) {
     float acc[MB][NB];
     for (int r = 0; r < mb; r++)
         for (int j = 0; j < NB; j++) acc[r][j] = 0.0f;
     for (int64_t k = 0; k < K; k++) {
-        const float *wk = w + k * N + n0;
+        const float *wk = wt + k * NB;
         for (int r = 0; r < mb; r++) {
             float xv = x[r * K + k];
-            if (nb == NB) {
-                for (int j = 0; j < NB; j++) acc[r][j] = fmaf(xv, wk[j], acc[r][j]);
-            } else {
-                for (int j = 0; j < nb; j++) acc[r][j] = fmaf(xv, wk[j], acc[r][j]);
-            }
+            for (int j = 0; j < NB; j++) acc[r][j] = fmaf(xv, wk[j], acc[r][j]);
         }
     }
     for (int r = 0; r < mb; r++)
         for (int j = 0; j < nb; j++) y[r * N + n0 + j] = acc[r][j] + (b ? b[n0 + j] : 0.0f);
 }
 
-/* y [M, N] = x [M, K] @ w [K, N] + b. */
+/* y [M, N] = x [M, K] @ w [K, N] + b, with w packed as ceil(N / NB) tiles [K, NB] (zero-padded columns):
+ * each tile is read front to back, once per block of MB rows. */
 static void linear(const float *x, int64_t M, int64_t K, const float *w, const float *b, int64_t N, float *y) {
     for (int64_t n0 = 0; n0 < N; n0 += NB) {
-        int nb = (int)(N - n0 < NB ? N - n0 : NB);
+        const int nb = (int)(N - n0 < NB ? N - n0 : NB);
+        const float *wt = w + n0 * K; /* tile n0 / NB starts at (n0 / NB) * K * NB */
         int64_t m = 0;
-        if (nb == NB) {
-            for (; m + MB <= M; m += MB) tile(x + m * K, K, w, N, b, y + m * N, n0, MB, NB);
-            switch (M - m) { /* the last rows as one block: each weight is read once per block */
-            case 3: tile(x + m * K, K, w, N, b, y + m * N, n0, 3, NB); break;
-            case 2: tile(x + m * K, K, w, N, b, y + m * N, n0, 2, NB); break;
-            case 1: tile(x + m * K, K, w, N, b, y + m * N, n0, 1, NB); break;
-            }
-        } else {
-            for (; m < M; m++) tile(x + m * K, K, w, N, b, y + m * N, n0, 1, nb);
+        for (; m + MB <= M; m += MB) tile(x + m * K, K, wt, N, b, y + m * N, n0, MB, nb);
+        switch (M - m) { /* the last rows as one block */
+        case 3: tile(x + m * K, K, wt, N, b, y + m * N, n0, 3, nb); break;
+        case 2: tile(x + m * K, K, wt, N, b, y + m * N, n0, 2, nb); break;
+        case 1: tile(x + m * K, K, wt, N, b, y + m * N, n0, 1, nb); break;
         }
     }
 }
@@ -316,4 +311,34 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
         for (int64_t i = 0; i < B * md->act_dim; i++) out[i] = tanhf(out[i]); /* exact libm tanh */
     free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos);
     return 0;
+}
+
+/* ----- sampling noise: model/engine.py `uniforms` / `normals`, the same splitmix64 construction ----------- */
+static const uint64_t GOLDEN = 0x9E3779B97F4A7C15ull;
+
+static inline uint64_t mix64(uint64_t x) {
+    x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
+    x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
+    return x ^ (x >> 31);
+}
+
+static inline double uniform01(uint64_t seed, uint64_t step, int64_t j, uint64_t stream) {
+    uint64_t key = mix64(seed * GOLDEN + mix64(step + stream * GOLDEN));
+    uint64_t bits = mix64(key + (uint64_t)(j + 1) * GOLDEN);
+    return ((double)(bits >> 11) + 0.5) / 9007199254740992.0; /* 2^53 */
+}
+
+/* out [B, n]: uniforms in (0, 1) of (seed, step, stream). */
+void gmt_uniforms(const uint64_t *seed, const int64_t *step, int64_t B, int64_t n, int64_t stream, double *out) {
+    for (int64_t r = 0; r < B; r++)
+        for (int64_t j = 0; j < n; j++) out[r * n + j] = uniform01(seed[r], (uint64_t)step[r], j, (uint64_t)stream);
+}
+
+/* out [B, n]: standard normals by Box-Muller from the uniforms of streams 1 and 2. */
+void gmt_normals(const uint64_t *seed, const int64_t *step, int64_t B, int64_t n, double *out) {
+    for (int64_t r = 0; r < B; r++)
+        for (int64_t j = 0; j < n; j++) {
+            double u1 = uniform01(seed[r], (uint64_t)step[r], j, 1), u2 = uniform01(seed[r], (uint64_t)step[r], j, 2);
+            out[r * n + j] = sqrt(-2.0 * log(u1)) * cos(6.283185307179586 * u2);
+        }
 }

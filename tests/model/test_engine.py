@@ -83,9 +83,7 @@ def test_incremental_path_matches_the_reference_over_long_episodes(n_sessions, k
     assert not np.allclose(a[100], a[101])  # the episode actually moves
 
 
-@pytest.mark.parametrize(
-    "attention, kernel", [("full", "torch"), ("window", "torch"), ("window", "native")]
-)
+@pytest.mark.parametrize("attention, kernel", [("full", "torch"), ("window", "torch"), ("window", "native")])
 def test_rows_are_independent_each_batched_row_equals_its_session_run_alone(attention, kernel):
     """Sessions batched together (different goals, seeds, start steps, a blended switch) get, row for row, the
     very actions the same session gets when it is run alone in an engine of its own."""

@@ -97,3 +97,15 @@ def test_native_and_torch_kernels_agree_in_the_engine():
         obs = rng.normal(size=17)
         (x,), (y,) = a.act([ca], [obs]), b.act([cb], [obs])
         np.testing.assert_allclose(x, y, atol=1e-5, rtol=0)
+
+
+def test_native_sampling_noise_is_the_numpy_construction():
+    from model import engine, native
+
+    seed = np.array([0, 7, 2**63 + 5, 2**64 - 1], np.uint64)
+    step = np.array([0, 1, 999, 2**40])
+    for stream in (0, 1, 2):
+        assert np.array_equal(
+            native.uniforms(seed, step, 6, stream), engine.numpy_uniforms(seed, step, 6, stream)
+        )
+    np.testing.assert_allclose(native.normals(seed, step, 6), engine.numpy_normals(seed, step, 6), rtol=1e-12)
