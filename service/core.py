@@ -158,6 +158,7 @@ class Core:
                 max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
                 expected=lambda n=name: self.store.local_count(n),
                 observe=lambda size, sec, n=name: self.metrics.observe_batch(n, size, sec),
+                inline_alone=m.engine.describe().kernel == "native",
             )
             b.start()
             self._batchers[name] = b

@@ -18,8 +18,10 @@ class RecordingEngine:
         self.gate.set()
         self.entered = threading.Event()
         self.fail = False
+        self.threads: list[str] = []
 
     def act(self, contexts, observations, prepared=False):
+        self.threads.append(threading.current_thread().name)
         self.entered.set()
         self.gate.wait(30)
         self.batches.append(list(observations))
@@ -165,3 +167,27 @@ def test_a_crashed_batcher_fails_its_calls_as_unavailable_and_restarts(pool):
         assert not b.healthy
 
     run(main())
+
+
+@pytest.mark.parametrize("inline_alone", [False, True])
+def test_a_lone_session_runs_on_the_loop_only_when_asked_and_alone(pool, inline_alone):
+    """With `inline_alone`, a batch of one whose model has no other session runs on the event loop's thread
+    (no hop); with several sessions, or without the option, the forward runs in the executor."""
+    eng = RecordingEngine()
+    live = {"n": 1}
+
+    async def main():
+        b = MicroBatcher(
+            eng, pool, max_batch=8, max_wait_s=0.5, expected=lambda: live["n"], inline_alone=inline_alone
+        )
+        b.start()
+        assert await b.act(None, "alone") == "alone"
+        live["n"] = 2
+        assert await asyncio.gather(b.act(None, "x"), b.act(None, "y")) == ["x", "y"]
+        await b.close()
+        return threading.current_thread().name
+
+    loop_thread = run(main())
+    assert eng.threads[0] == loop_thread if inline_alone else eng.threads[0] != loop_thread
+    assert eng.threads[1] != loop_thread
+    assert eng.batches == [["alone"], ["x", "y"]]
