@@ -453,7 +453,7 @@ class PolicyEngine(PolicyRuntime):
         if len(rows) < len(contexts):
             contexts = [contexts[i] for i in rows]
         slots = np.fromiter((c.slot for c in contexts), dtype=np.int64, count=len(contexts))
-        if len(np.unique(slots)) != len(slots):
+        if len(slots) > 1 and len(np.unique(slots)) != len(slots):
             raise ValueError("a context may appear once per batch")
         actions, ok = self._step(slots, np.stack(states))
         for j, i in enumerate(rows):
@@ -466,7 +466,6 @@ class PolicyEngine(PolicyRuntime):
             )
         return out
 
-    @torch.inference_mode()
     def _step(self, slots: np.ndarray, states: np.ndarray) -> tuple[list, np.ndarray]:
         p = self.pool
         t = p.step[slots]  # [B]
@@ -476,37 +475,46 @@ class PolicyEngine(PolicyRuntime):
         w = np.where(blending, (p.blend_done[slots] + 1) / np.maximum(p.blend_steps[slots], 1), 0.0).astype(
             np.float32
         )  # [B] weight of `goal` in the token
-        if self.incremental:
-            pred = self._predict_incremental(slots, t, g, goal, w, states)
+        if self._native is not None:
+            pred = self._predict_native(slots, t, g, goal, w, states)
         else:
-            pred = self._predict_recompute(slots, t, g, goal, w, states)
-        pred = pred.float().numpy()  # [B, A]
+            with torch.inference_mode():
+                if self.incremental:
+                    pred = self._predict_incremental(slots, t, g, goal, w, states)
+                else:
+                    pred = self._predict_recompute(slots, t, g, goal, w, states)
+                pred = pred.float().numpy()  # [B, A]
         ok = np.isfinite(pred).all(axis=1)  # [B]
-        if not ok.all():
+        every = bool(ok.all())
+        if not every:
             pred = np.where(ok[:, None], pred, 0.0)
         taken, env_actions = self._choose(pred, slots, t, g, goal, w)
         # Commit the rows that succeeded.
-        c = slots[ok]
-        pos = t[ok] % p.H
-        p.h_goal[c, pos], p.h_blend_to[c, pos], p.h_blend_w[c, pos] = g[ok], goal[ok], w[ok]
-        p.h_state[c, pos], p.h_action[c, pos] = states[ok], taken[ok]
-        p.step[c] += 1
-        p.version[c] += 1
-        p.blend_done[c] += blending[ok]
-        done = c[blending[ok] & (p.blend_done[c] >= p.blend_steps[c])]
-        p.blend_from[done], p.blend_steps[done], p.blend_done[done] = p.goal[done], 0, 0
+        if not every:
+            slots, t, g, goal, w, states, taken, blending = (
+                x[ok] for x in (slots, t, g, goal, w, states, taken, blending)
+            )
+        pos = t % p.H
+        p.h_goal[slots, pos], p.h_blend_to[slots, pos], p.h_blend_w[slots, pos] = g, goal, w
+        p.h_state[slots, pos], p.h_action[slots, pos] = states, taken
+        p.step[slots] += 1
+        p.version[slots] += 1
+        if blending.any():
+            p.blend_done[slots] += blending
+            done = slots[blending & (p.blend_done[slots] >= p.blend_steps[slots])]
+            p.blend_from[done], p.blend_steps[done], p.blend_done[done] = p.goal[done], 0, 0
         return env_actions, ok
 
+    def _predict_native(self, slots, t, g, goal, w, states) -> np.ndarray:
+        """The incremental step by the native kernel: batch invariant by construction, so no lone-row or
+        slot-order handling. Returns [B, A] float32."""
+        p = self.pool
+        prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
+        prev[t == 0] = 0
+        blend = bool((w > 0).any())
+        return self._native(prev, g, states, t, p.cache, slots, goal if blend else None, w if blend else None)
+
     def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
-        if self._native is not None:  # batch invariant by construction: no lone-row or slot-order handling
-            p = self.pool
-            prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
-            prev[t == 0] = 0
-            blend = bool((w > 0).any())
-            pred = self._native(
-                prev, g, states, t, p.cache, slots, goal if blend else None, w if blend else None
-            )
-            return torch.from_numpy(pred)
         if len(slots) == 1:
             # A lone row is run twice (same slot, same values): a one-row matrix product takes a GEMV path
             # whose last bit differs from the batched GEMM, and batched == unbatched must hold exactly.
