@@ -123,6 +123,7 @@ class SessionPool:
             "h_action": ((self.H, *act_shape), act_dtype),
         }
         self._cfg, self._incremental, self._initial = cfg, engine.incremental, n_slots
+        self.generation = 0  # changes whenever the arrays are replaced (native code holds their addresses)
         self._allocate_arrays(n_slots)
         self.keys: dict[str, int] = {}
 
@@ -131,6 +132,7 @@ class SessionPool:
             setattr(self, name, np.zeros((n_slots, *shape), dtype=dtype))
         self.cache = KVCache(self._cfg, n_slots) if self._incremental else None
         self.free = list(range(n_slots - 1, -1, -1))
+        self.generation += 1
 
     @property
     def n_slots(self) -> int:
@@ -151,6 +153,7 @@ class SessionPool:
             if self.cache is not None:
                 self.cache.grow(2 * n)
             self.free = list(range(2 * n - 1, n - 1, -1))
+            self.generation += 1
         return self.free.pop()
 
     def release(self, slot: int) -> None:
@@ -468,6 +471,9 @@ class PolicyEngine(PolicyRuntime):
 
     def _step(self, slots: np.ndarray, states: np.ndarray) -> tuple[list, np.ndarray]:
         p = self.pool
+        if self._native is not None and not self.discrete:  # all of it in one native call
+            taken, ok = self._native.act(p, slots, states, self.noise_var, MODES.index("sample"))
+            return list(self.ckpt.action_codec.decode(taken)), ok
         t = p.step[slots]  # [B]
         blending = p.blend_steps[slots] > p.blend_done[slots]  # [B]
         goal = p.goal[slots]

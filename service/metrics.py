@@ -36,6 +36,7 @@ class Metrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
+        self._children: dict = {}
         r = self.registry
         self.request_latency = Histogram(
             "gmt_request_duration_seconds",
@@ -74,12 +75,20 @@ class Metrics:
 
     def observe_request(self, transport: str, method: str, code: str, seconds: float) -> None:
         """Record one answered request."""
-        self.request_latency.labels(transport, method, code).observe(seconds)
+        self._child(self.request_latency, transport, method, code).observe(seconds)
 
     def observe_batch(self, model: str, size: int, seconds: float) -> None:
         """Record one forward pass."""
-        self.batch_size.labels(model).observe(size)
-        self.forward_latency.labels(model).observe(seconds)
+        self._child(self.batch_size, model).observe(size)
+        self._child(self.forward_latency, model).observe(seconds)
+
+    def _child(self, metric, *labels: str):
+        """`metric.labels(*labels)`, looked up once (prometheus_client's lookup costs more than the observation)."""
+        key = (id(metric), labels)
+        child = self._children.get(key)
+        if child is None:
+            child = self._children[key] = metric.labels(*labels)
+        return child
 
     def render(self) -> tuple[bytes, str]:
         """The exposition text and its content type."""

@@ -48,6 +48,18 @@ _LAYERS += ("out_w", "out_b")
 _HEADS = ("ln_f_w", "ln_f_b", "head_w", "head_b")
 
 
+class _Pool(ctypes.Structure):
+    """Mirror of `Pool` in gmt_step.c: the addresses of a `SessionPool`'s arrays."""
+
+    _fields_ = [(n, ctypes.c_int64) for n in ("n_slots", "H", "sample_mode")] + [
+        (n, ctypes.c_void_p)
+        for n in (
+            "step", "goal", "blend_from", "blend_steps", "blend_done", "mode", "version", "seed",
+            "h_goal", "h_blend_to", "h_blend_w", "h_state", "h_action", "noise_var", "kc", "vc", "tok",
+        )
+    ] + [("W", ctypes.c_int64)]  # fmt: skip
+
+
 class _Model(ctypes.Structure):
     """Mirror of `Model` in gmt_step.c (same field order)."""
 
@@ -105,6 +117,8 @@ def load() -> ctypes.CDLL | None:
     # Pointers pass as plain addresses (`ndarray.ctypes.data`): a third of the cost of typed pointers per call.
     vp, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.gmt_step.argtypes = [ctypes.POINTER(_Model), i64, *[vp] * 12, i64, i64, vp]
+    lib.gmt_act.restype = ctypes.c_int
+    lib.gmt_act.argtypes = [ctypes.POINTER(_Model), ctypes.POINTER(_Pool), i64, vp, vp, vp, vp]
     lib.gmt_uniforms.restype = lib.gmt_normals.restype = None
     lib.gmt_uniforms.argtypes = [vp, vp, i64, i64, i64, vp]
     lib.gmt_normals.argtypes = [vp, vp, i64, i64, vp]
@@ -253,3 +267,63 @@ class NativeStep:
         if rc != 0:
             raise MemoryError("the native step could not allocate its scratch memory")
         return out
+
+    def act(
+        self, pool, slots: np.ndarray, states: np.ndarray, noise_var: np.ndarray | None, sample_mode: int
+    ):
+        """`PolicyEngine._step` for continuous actions, in one native call: the step, the noise of `sample`
+        rows, clipping and the commit of the rows that succeeded to `pool` (a `model.engine.SessionPool`).
+
+        Returns:
+            (model-space actions [B, A] float32, ok [B] bool).
+        """
+        if self.cfg.discrete_actions:
+            raise ValueError("the native act serves continuous actions")
+        if getattr(self, "_pool_key", None) != (id(pool), pool.generation):
+            self._pool = self._pool_struct(pool, noise_var, sample_mode)
+            self._pool_key = (id(pool), pool.generation)
+        B = len(slots)
+        slots = np.ascontiguousarray(slots, dtype=np.int64)
+        states = np.ascontiguousarray(states, dtype=np.float32)
+        taken = np.empty((B, self.cfg.act_dim), dtype=np.float32)
+        ok = np.empty(B, dtype=np.bool_)
+        rc = self._lib.gmt_act(
+            self._model_ref,
+            self._pool_ref,
+            B,
+            slots.ctypes.data,
+            states.ctypes.data,
+            taken.ctypes.data,
+            ok.ctypes.data,
+        )
+        if rc != 0:
+            raise MemoryError("the native step could not allocate its scratch memory")
+        return taken, ok
+
+    def _pool_struct(self, pool, noise_var: np.ndarray | None, sample_mode: int) -> _Pool:
+        """The pool's array addresses (valid until its arrays are replaced: `pool.generation` changes)."""
+        for name in ("step", "goal", "blend_from", "blend_steps", "blend_done", "mode", "version", "seed"):
+            a = getattr(pool, name)
+            if not a.flags.c_contiguous or a.dtype.itemsize != 8:
+                raise ValueError(f"pool array {name} must be contiguous 64-bit")
+        cache = pool.cache
+        for t in (cache.k, cache.v, cache.tok):
+            if not t.is_contiguous():
+                raise ValueError("the key/value cache must be contiguous")
+        self._noise_var = None if noise_var is None else np.ascontiguousarray(noise_var, dtype=np.float64)
+        st = _Pool()
+        st.n_slots, st.H, st.sample_mode = pool.n_slots, pool.H, sample_mode
+        for name in ("step", "goal", "blend_from", "blend_steps", "blend_done", "mode", "version", "seed"):
+            setattr(st, name, getattr(pool, name).ctypes.data)
+        for name, dtype in (("h_goal", np.int64), ("h_blend_to", np.int64), ("h_blend_w", np.float32)):
+            a = getattr(pool, name)
+            assert a.dtype == dtype and a.flags.c_contiguous
+            setattr(st, name, a.ctypes.data)
+        for name in ("h_state", "h_action"):
+            a = getattr(pool, name)
+            assert a.dtype == np.float32 and a.flags.c_contiguous
+            setattr(st, name, a.ctypes.data)
+        st.noise_var = None if self._noise_var is None else self._noise_var.ctypes.data
+        st.kc, st.vc, st.tok, st.W = cache.k.data_ptr(), cache.v.data_ptr(), cache.tok.data_ptr(), cache.width
+        self._pool_ref = ctypes.byref(st)
+        return st

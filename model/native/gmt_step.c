@@ -342,3 +342,79 @@ void gmt_normals(const uint64_t *seed, const int64_t *step, int64_t B, int64_t n
             out[r * n + j] = sqrt(-2.0 * log(u1)) * cos(6.283185307179586 * u2);
         }
 }
+
+/* ----- one act of continuous-action sessions: model/engine.py `PolicyEngine._step` + `_choose` ------------ */
+typedef struct { /* the engine's SessionPool arrays, indexed by slot (model/engine.py) */
+    int64_t n_slots, H, sample_mode;
+    int64_t *step, *goal, *blend_from, *blend_steps, *blend_done, *mode, *version;
+    const uint64_t *seed;
+    int64_t *h_goal, *h_blend_to;
+    float *h_blend_w, *h_state, *h_action;
+    const double *noise_var; /* [n_goals, act_dim] variance of `sample` noise, or NULL */
+    float *kc, *vc;
+    int64_t *tok, W;
+} Pool;
+
+/* For each row: the goal token and blend weight, the incremental step, the mode's noise, clipping to [-1, 1],
+ * and, for the rows whose prediction is finite (ok[r] = 1), the commit of the step to the pool. `taken` [B, A]
+ * gets the model-space actions. Returns 0, or -1 when scratch memory could not be allocated. */
+int gmt_act(const Model *md, const Pool *pl, int64_t B, const int64_t *slots, const float *states, float *taken,
+            uint8_t *ok) {
+    const int64_t A = md->act_dim, obs = md->obs_dim, H = pl->H;
+    int64_t *t = malloc(sizeof(int64_t) * B), *g = malloc(sizeof(int64_t) * B), *gl = malloc(sizeof(int64_t) * B);
+    float *w = malloc(sizeof(float) * B), *prev = malloc(sizeof(float) * B * A), *pred = malloc(sizeof(float) * B * A);
+    double *noise = malloc(sizeof(double) * A);
+    if (!t || !g || !gl || !w || !prev || !pred || !noise) {
+        free(t), free(g), free(gl), free(w), free(prev), free(pred), free(noise);
+        return -1;
+    }
+    int any_blend = 0;
+    for (int64_t r = 0; r < B; r++) {
+        const int64_t s = slots[r];
+        const int blending = pl->blend_steps[s] > pl->blend_done[s];
+        t[r] = pl->step[s];
+        gl[r] = pl->goal[s];
+        g[r] = blending ? pl->blend_from[s] : gl[r];
+        const int64_t bs = pl->blend_steps[s] > 1 ? pl->blend_steps[s] : 1;
+        w[r] = blending ? (float)((double)(pl->blend_done[s] + 1) / (double)bs) : 0.0f;
+        any_blend |= w[r] > 0.0f;
+        const int64_t pp = ((t[r] - 1) % H + H) % H;
+        for (int64_t j = 0; j < A; j++) prev[r * A + j] = t[r] == 0 ? 0.0f : pl->h_action[(s * H + pp) * A + j];
+    }
+    int rc = gmt_step(md, B, prev, NULL, g, any_blend ? gl : NULL, w, states, NULL, t, slots, pl->kc, pl->vc, pl->tok,
+                      pl->n_slots, pl->W, pred);
+    for (int64_t r = 0; rc == 0 && r < B; r++) {
+        const int64_t s = slots[r];
+        ok[r] = 1;
+        for (int64_t j = 0; j < A; j++) ok[r] &= isfinite(pred[r * A + j]) ? 1 : 0;
+        const int sample = pl->noise_var && pl->mode[s] == pl->sample_mode;
+        if (sample) gmt_normals(&pl->seed[s], &t[r], 1, A, noise);
+        for (int64_t j = 0; j < A; j++) {
+            double a = ok[r] ? pred[r * A + j] : 0.0;
+            if (sample) {
+                const float omw = 1.0f - w[r]; /* float32, as numpy computes it */
+                double var = (double)omw * pl->noise_var[g[r] * A + j] + (double)w[r] * pl->noise_var[gl[r] * A + j];
+                a += sqrt(var) * noise[j];
+            }
+            taken[r * A + j] = (float)(a < -1.0 ? -1.0 : (a > 1.0 ? 1.0 : a));
+        }
+        if (!ok[r]) continue;
+        const int64_t pos = t[r] % H;
+        pl->h_goal[s * H + pos] = g[r];
+        pl->h_blend_to[s * H + pos] = gl[r];
+        pl->h_blend_w[s * H + pos] = w[r];
+        memcpy(pl->h_state + (s * H + pos) * obs, states + r * obs, sizeof(float) * obs);
+        memcpy(pl->h_action + (s * H + pos) * A, taken + r * A, sizeof(float) * A);
+        pl->step[s] += 1;
+        pl->version[s] += 1;
+        if (pl->blend_steps[s] > pl->blend_done[s]) {
+            pl->blend_done[s] += 1;
+            if (pl->blend_done[s] >= pl->blend_steps[s]) {
+                pl->blend_from[s] = pl->goal[s];
+                pl->blend_steps[s] = pl->blend_done[s] = 0;
+            }
+        }
+    }
+    free(t), free(g), free(gl), free(w), free(prev), free(pred), free(noise);
+    return rc;
+}
