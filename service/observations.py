@@ -98,6 +98,8 @@ def to_array(obs: object) -> np.ndarray:
             if type(v) is int and abs(v) > MAX_ABS_VALUE:
                 raise InvalidArgument(f"observation value at index {i} is outside [-1e9, 1e9]")
     if x.size and (x.dtype.kind == "f" or (x.dtype.kind in "iu" and x.dtype.itemsize > 2)):
+        if x.dtype.kind == "f" and np.abs(x).max() <= MAX_ABS_VALUE:  # fast path (False for NaN and Inf)
+            return x
         v = x if x.dtype.kind == "f" else x.astype(np.float64)
         with np.errstate(invalid="ignore"):
             big = np.abs(v) > MAX_ABS_VALUE  # False for NaN; Inf is reported as non-finite later
