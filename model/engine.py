@@ -357,13 +357,20 @@ class PolicyEngine(PolicyRuntime):
 
     @torch.inference_mode()
     def _rebuild_cache(self, slot: int) -> None:
-        """Recompute a slot's key/value cache from its history (a session adopted from a store)."""
+        """Recompute a slot's key/value cache from its history (a session adopted from a store).
+
+        With the native step the stored steps are replayed through it (the kernel that computed the cache in
+        the first place, so the session continues bit for bit); else by one reference forward over them.
+        """
         p, cache = self.pool, self.pool.cache
         sl = torch.tensor([slot])
         cache.clear(sl)
         t = int(p.step[slot])
         n = min(t, p.H)
         if n == 0:
+            return
+        if self._native is not None:
+            self._replay_cache(slot, t, n)
             return
         pos = np.arange(t - n, t) % p.H
         kv: list = []
@@ -384,6 +391,29 @@ class PolicyEngine(PolicyRuntime):
         for layer, (k, v) in enumerate(kv):
             cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
         cache.tok[slot, ring] = tok
+
+    def _replay_cache(self, slot: int, t: int, n: int) -> None:
+        """Run the stored steps t - n .. t - 1 of `slot` through the native step, oldest first.
+
+        The action before the oldest stored step is not stored: a zero stands in for it, which changes only
+        keys that no later step attends to (the stored history spans the receptive field).
+        """
+        p = self.pool
+        slots = np.array([slot])
+        for s in range(t - n, t):
+            pos = s % p.H
+            prev = p.h_action[slot, (s - 1) % p.H][None] if s > t - n else np.zeros_like(p.h_action[slot, :1])
+            w = p.h_blend_w[slot, pos : pos + 1]
+            self._native(
+                prev,
+                p.h_goal[slot, pos : pos + 1],
+                p.h_state[slot, pos : pos + 1],
+                np.array([s]),
+                p.cache,
+                slots,
+                p.h_blend_to[slot, pos : pos + 1],
+                w,
+            )
 
     # ----- observations -------------------------------------------------------------------------------------
     def prepare_observation(self, obs: np.ndarray | list) -> np.ndarray:

@@ -1,9 +1,11 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
-Schema (top level): `machine` {cpu, cores, torch, platform}, `engine`, `serving`, `training`, `alternatives`.
+Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `training`, `alternatives`.
 
-- `engine`: [{K, path ("incremental" | "recompute"), batch, ms_per_step, acts_per_s}] for a random-weight
-  `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread.
+- `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
+  a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
+  `incremental` is the served path (the native kernel when it builds here), `incremental_torch` the same step
+  in torch operations.
 - `serving`: {model, servers: {naive | default: {rest | rest_batch | grpc_unary | grpc_stream: [{sessions,
   acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
@@ -69,16 +71,17 @@ def bench_engine(Ks=(10, 20, 50, 100), batches=(1, 64), steps: int = 60) -> list
     rows = []
     for K in Ks:
         ckpt = default_size_checkpoint(None, K=K)
-        for path, incremental in (("incremental", True), ("recompute", False)):
+        paths = (("incremental", True, None), ("incremental_torch", True, False), ("recompute", False, None))
+        for path, incremental, native in paths:
             for B in batches:
-                engine = PolicyEngine(ckpt, incremental=incremental)
+                engine = PolicyEngine(ckpt, incremental=incremental, native=native)
                 ctxs = [engine.new_context(i % 3, seed=i) for i in range(B)]
                 obs = np.random.default_rng(0).normal(size=(B, OBS_DIM)).astype(np.float32)
                 states = [engine.prepare_observation(o) for o in obs]
-                # Both paths run fixed shapes whatever the fill (the recompute a left-padded window of the whole
-                # receptive field, the incremental path every ring position under a mask), so a short warm-up
-                # measures the cost at a full history.
-                warm = 3
+                # The recompute runs a fixed shape whatever the fill (a left-padded window of the whole receptive
+                # field), so a short warm-up measures it at a full history; the native step scores only the
+                # ring positions a token sees, so the incremental paths first fill the ring (K + 1 steps).
+                warm = K + 2 if incremental else 3
                 n = max(3, steps // (1 + (B * K) // 320)) if not incremental else steps
                 for _ in range(warm):
                     engine.act(ctxs, states, prepared=True)
@@ -565,7 +568,15 @@ def machine() -> dict:
         cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "platform": platform.platform()}
+    from model import native
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+        "native_kernel": native.load() is not None,
+    }
 
 
 def _default(tmp: Path) -> Path:
@@ -610,13 +621,12 @@ def to_markdown(result: dict) -> str:
     lines += [f"Machine: {m.get('cpu')}, {m.get('cores')} cores, torch {m.get('torch')}.", ""]
     if "engine" in result:
         lines += ["### Engine: ms per act step (one torch thread, window model 3 x 128, full history)", ""]
-        lines += [
-            "| K | incremental, batch 1 | recompute, batch 1 | incremental, batch 64 | recompute, batch 64 |"
-        ]
-        lines += ["|---|---|---|---|---|"]
+        paths = ("incremental", "incremental_torch", "recompute")
+        lines += ["| K | " + " | ".join(f"{p}, batch {b}" for b in (1, 64) for p in paths) + " |"]
+        lines += ["|---|" + "---|" * 6]
         rows = {(r["K"], r["path"], r["batch"]): r["ms_per_step"] for r in result["engine"]}
         for K in sorted({r["K"] for r in result["engine"]}):
-            cells = [rows.get((K, p, b), float("nan")) for b in (1, 64) for p in ("incremental", "recompute")]
+            cells = [rows.get((K, p, b), float("nan")) for b in (1, 64) for p in paths]
             lines.append(f"| {K} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
         lines.append("")
     serving = result.get("serving", {})

@@ -109,3 +109,43 @@ def test_native_sampling_noise_is_the_numpy_construction():
             native.uniforms(seed, step, 6, stream), engine.numpy_uniforms(seed, step, 6, stream)
         )
     np.testing.assert_allclose(native.normals(seed, step, 6), engine.numpy_normals(seed, step, 6), rtol=1e-12)
+
+
+def test_discrete_window_model_acts_alike_on_both_kernels():
+    """Discrete actions: the native step feeds the torch-free step ids back; every mode picks what the torch
+    step's engine picks (logits agree to rounding, far below the gaps between them)."""
+    ckpt = tiny_checkpoint(env_id="CartPole-v1", attention="window")
+    a, b = PolicyEngine(ckpt), PolicyEngine(ckpt, native=False)
+    assert a.describe().kernel == "native" and b.describe().kernel == "torch"
+    rng = np.random.default_rng(4)
+    for mode in ("argmax", "sample", "expert"):
+        ca, cb = a.new_context(1, action_mode=mode, seed=5), b.new_context(1, action_mode=mode, seed=5)
+        for _ in range(25):
+            obs = rng.normal(size=4)
+            assert a.act([ca], [obs]) == b.act([cb], [obs])
+
+
+@pytest.mark.parametrize("move_at", [3, 40])
+def test_a_session_rebuilt_from_its_stored_form_continues_bit_for_bit(move_at):
+    """A session moved to another engine (its cache replayed from the stored steps) acts exactly as the
+    same session left in place, early (history shorter than the receptive field) and late (longer)."""
+    from service.bench import default_size_checkpoint
+
+    ckpt = default_size_checkpoint(None, K=5)  # 3 x 128: wide enough that a last-bit difference shows
+    stay, src, dst = PolicyEngine(ckpt), PolicyEngine(ckpt), PolicyEngine(ckpt)
+    assert stay.pool.H == 3 * 4 + 1 < 40
+    a, b = stay.new_context(1, seed=9), src.new_context(1, seed=9)
+    rng = np.random.default_rng(3)
+    for t in range(move_at + 30):
+        if t == move_at:
+            stored = b.to_stored()
+            src.release(b)
+            dst.new_context(0)  # the moved session lands in another slot
+            b = dst.from_stored(stored)
+        if t == move_at - 2:  # a blend in flight across the move
+            stay.set_goal(a, 2, blend_steps=4)
+            (src if t < move_at else dst).set_goal(b, 2, blend_steps=4)
+        obs = rng.normal(size=17)
+        (x,) = stay.act([a], [obs])
+        (y,) = (src if t < move_at else dst).act([b], [obs])
+        assert np.array_equal(x, y), t
