@@ -15,8 +15,10 @@ then samples actions for all rows at once and commits the rows that succeeded. B
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 import secrets
+import threading
 
 import numpy as np
 import torch
@@ -83,6 +85,19 @@ def numpy_normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
     """`normals` in numpy."""
     u1, u2 = numpy_uniforms(seed, step, n, 1), numpy_uniforms(seed, step, n, 2)
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * math.pi * u2)
+
+
+def _locked(method):
+    """Run an engine method under the engine's lock: an act (in an executor thread, the native step outside the
+    GIL) and a pool change (a new or adopted session growing the pool, a release shrinking it, on the event loop)
+    must never overlap, or the step would write into arrays the change just replaced."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return wrapper
 
 
 def _return_freed_memory() -> None:
@@ -207,6 +222,7 @@ class PolicyEngine(PolicyRuntime):
             self.action_modes: tuple[str, ...] = ACTION_MODES
         else:
             self.action_modes = CONTINUOUS_MODES if self.noise_var is not None else ("mean",)
+        self._lock = threading.RLock()
         self.pool = SessionPool(self, n_slots)
         self._arange_h = np.arange(self.pool.H)
         self._native = self._native_step(native) if self.incremental else None
@@ -265,6 +281,7 @@ class PolicyEngine(PolicyRuntime):
             p.keys[key] = slot
         return slot
 
+    @_locked
     def new_context(
         self, goal: int, action_mode: str | None = None, seed: int | None = None, key: str | None = None
     ) -> Context:
@@ -281,6 +298,7 @@ class PolicyEngine(PolicyRuntime):
             p.cache.clear(torch.tensor([slot]))
         return Context(p, slot, key)
 
+    @_locked
     def release(self, ctx: Context) -> None:
         p = self.pool
         if ctx.key is not None and p.keys.get(ctx.key) == ctx.slot:
@@ -302,6 +320,7 @@ class PolicyEngine(PolicyRuntime):
         action = int(a) if self.discrete else self.ckpt.action_codec.decode(a[None])[0]
         return action, int(p.h_blend_to[s, pos])
 
+    @_locked
     def reset(self, ctx: Context, goal: int | None = None) -> None:
         p, s = self.pool, ctx.slot
         if goal is not None:
@@ -313,6 +332,7 @@ class PolicyEngine(PolicyRuntime):
         if p.cache is not None:
             p.cache.clear(torch.tensor([s]))
 
+    @_locked
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
         self.check_goal(goal)
         if blend_steps < 0:
@@ -327,6 +347,7 @@ class PolicyEngine(PolicyRuntime):
         p.goal[s] = goal
         p.version[s] += 1
 
+    @_locked
     def from_stored(self, stored: StoredContext, key: str | None = None) -> Context:
         p = self.pool
         if key is not None and key in p.keys and p.version[p.keys[key]] == stored.version:
@@ -341,6 +362,7 @@ class PolicyEngine(PolicyRuntime):
             raise ValueError(
                 f"stored context holds {n} steps; step {stored.step} needs {min(stored.step, p.H)}"
             )
+        self._check_stored_tokens(stored, n)
         slot = self._slot_for(key)
         for name in ("goal", "step", "blend_from", "blend_steps", "blend_done", "seed", "version"):
             getattr(p, name)[slot] = getattr(stored, name)
@@ -354,6 +376,27 @@ class PolicyEngine(PolicyRuntime):
         if p.cache is not None:
             self._rebuild_cache(slot)
         return Context(p, slot, key)
+
+    def _check_stored_tokens(self, stored: StoredContext, n: int) -> None:
+        """Raise ValueError unless every stored id and weight is one the model can embed (a corrupt store record
+        must fail cleanly, never index outside a table)."""
+        goals, blend_to = np.asarray(stored.goals), np.asarray(stored.blend_to)
+        w = np.asarray(stored.blend_w, dtype=np.float64)
+        if goals.size != n or blend_to.size != n or w.size != n:
+            raise ValueError(f"stored context must hold {n} goals, blend targets and blend weights")
+        for name, ids in (("goals", goals), ("blend_to", blend_to)):
+            if ids.size and (ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() >= self.n_goals):
+                raise ValueError(f"stored {name} must be goal ids 0..{self.n_goals - 1}")
+        if w.size and not (np.isfinite(w).all() and w.min() >= 0.0 and w.max() <= 1.0):
+            raise ValueError("stored blend weights must be in [0, 1]")
+        if not 0 <= stored.step < 2**40:
+            raise ValueError(f"stored step {stored.step} is out of range")
+        if self.discrete:
+            a = np.asarray(stored.actions)
+            if a.size and (a.dtype.kind not in "iu" or a.min() < 0 or a.max() >= self.cfg.act_dim):
+                raise ValueError(f"stored actions must be action ids 0..{self.cfg.act_dim - 1}")
+        elif not np.isfinite(np.asarray(stored.actions, dtype=np.float64)).all():
+            raise ValueError("stored actions must be finite")
 
     @torch.inference_mode()
     def _rebuild_cache(self, slot: int) -> None:
@@ -456,6 +499,7 @@ class PolicyEngine(PolicyRuntime):
         return state
 
     # ----- inference ----------------------------------------------------------------------------------------
+    @_locked
     def act(
         self, contexts: list[Context], observations: list, prepared: bool = False
     ) -> list[np.ndarray | int | Exception]:

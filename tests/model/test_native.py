@@ -149,3 +149,57 @@ def test_a_session_rebuilt_from_its_stored_form_continues_bit_for_bit(move_at):
         (x,) = stay.act([a], [obs])
         (y,) = (src if t < move_at else dst).act([b], [obs])
         assert np.array_equal(x, y), t
+
+
+def test_the_pool_grows_safely_while_acts_run_in_another_thread():
+    """New sessions (the pool doubling) arrive on one thread while another acts: every act commits to the
+    arrays in use (the engine lock orders them); before the lock the native step wrote into freed arrays."""
+    import threading
+
+    from service.bench import default_size_checkpoint
+
+    engine = PolicyEngine(default_size_checkpoint(None, K=20), n_slots=16)
+    ctxs = [engine.new_context(1, seed=i) for i in range(16)]
+    obs = [engine.prepare_observation(np.random.default_rng(i).normal(size=17)) for i in range(16)]
+    rounds, stop = [0], threading.Event()
+
+    def acting():
+        while not stop.is_set():
+            engine.act(ctxs, obs, True)
+            rounds[0] += 1
+
+    worker = threading.Thread(target=acting)
+    worker.start()
+    try:
+        while engine.pool.n_slots < 128:  # 16 -> 128: three doublings while the worker acts
+            engine.new_context(0)
+    finally:
+        stop.set()
+        worker.join()
+    assert rounds[0] > 0
+    assert all(c.step == rounds[0] for c in ctxs)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("goals", 7), ("goals", -40), ("blend_to", 5), ("blend_w", float("nan")), ("actions", 9)],
+)
+def test_a_corrupt_stored_context_is_refused_not_embedded(field, value):
+    """Ids from a store record are checked before any table lookup (the native step does no bounds check)."""
+    discrete = field == "actions"
+    ckpt = tiny_checkpoint(env_id="CartPole-v1" if discrete else "HalfCheetah-v5", attention="window")
+    engine = PolicyEngine(ckpt)
+    ctx = engine.new_context(1)
+    obs_dim = 4 if discrete else 17
+    for _ in range(5):
+        engine.act([ctx], [np.zeros(obs_dim)])
+    stored = ctx.to_stored()
+    bad = getattr(stored, field).copy()
+    bad[1] = value
+    if field == "blend_to":
+        w = stored.blend_w.copy()
+        w[1] = 0.5
+        stored = stored.__class__(**{**vars(stored), "blend_w": w})
+    stored = stored.__class__(**{**vars(stored), field: bad})
+    with pytest.raises(ValueError, match="stored"):
+        engine.from_stored(stored, key="moved")
