@@ -56,5 +56,11 @@ class KVCache:
         self.v[layer, slot][:, ring] = v.view(n, h, d).transpose(0, 1)
 
     def clear(self, slots: torch.Tensor) -> None:
-        """Forget everything held in `slots` ([B] int64)."""
+        """Forget everything held in `slots` ([B] int64).
+
+        Keys and values are zeroed too: an empty position is masked, but a masked NaN (left by a step whose
+        forward failed) would still turn the attention sum into NaN, since 0 x NaN is NaN.
+        """
         self.tok[slots] = -1
+        self.k[:, slots] = 0.0
+        self.v[:, slots] = 0.0

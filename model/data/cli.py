@@ -44,6 +44,11 @@ def behaviour(
     select_only: bool = typer.Option(
         False, help="Skip training; choose levels among the kept snapshots up to TIMESTEPS (runs/behaviour/)."
     ),
+    track: bool = typer.Option(
+        False,
+        help="One PPO run per level, rewarded for holding its target speed; writes only the levels given "
+        "(so separate processes can train separate levels).",
+    ),
 ) -> None:
     """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
     from model.data.train_behaviour import (
@@ -64,8 +69,13 @@ def behaviour(
         targets=_parse_targets(target),
         seed=seed,
         out_dir=out_dir,
+        track=track,
     )
-    chosen = select_levels(cfg, remeasure_all(cfg)) if select_only else train(cfg)
+    if select_only:
+        coarse = {lv: remeasure_all(cfg, lv) for lv in cfg.targets} if track else remeasure_all(cfg)
+        chosen = select_levels(cfg, coarse)
+    else:
+        chosen = train(cfg)
     typer.echo(f"wrote {write_provenance(cfg, chosen)}")
 
 

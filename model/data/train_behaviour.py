@@ -92,6 +92,8 @@ class BehaviourTrainConfig:
         out_dir: Where the chosen snapshots go (behaviour/<env>/).
         work_dir: Where every measured snapshot is kept during training.
         preset: PPO hyperparameters.
+        track: Train one PPO run per level, rewarded for tracking the level's target speed (`SpeedTent`)
+            instead of for speed, and keep each level's snapshot from its own run. Targets must be numbers.
     """
 
     env_id: str
@@ -105,6 +107,7 @@ class BehaviourTrainConfig:
     out_dir: Path | None = None
     work_dir: Path | None = None
     preset: PPOPreset | None = None
+    track: bool = False
 
     def __post_init__(self) -> None:
         slug = env_slug(self.env_id)
@@ -112,6 +115,31 @@ class BehaviourTrainConfig:
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
         self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug)
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+        if self.track and any(t == FASTEST for t in self.targets.values()):
+            raise ValueError(f"tracking needs a numeric target speed for every level, got {self.targets}")
+
+    def level_work_dir(self, level: str) -> Path:
+        """Where one level's tracking run keeps its snapshots (`work_dir` itself without tracking)."""
+        return self.work_dir / f"track-{level}" if self.track else self.work_dir
+
+
+class SpeedTent(gym.Wrapper):
+    """Training-only reward for a target speed: the forward reward becomes `target - |x_velocity - target|`.
+
+    Below the target it equals the environment's own forward reward (x-velocity), so standing still earns no
+    more than before; above it, every m/s of overshoot costs as much as a m/s short. The healthy reward and
+    the control cost are the environment's.
+    """
+
+    def __init__(self, env, target: float):
+        super().__init__(env)
+        self.target = float(target)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        v = float(info["x_velocity"])
+        reward = float(reward) - float(info["reward_forward"]) + self.target - abs(v - self.target)
+        return obs, reward, terminated, truncated, info
 
 
 class StuckTermination(gym.Wrapper):
@@ -142,11 +170,13 @@ class StuckTermination(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def make_train_env(env_id: str, preset: PPOPreset):
-    """The training environment: Monitor over the (optionally stuck-terminated) Gymnasium env."""
+def make_train_env(env_id: str, preset: PPOPreset, track: float | None = None):
+    """The training environment: Monitor over the (optionally stuck-terminated, speed-tracking) Gymnasium env."""
     from stable_baselines3.common.monitor import Monitor
 
     env = gym.make(env_id)
+    if track is not None:
+        env = SpeedTent(env, track)
     if preset.stuck_penalty > 0:
         env = StuckTermination(env, preset.stuck_penalty)
     return Monitor(env)
@@ -221,40 +251,52 @@ def level_score(record: dict, target: float | str, max_len: int) -> float:
     return abs(record["mean_speed"] - float(target)) + 2.0 * record["std_speed"] + 100.0 * fell
 
 
-def measure_snapshot(cfg: BehaviourTrainConfig, step: int, env) -> dict:
+def measure_snapshot(cfg: BehaviourTrainConfig, step: int, env, work_dir: Path | None = None) -> dict:
     """The coarse measurement of the snapshot saved at `step` (deterministic: fixed seeds)."""
     from model.data.behaviour import load_behaviour
 
-    policy = load_behaviour(cfg.work_dir / f"step_{step:08d}", env.action_space)
+    policy = load_behaviour((work_dir or cfg.work_dir) / f"step_{step:08d}", env.action_space)
     return {**measure(env, policy, cfg.eval_episodes, 10_000), "step": step}
 
 
-def remeasure_all(cfg: BehaviourTrainConfig) -> list[dict]:
-    """Coarse measurements of every snapshot kept in `cfg.work_dir` up to `cfg.total_timesteps`.
+def remeasure_all(cfg: BehaviourTrainConfig, level: str | None = None) -> list[dict]:
+    """Coarse measurements of every snapshot kept in the (level's) work dir up to `cfg.total_timesteps`.
 
     Reuses records.json where it has a snapshot, else measures again (same seeds, same numbers).
     """
-    path = cfg.work_dir / "records.json"
+    work = cfg.level_work_dir(level) if level is not None else cfg.work_dir
+    path = work / "records.json"
     known = {r["step"]: r for r in json.loads(path.read_text())} if path.exists() else {}
     env = gym.make(cfg.env_id)
-    steps = sorted(int(f.stem.split("_")[1]) for f in cfg.work_dir.glob("step_*.safetensors"))
-    return [known.get(s) or measure_snapshot(cfg, s, env) for s in steps if s <= cfg.total_timesteps]
+    steps = sorted(int(f.stem.split("_")[1]) for f in work.glob("step_*.safetensors"))
+    return [known.get(s) or measure_snapshot(cfg, s, env, work) for s in steps if s <= cfg.total_timesteps]
 
 
 def train(cfg: BehaviourTrainConfig) -> list[dict]:
     """Train PPO, measure snapshots as it goes, then choose and export one snapshot per level.
 
+    With `cfg.track`, one speed-tracking PPO run per level, each level chosen among its own run's snapshots.
+
     Returns:
         The chosen levels, each with its name, target, training step and measured speeds.
     """
+    if not cfg.track:
+        return select_levels(cfg, _train_run(cfg, cfg.work_dir, None))
+    return select_levels(
+        cfg, {level: _train_run(cfg, cfg.level_work_dir(level), t) for level, t in cfg.targets.items()}
+    )
+
+
+def _train_run(cfg: BehaviourTrainConfig, work_dir: Path, track: float | None) -> list[dict]:
+    """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
     p = cfg.preset
-    cfg.work_dir.mkdir(parents=True, exist_ok=True)
-    venv = VecNormalize(DummyVecEnv([lambda: make_train_env(cfg.env_id, p)]), gamma=p.gamma)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    venv = VecNormalize(DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track)]), gamma=p.gamma)
     venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
     act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
@@ -289,10 +331,10 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
             every = cfg.eval_every // 4 if self.num_timesteps <= cfg.dense_steps else cfg.eval_every
             if self.num_timesteps % every == 0:
                 state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
-                save_behaviour(cfg.work_dir / f"step_{self.num_timesteps:08d}", state, meta)
-                rec = measure_snapshot(cfg, self.num_timesteps, eval_env)
+                save_behaviour(work_dir / f"step_{self.num_timesteps:08d}", state, meta)
+                rec = measure_snapshot(cfg, self.num_timesteps, eval_env, work_dir)
                 records.append(rec)
-                (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
+                (work_dir / "records.json").write_text(json.dumps(records, indent=1))
                 fps = self.num_timesteps / (time.time() - start)
                 print(
                     f"step {rec['step']:>8d}  speed {rec['mean_speed']:6.2f} +- {rec['std_speed']:.2f}  "
@@ -302,40 +344,71 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
             return True
 
     model.learn(total_timesteps=cfg.total_timesteps, callback=Snapshotter())
-    return select_levels(cfg, records)
+    return records
 
 
-def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
-    """Re-measure every snapshot on `final_episodes` episodes, then choose one per level and export it.
+def _fine(cfg: BehaviourTrainConfig, work_dir: Path, records: list[dict], env) -> list[dict]:
+    """`final_episodes`-episode measurements of the given snapshots, cached in the work dir."""
+    from model.data.behaviour import load_behaviour
+
+    cache_path = work_dir / f"fine_records_{cfg.final_episodes}.json"
+    cache = {r["step"]: r for r in json.loads(cache_path.read_text())} if cache_path.exists() else {}
+    fine = []
+    for rec in records:
+        if rec["step"] not in cache:
+            policy = load_behaviour(work_dir / f"step_{rec['step']:08d}", env.action_space)
+            cache[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
+            cache_path.write_text(json.dumps(sorted(cache.values(), key=lambda r: r["step"]), indent=1))
+        fine.append(cache[rec["step"]])
+    return fine
+
+
+TRACK_CANDIDATES = 8  # per tracking run, the snapshots with the best coarse scores that are measured finely
+
+
+def select_levels(cfg: BehaviourTrainConfig, records: list[dict] | dict[str, list[dict]]) -> list[dict]:
+    """Re-measure snapshots on `final_episodes` episodes, then choose one per level and export it.
 
     A rare failure (e.g. a cheetah stuck on its head) shows up only over many episodes, so the choice uses
     the fine measurements: per level, in the order given, the unused snapshot with the best `level_score`.
+    Without tracking every snapshot of the one run is re-measured and every old level file is replaced; with
+    tracking, each level's run offers its `TRACK_CANDIDATES` best snapshots by the coarse score, and only the
+    levels in `cfg.targets` are written (so levels can be trained by separate processes).
 
     Args:
         cfg: The training configuration (targets, work and output folders, episodes).
-        records: Coarse measurements, one per snapshot in `cfg.work_dir` (their steps are re-measured).
+        records: Coarse measurements of the snapshots: one list for the single run, or, with tracking, a list
+            per level.
     """
     from model.data.behaviour import load_behaviour
 
     torch.set_num_threads(1)
     env = gym.make(cfg.env_id)
     max_len = env.spec.max_episode_steps or 1000
-    cache_path = cfg.work_dir / f"fine_records_{cfg.final_episodes}.json"
-    cache = {r["step"]: r for r in json.loads(cache_path.read_text())} if cache_path.exists() else {}
-    fine = []
-    for rec in records:
-        if rec["step"] not in cache:
-            policy = load_behaviour(cfg.work_dir / f"step_{rec['step']:08d}", env.action_space)
-            cache[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
-            cache_path.write_text(json.dumps(sorted(cache.values(), key=lambda r: r["step"]), indent=1))
-        fine.append(cache[rec["step"]])
-    for old in [*cfg.out_dir.glob("*.safetensors"), *cfg.out_dir.glob("*.json")]:
-        old.unlink()  # a level no longer targeted must not be collected
+    if cfg.track:
+        assert isinstance(records, dict)
+        fine = {}
+        for level, target in cfg.targets.items():
+            ranked = sorted(records[level], key=lambda r: level_score(r, target, max_len))
+            fine[level] = _fine(cfg, cfg.level_work_dir(level), ranked[:TRACK_CANDIDATES], env)
+        for level in cfg.targets:
+            for old in cfg.out_dir.glob(f"{level}.*"):
+                old.unlink()
+    else:
+        assert isinstance(records, list)
+        shared = _fine(cfg, cfg.work_dir, records, env)
+        fine = {level: shared for level in cfg.targets}
+        for old in [*cfg.out_dir.glob("*.safetensors"), *cfg.out_dir.glob("*.json")]:
+            old.unlink()  # a level no longer targeted must not be collected
+    cfg.out_dir.mkdir(parents=True, exist_ok=True)
     chosen, used = [], set()
     for level, target in cfg.targets.items():
-        best = min((r for r in fine if r["step"] not in used), key=lambda r: level_score(r, target, max_len))
-        used.add(best["step"])
-        policy = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
+        best = min(
+            (r for r in fine[level] if r["step"] not in used), key=lambda r: level_score(r, target, max_len)
+        )
+        if not cfg.track:
+            used.add(best["step"])
+        policy = load_behaviour(cfg.level_work_dir(level) / f"step_{best['step']:08d}", env.action_space)
         meta = policy.meta
         meta.level = level
         meta.mean_speed, meta.std_speed, meta.train_step = best["mean_speed"], best["std_speed"], best["step"]
@@ -345,13 +418,14 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict]) -> list[dict]:
             "mean_return": best["mean_return"],
             "mean_length": best["mean_length"],
             "min_length": best["min_length"],
+            "speed_tracking": cfg.track,
         }
         state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
         save_behaviour(cfg.out_dir / level, state, meta)
         chosen.append({"level": level, "target": target, **best})
         print(
             f"{level:>8s} (target {target}): step {best['step']}, speed {best['mean_speed']:.3f} "
-            f"+- {best['std_speed']:.3f}, length {best['mean_length']:.0f}",
+            f"+- {best['std_speed']:.3f}, length {best['mean_length']:.0f} (min {best['min_length']})",
             flush=True,
         )
     return chosen
@@ -364,11 +438,13 @@ def command_line(cfg: BehaviourTrainConfig) -> str:
         f"gmt data behaviour --env {cfg.env_id} --timesteps {cfg.total_timesteps} --eval-every {cfg.eval_every} "
         f"--dense-steps {cfg.dense_steps} --eval-episodes {cfg.eval_episodes} "
         f"--final-episodes {cfg.final_episodes} {targets} --seed {cfg.seed}"
+        + (" --track" if cfg.track else "")
     )
 
 
 def write_provenance(cfg: BehaviourTrainConfig, chosen: list[dict]) -> Path:
-    """Write `<out_dir>/TRAINED_WITH.md`: the command, package versions, hyperparameters and levels."""
+    """Write `<out_dir>/TRAINED_WITH.md` (with tracking, `TRAINED_WITH-<levels>.md`): the command, package
+    versions, hyperparameters and levels."""
     from dataclasses import asdict
     from importlib.metadata import version
 
@@ -411,6 +487,13 @@ in `runs/behaviour/<env>/` (not committed); `--select-only` re-chooses from them
 `gmt data collect --env {cfg.env_id}` rolls these out with their Gaussian noise and adds a uniform-random
 policy; it replaces snapshot episodes in which a running agent came to a standstill for good (see its output).
 """
-    path = cfg.out_dir / "TRAINED_WITH.md"
+    if cfg.track:
+        text = text.replace(
+            "Every ",
+            "Each level is its own PPO run rewarded for holding its target speed (`SpeedTent`). Every ",
+            1,
+        )
+    name = f"TRAINED_WITH-{'-'.join(cfg.targets)}.md" if cfg.track else "TRAINED_WITH.md"
+    path = cfg.out_dir / name
     path.write_text(text)
     return path

@@ -194,6 +194,32 @@ def test_a_non_finite_forward_fails_only_its_row(attention):
     assert np.array_equal(engine.act([ctx], [ok], prepared=True)[0], fresh.act([f], [ok], prepared=True)[0])
 
 
+@pytest.mark.parametrize("native", [False, True])
+@pytest.mark.parametrize("restart", ["reset", "new session in the slot"])
+def test_a_failed_forward_leaves_nothing_behind_in_its_slot(native, restart):
+    # The failed step's keys and values (NaN) sit in ring positions that a restarted episode reaches only
+    # much later; until then they are masked, and a masked NaN must not leak into the attention sum.
+    engine = PolicyEngine(tiny_checkpoint(attention="window", context_length=5), native=native)
+    fresh = PolicyEngine(tiny_checkpoint(attention="window", context_length=5), native=native)
+    ok = np.ones(17, np.float32)
+    ctx = engine.new_context(1)
+    for _ in range(4):
+        engine.act([ctx], [ok], prepared=True)
+    huge = np.full(17, 3e38, np.float32)
+    huge[3] = np.inf
+    assert isinstance(engine.act([ctx], [huge], prepared=True)[0], StepFailed)
+    if restart == "reset":
+        engine.reset(ctx, 1)
+    else:
+        engine.release(ctx)
+        ctx = engine.new_context(1)
+    f = fresh.new_context(1)
+    for _ in range(3):
+        got, want = engine.act([ctx], [ok], prepared=True)[0], fresh.act([f], [ok], prepared=True)[0]
+        assert not isinstance(got, Exception), got
+        np.testing.assert_array_equal(got, want)
+
+
 def test_unknown_goal_is_refused():
     engine = PolicyEngine(tiny_checkpoint())
     with pytest.raises(ValueError, match="not a goal id"):
