@@ -95,6 +95,8 @@ def eval_command(
 
     A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`model.evaluate_return`):
     hold every goal, switch at step 300 between the low, middle and high goals, against the expected return.
+    A Decision Transformer (`--conditioning return` at training) plays the same protocol steered by
+    returns-to-go (`model.evaluate_dt`).
     """
     import torch
 
@@ -104,12 +106,18 @@ def eval_command(
 
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
-    modes = PolicyEngine(ckpt).action_modes
+    dt = ckpt.config.conditioning == "return"
+    modes = ("mean",) if dt else PolicyEngine(ckpt).action_modes
     if action_mode is not None and action_mode not in modes:
         raise typer.BadParameter(
             f"{action_mode!r} is not one of this model's modes {modes}", param_hint="--action-mode"
         )
-    if ckpt.statistic == "return":
+    if dt:
+        from model.eval_plot import plot_eval
+        from model.evaluate_dt import evaluate_dt
+
+        result = evaluate_dt(ckpt, seeds=seeds, steps=steps)
+    elif ckpt.statistic == "return":
         from model.evaluate_return import evaluate_returns, plot_returns
 
         result = evaluate_returns(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)

@@ -7,6 +7,7 @@ from typing import Literal
 
 MaskingMode = Literal["token", "trajectory", "none"]
 AttentionSpan = Literal["full", "window"]
+Conditioning = Literal["goal", "return"]
 Device = Literal["auto", "cpu", "cuda"]
 
 
@@ -28,6 +29,10 @@ class GMTConfig:
         attention: `full`: every token sees its whole K-step window (the paper's setting; serving recomputes
             the window every step). `window`: banded causal attention, each token sees the tokens of its own
             last K timesteps, so a per-layer key/value cache reproduces the reference forward exactly.
+        conditioning: `goal`: the first token of each step is a goal id (GMT). `return`: it is the return-to-go,
+            embedded linearly (Decision Transformer, the paper's baseline); such a model is evaluated by
+            `model.evaluate_dt` and not served.
+        return_scale: Returns-to-go are divided by this before their embedding (`return` conditioning only).
     """
 
     obs_shape: tuple[int, ...]
@@ -41,6 +46,8 @@ class GMTConfig:
     max_timestep: int = 1024
     dropout: float = 0.0
     attention: AttentionSpan = "full"
+    conditioning: Conditioning = "goal"
+    return_scale: float = 1000.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "obs_shape", tuple(int(s) for s in self.obs_shape))
@@ -54,6 +61,10 @@ class GMTConfig:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
         if self.attention not in ("full", "window"):
             raise ValueError(f"attention must be full or window, got {self.attention!r}")
+        if self.conditioning not in ("goal", "return"):
+            raise ValueError(f"conditioning must be goal or return, got {self.conditioning!r}")
+        if not self.return_scale > 0:
+            raise ValueError(f"return_scale must be positive, got {self.return_scale}")
 
     @property
     def history_steps(self) -> int:

@@ -202,6 +202,11 @@ class PolicyEngine(PolicyRuntime):
         n_slots: int = 16,
         native: bool | None = None,
     ) -> None:
+        if checkpoint.config.conditioning != "goal":
+            raise ValueError(
+                "this checkpoint is a Decision Transformer (return-to-go conditioning): it is a baseline for "
+                "`gmt eval`, which runs it with model.evaluate_dt; the engine serves goal-conditioned models"
+            )
         self.ckpt = checkpoint
         self.model = checkpoint.model.eval()
         self.cfg = checkpoint.config

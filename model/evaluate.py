@@ -33,7 +33,7 @@ from clients.tables import markdown_table
 from model.checkpoint import Checkpoint, Goal
 from model.engine import PolicyEngine
 
-__all__ = ["Condition", "ConditionResult", "EvalResult", "evaluate", "protocol", "tolerance"]
+__all__ = ["Condition", "ConditionResult", "EvalResult", "evaluate", "judge", "protocol", "tolerance"]
 
 MULTI_SWITCH_EVERY = (300, 200, 100)
 
@@ -256,6 +256,31 @@ def evaluate(
     )
     for env in envs:
         env.close()
+    return judge(ckpt, conds, seed_list, signal, terminated, mode, steps, time.time() - t0)
+
+
+def judge(
+    ckpt: Checkpoint,
+    conds: list[Condition],
+    seed_list: list[int],
+    signal: np.ndarray,
+    terminated: np.ndarray,
+    action_mode: str,
+    steps: int,
+    wall_time_s: float,
+) -> EvalResult:
+    """Score played episodes: per condition, segment means, tolerance hits and successes.
+
+    Args:
+        ckpt: The evaluated checkpoint (goal table, names).
+        conds: The conditions, in the order their episodes were played.
+        seed_list: Seeds per condition; episode `ci * len(seed_list) + j` is condition ci with seed j.
+        signal: [E, steps] per-step statistic (NaN after an early termination).
+        terminated: [E] whether each episode ended early.
+        action_mode: How actions were chosen (recorded).
+        steps: Episode length.
+        wall_time_s: Time the episodes took.
+    """
     results = []
     for ci, c in enumerate(conds):
         rows = slice(ci * len(seed_list), (ci + 1) * len(seed_list))
@@ -287,10 +312,10 @@ def evaluate(
         checkpoint=ckpt.name,
         env_id=ckpt.env_id,
         statistic=ckpt.statistic,
-        action_mode=mode,
+        action_mode=action_mode,
         seeds=seed_list,
         episode_steps=steps,
         goals=ckpt.goals,
         results=results,
-        wall_time_s=time.time() - t0,
+        wall_time_s=wall_time_s,
     )

@@ -103,15 +103,16 @@ def tiny_checkpoint(
 
 
 class _Episode:
-    def __init__(self, observations: np.ndarray, actions: np.ndarray) -> None:
-        self.observations, self.actions = observations, actions
+    def __init__(self, observations: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> None:
+        self.observations, self.actions, self.rewards = observations, actions, rewards
 
 
 class SyntheticDataset:
     """A tiny dataset with the attributes training reads (`OfflineDataset`'s duck type).
 
     HalfCheetah-v5 spaces; episode i has goal i % n_goals and acts as a = tanh(0.5 s[:6] + goal - 1), so the
-    action depends on both the state and the goal.
+    action depends on both the state and the goal. Its rewards are goal + 1 per step (plus noise), so the
+    return-to-go tells the goal too.
     """
 
     def __init__(self, n_episodes: int = 12, length: int = 40, n_goals: int = 3, seed: int = 0) -> None:
@@ -125,7 +126,8 @@ class SyntheticDataset:
         for g in self.labels:
             obs = rng.normal(size=(length, 17)).astype(np.float32)
             act = np.tanh(0.5 * obs[:, :6] + (g - 1.0)).astype(np.float32)
-            self.episodes.append(_Episode(obs, act))
+            rew = (g + 1.0 + 0.1 * rng.normal(size=length)).astype(np.float32)
+            self.episodes.append(_Episode(obs, act, rew))
         self.goals = [
             Goal(
                 id=i,

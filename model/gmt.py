@@ -145,6 +145,8 @@ class GMT(nn.Module):
         self.cfg = cfg
         C = cfg.n_embd
         self.goal_emb = nn.Embedding(cfg.n_goals + 1, C)  # last row: [mask]
+        if cfg.conditioning == "return":
+            self.return_emb = nn.Linear(1, C)  # Decision Transformer: return-to-go tokens
         self.state_emb = ImageEncoder(cfg) if cfg.is_image else nn.Linear(cfg.obs_shape[0], C)
         self.action_emb = nn.Embedding(cfg.act_dim, C) if cfg.discrete_actions else nn.Linear(cfg.act_dim, C)
         self.time_emb = nn.Embedding(cfg.max_timestep, C)
@@ -170,7 +172,12 @@ class GMT(nn.Module):
     def embed_goals(
         self, goals: torch.Tensor, blend_to: torch.Tensor | None = None, blend_w: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """Goal embeddings [B, T, C]; with `blend_to`/`blend_w` each token is (1-w) E[goal] + w E[blend_to]."""
+        """Goal embeddings [B, T, C]; with `blend_to`/`blend_w` each token is (1-w) E[goal] + w E[blend_to].
+
+        With `return` conditioning, `goals` holds returns-to-go [B, T] (floats) and there is no blending.
+        """
+        if self.cfg.conditioning == "return":
+            return self.return_emb((goals.float() / self.cfg.return_scale).unsqueeze(-1))  # [B, T, C]
         e = self.goal_emb(goals)  # [B, T, C]
         if blend_to is None:
             return e
@@ -192,7 +199,7 @@ class GMT(nn.Module):
         """Score a batch of left-padded sequences (the reference forward).
 
         Args:
-            goals: [B, T] goal ids (n_goals = [mask]).
+            goals: [B, T] goal ids (n_goals = [mask]), or returns-to-go with `return` conditioning.
             states: [B, T, *obs_shape] normalised states (uint8 frames for images).
             actions: [B, T, act_dim] in [-1, 1] (continuous) or [B, T] ids (discrete).
             timesteps: [B, T] episode timesteps.

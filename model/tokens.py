@@ -107,6 +107,7 @@ class Windows:
         actions: [B, K, A] float or [B, K] int64 (0 in padding).
         timesteps: [B, K] episode timesteps (0 in padding).
         valid: [B, K] True for real steps.
+        rtg: [B, K] float32 returns-to-go (0 in padding), when the sampler has rewards (Decision Transformer).
     """
 
     goals: torch.Tensor
@@ -114,6 +115,7 @@ class Windows:
     actions: torch.Tensor
     timesteps: torch.Tensor
     valid: torch.Tensor
+    rtg: torch.Tensor | None = None
 
     def model_inputs(self) -> tuple[torch.Tensor, ...]:
         """Positional arguments of `GMT.forward`."""
@@ -121,11 +123,14 @@ class Windows:
 
     def select(self, rows: slice) -> Windows:
         """Rows `rows` of the batch."""
-        return Windows(*(x[rows] for x in self.model_inputs()))
+        return Windows(
+            *(x[rows] for x in self.model_inputs()), rtg=None if self.rtg is None else self.rtg[rows]
+        )
 
     def to(self, device: torch.device) -> Windows:
         """The batch on `device`."""
-        return Windows(*(x.to(device) for x in self.model_inputs()))
+        rtg = None if self.rtg is None else self.rtg.to(device)
+        return Windows(*(x.to(device) for x in self.model_inputs()), rtg=rtg)
 
 
 def pad_left(
@@ -177,6 +182,7 @@ class WindowSampler:
         actions: list[np.ndarray],
         goals: list[int],
         K: int,
+        rewards: list[np.ndarray] | None = None,
     ) -> None:
         """Build from per-episode arrays.
 
@@ -185,6 +191,8 @@ class WindowSampler:
             actions: per episode [T, A] encoded actions (or [T] ids).
             goals: per episode goal label.
             K: Window length.
+            rewards: per episode [T] rewards; windows then carry returns-to-go (the sum of the rewards from
+                each step to the episode's end).
         """
         lengths = np.array([len(x) for x in states])
         self.K = K
@@ -195,6 +203,10 @@ class WindowSampler:
         self.start = torch.from_numpy(starts)
         self.timesteps = torch.from_numpy(np.arange(len(starts)) - starts)  # [N]
         self.n = len(starts)
+        self.rtg = None
+        if rewards is not None:
+            rtg = [np.cumsum(np.asarray(r, dtype=np.float64)[::-1])[::-1] for r in rewards]
+            self.rtg = torch.from_numpy(np.concatenate(rtg).astype(np.float32))  # [N]
 
     def windows(self, ends: torch.Tensor) -> Windows:
         """Windows ending at the given global transition indices ([B] int64)."""
@@ -212,6 +224,7 @@ class WindowSampler:
             actions=torch.where(zero_a, actions, torch.zeros((), dtype=actions.dtype)),
             timesteps=torch.where(valid, self.timesteps[idx], 0),
             valid=valid,
+            rtg=None if self.rtg is None else torch.where(valid, self.rtg[idx], 0.0),
         )
 
     def sample(self, batch_size: int, generator: torch.Generator) -> Windows:

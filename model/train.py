@@ -60,7 +60,16 @@ def build_sampler(
     )
     states = [norm(o) for o in obs]
     actions = [codec.encode(ep.actions) for ep in dataset.episodes]
-    return WindowSampler(states, actions, labels, sequence_steps or cfg.context_length), norm, codec
+    rewards = [ep.rewards for ep in dataset.episodes] if cfg.conditioning == "return" else None
+    sampler = WindowSampler(states, actions, labels, sequence_steps or cfg.context_length, rewards)
+    return sampler, norm, codec
+
+
+def goal_returns(dataset, labels: list[int], n_goals: int) -> list[float]:
+    """Per goal, the mean episode return of its trajectories: a Decision Transformer's target for that goal."""
+    returns = np.array([float(np.sum(ep.rewards)) for ep in dataset.episodes])
+    lab = np.asarray(labels)
+    return [float(returns[lab == g].mean()) if (lab == g).any() else float("nan") for g in range(n_goals)]
 
 
 def lr_at(step: int, tc: TrainConfig) -> float:
@@ -131,7 +140,9 @@ def train(
         resume: Continue from `out_dir/_resume` when it exists.
         progress: Show a progress bar.
 
-    Continuous-action checkpoints are calibrated at the end (`model.calibrate.action_noise`).
+    Continuous-action checkpoints are calibrated at the end (`model.calibrate.action_noise`). A model with
+    `return` conditioning is a Decision Transformer: returns-to-go replace the goal tokens, there is no masking
+    and no next-goal loss, and gmt.json records each goal's mean episode return (its evaluation targets).
 
     Under `torchrun` every process calls this; each trains on its share of every batch (`model.distributed`)
     and only rank 0 writes the checkpoint, which the other processes get as None.
@@ -144,6 +155,7 @@ def train(
     cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
     model = GMT(cfg).to(par.device)
+    dt = cfg.conditioning == "return"
     rows = par.rows(tc.batch_size)
     net = par.wrap(model)
     opt = make_optimizer(model, tc)
@@ -167,13 +179,23 @@ def train(
             g["lr"] = lr_at(step, tc)
         # Every process draws the same global batch (same generator) and trains on its rows of it.
         w = sampler.sample(tc.batch_size, gen)
-        goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
+        if dt:  # Decision Transformer: returns-to-go in the goal slot, no masking
+            goals_in = w.rtg
+        else:
+            goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
         counts = loss_counts(w.actions, w.valid, cfg.discrete_actions) if par.world > 1 else None
         w, goals_in = w.select(rows).to(par.device), goals_in[rows].to(par.device)
         with torch.autocast(par.device.type, dtype=torch.bfloat16, enabled=tc.bf16):
             pred, goal_logits = net(goals_in, w.states, w.actions, w.timesteps, w.valid)
         parts = gmt_loss(
-            pred, goal_logits, w.actions, w.goals, w.valid, cfg.discrete_actions, tc.alpha, counts
+            pred,
+            goal_logits,
+            w.actions,
+            w.goals,
+            w.valid,
+            cfg.discrete_actions,
+            0.0 if dt else tc.alpha,
+            counts,
         )
         opt.zero_grad(set_to_none=True)
         (parts.total * par.world).backward()  # DDP averages gradients over processes: this undoes it
@@ -206,11 +228,16 @@ def train(
     model.cpu()
     noise = (
         None
-        if cfg.discrete_actions
+        if cfg.discrete_actions or dt  # a Decision Transformer acts with its mean action
         else action_noise(model, sampler, len(goals), batches=tc.calibration_batches, seed=tc.seed)
     )
     meta = {
         **(extra_meta or {}),
+        **(
+            {"decision_transformer": {"goal_returns": goal_returns(dataset, labels, len(goals))}}
+            if dt
+            else {}
+        ),
         "training": {
             **asdict(replace(tc)),
             "final": last,
