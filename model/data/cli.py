@@ -49,6 +49,11 @@ def behaviour(
         help="One PPO run per level, rewarded for holding its target speed; writes only the levels given "
         "(so separate processes can train separate levels).",
     ),
+    pool_start: float = typer.Option(
+        0.0,
+        help="With --track: share of episodes starting from states of the other levels' current snapshots "
+        "(so the level learns to reach its speed from theirs).",
+    ),
 ) -> None:
     """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
     from model.data.train_behaviour import (
@@ -70,6 +75,7 @@ def behaviour(
         seed=seed,
         out_dir=out_dir,
         track=track,
+        pool_start=pool_start,
     )
     if select_only:
         coarse = {lv: remeasure_all(cfg, lv) for lv in cfg.targets} if track else remeasure_all(cfg)
@@ -91,7 +97,11 @@ def refine(
     pool_fraction: float = typer.Option(0.5, help="Share of episodes starting from other levels' states."),
     pool_episodes: int = typer.Option(10, help="Episodes per other level rolled out for the state pool."),
     noise_scale: float = typer.Option(
-        0.35, help="Action-noise multiplier of pool rollouts and measurements."
+        None, help="Action-noise multiplier of pool rollouts and measurements (default: collect's, per env)."
+    ),
+    reward: str = typer.Option(
+        None,
+        help="absolute (-|v - target| - ctrl) or tent (SpeedTent); default: absolute if the task never ends.",
     ),
     eval_every: int = typer.Option(10_000, help="Steps between snapshot measurements."),
     eval_episodes: int = typer.Option(8, help="Episodes from rest and from pool states per measurement."),
@@ -106,7 +116,7 @@ def refine(
     cfg = RefineConfig(
         env_id=env, level=level, target_speed=target_speed, timesteps=timesteps, learning_rate=learning_rate,
         critic_warmup=critic_warmup, pool_fraction=pool_fraction, pool_episodes=pool_episodes,
-        noise_scale=noise_scale, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed, out_dir=out_dir,
+        noise_scale=noise_scale, reward=reward, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed, out_dir=out_dir,
     )  # fmt: skip
     typer.echo(command_line(cfg))
     start = time.time()

@@ -5,7 +5,8 @@ early, half-trained runner. Started from a state of the fast level (a sprint) it
 nose-down and stays stuck there, and no trajectory in the data shows anything better. Refinement fine-tunes
 a level's actor with:
 
-- a target-speed reward, `-|x_velocity - target| - ctrl_cost`, instead of "as fast as possible";
+- a target-speed reward instead of "as fast as possible": `-|x_velocity - target| - ctrl_cost` for tasks that
+  never terminate (HalfCheetah), else `SpeedTent` (healthy reward kept, so falling stays the worst outcome);
 - half of the training episodes starting from states visited by the other levels (`start_states`);
 - the level's own observation normalisation, kept fixed, and its actor as the starting point; the new critic
   is fitted alone for `critic_warmup` steps before the actor may change.
@@ -34,9 +35,12 @@ from model.data.behaviour import (
     load_behaviour,
     save_behaviour,
 )
+from model.data.collect import DEFAULT_NOISE_SCALE
 from model.data.rollout import rollout
-from model.data.start_states import StatePool, build_pool, start_from
-from model.data.train_behaviour import PRESETS, PPOPreset, actor_linears, actor_state
+from model.data.start_states import PoolStart, StatePool, build_pool
+from model.data.train_behaviour import PRESETS, PPOPreset, SpeedTent, actor_linears, actor_state
+
+NEVER_TERMINATES = {"halfcheetah", "swimmer"}  # tasks without a healthy-state termination
 
 
 @dataclass
@@ -52,7 +56,11 @@ class RefineConfig:
         critic_warmup: Steps during which only the critic is trained.
         pool_fraction: Share of training episodes that start from a pool state.
         pool_episodes: Episodes per other level rolled out to build the pool.
-        noise_scale: Action-noise multiplier of the pool rollouts and of the measurements (as collected).
+        noise_scale: Action-noise multiplier of the pool rollouts and of the measurements (None: the scale
+            `gmt data collect` uses for this env).
+        reward: `absolute` (`-|x_velocity - target| - ctrl_cost`) or `tent` (`SpeedTent`: the env's reward with
+            the forward term capped at the target); None: `absolute` for tasks that never terminate, else
+            `tent` (a reward that is negative everywhere would teach a Hopper to fall early).
         eval_every: Steps between snapshot measurements.
         eval_episodes: Episodes from rest and from pool states per measurement.
         seed: Seed of PPO, the pool and the measurements.
@@ -70,7 +78,8 @@ class RefineConfig:
     critic_warmup: int = 20_000
     pool_fraction: float = 0.5
     pool_episodes: int = 10
-    noise_scale: float = 0.35
+    noise_scale: float | None = None
+    reward: str | None = None
     eval_every: int = 10_000
     eval_episodes: int = 8
     seed: int = 0
@@ -87,25 +96,16 @@ class RefineConfig:
             self.work_dir or Path("runs") / "refine" / slug / f"{self.level}-seed{self.seed}"
         )
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+        if self.noise_scale is None:
+            self.noise_scale = DEFAULT_NOISE_SCALE.get(slug, 1.0)
+        if self.reward is None:
+            self.reward = "absolute" if slug in NEVER_TERMINATES else "tent"
+        if self.reward not in ("absolute", "tent"):
+            raise ValueError(f"reward must be 'absolute' or 'tent', got {self.reward!r}")
         if not 0.0 <= self.pool_fraction <= 1.0:
             raise ValueError(f"pool_fraction must be in [0, 1], got {self.pool_fraction}")
         if self.timesteps <= self.critic_warmup:
             raise ValueError(f"timesteps ({self.timesteps}) must exceed critic_warmup ({self.critic_warmup})")
-
-
-class PoolStart(gym.Wrapper):
-    """On reset, with probability `fraction`, move the simulator to a random pool state."""
-
-    def __init__(self, env, pool: StatePool, fraction: float, seed: int):
-        super().__init__(env)
-        self.pool, self.fraction, self.rng = pool, fraction, np.random.default_rng(seed)
-
-    def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
-        if self.rng.random() < self.fraction:
-            i = self.pool.sample(self.rng)
-            obs = start_from(self.env, self.pool.qpos[i], self.pool.qvel[i])
-        return obs, info
 
 
 class TargetSpeedReward(gym.Wrapper):
@@ -134,9 +134,11 @@ class FixedObsNorm(gym.ObservationWrapper):
 
 def measure_refined(env, policy, pool: StatePool, target: float, episodes: int, seed: int) -> dict:
     """Speeds from rest (1000-step episodes, mean over steps 100+) and from pool states (400 steps, mean over
-    steps 100+). An episode fails when its mean is off the target by more than 0.4 m/s."""
+    steps 100+). An episode fails when its mean is off the target by more than 0.4 m/s or when it ends early
+    (a fall); a fall's speed is its mean over all its steps."""
     rng = np.random.default_rng(seed)
     out: dict[str, list[float]] = {"rest": [], "pool": []}
+    fell: list[bool] = []
     for case, steps in (("rest", 1000), ("pool", 400)):
         for e in range(episodes):
             start = None
@@ -144,15 +146,18 @@ def measure_refined(env, policy, pool: StatePool, target: float, episodes: int, 
                 i = pool.sample(rng)
                 start = (pool.qpos[i], pool.qvel[i])
             ep = rollout(env, policy, seed=seed + e, rng=rng, max_steps=steps, start_state=start)
-            out[case].append(float(np.mean(ep.infos["x_velocity"][100:])))
+            v = np.asarray(ep.infos["x_velocity"], dtype=float)
+            fell.append(ep.terminated)
+            out[case].append(float(np.nanmean(v if fell[-1] else v[100:])))
     speeds = np.asarray(out["rest"] + out["pool"])
-    fails = int((np.abs(speeds - target) > 0.4).sum())
+    fails = int(((np.abs(speeds - target) > 0.4) | np.asarray(fell)).sum())
     return {
         "rest_mean": float(np.mean(out["rest"])),
         "rest_std": float(np.std(out["rest"])),
         "pool_mean": float(np.mean(out["pool"])),
         "pool_std": float(np.std(out["pool"])),
         "fails": fails,
+        "falls": int(sum(fell)),
         "score": float(np.mean(np.abs(speeds - target)) + np.std(out["rest"]) + fails),
         "speeds": out,
     }
@@ -160,7 +165,9 @@ def measure_refined(env, policy, pool: StatePool, target: float, episodes: int, 
 
 def _pool(cfg: RefineConfig, env, seed_offset: int) -> StatePool:
     """States of every other level (snapshots at `noise_scale`, and a uniform-random policy)."""
-    others: dict = {"random": RandomPolicy(env.action_space)}
+    # A random Hopper / Walker2d is falling by the time its states are kept: such starts teach nothing.
+    random_states = env_slug(cfg.env_id) in NEVER_TERMINATES
+    others: dict = {"random": RandomPolicy(env.action_space)} if random_states else {}
     for path in list_snapshots(cfg.env_id, cfg.behaviour_dir):
         if path.stem != cfg.level:
             others[path.stem] = load_behaviour(path, env.action_space)
@@ -194,7 +201,8 @@ def refine(cfg: RefineConfig) -> dict:
 
     def make_env():
         e = gym.make(cfg.env_id)
-        e = PoolStart(TargetSpeedReward(e, cfg.target_speed), train_pool, cfg.pool_fraction, cfg.seed)
+        shaped = TargetSpeedReward if cfg.reward == "absolute" else SpeedTent
+        e = PoolStart(shaped(e, cfg.target_speed), train_pool, cfg.pool_fraction, cfg.seed)
         return Monitor(FixedObsNorm(e, init))
 
     venv = VecNormalize(DummyVecEnv([make_env]), norm_obs=False, norm_reward=True, gamma=p.gamma)
@@ -245,7 +253,7 @@ def refine(cfg: RefineConfig) -> dict:
         (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
         print(
             f"step {step:>7d}  rest {rec['rest_mean']:5.2f} +- {rec['rest_std']:.2f}  pool {rec['pool_mean']:5.2f} "
-            f"+- {rec['pool_std']:.2f}  fails {rec['fails']:2d}  score {rec['score']:.3f}  "
+            f"+- {rec['pool_std']:.2f}  fails {rec['fails']:2d} (falls {rec['falls']:2d})  score {rec['score']:.3f}  "
             f"{step / max(time.time() - start, 1e-9):5.0f} steps/s",
             flush=True,
         )
@@ -292,7 +300,7 @@ def command_line(cfg: RefineConfig) -> str:
         f"gmt data refine --env {cfg.env_id} --level {cfg.level} --target-speed {cfg.target_speed} "
         f"--timesteps {cfg.timesteps} --learning-rate {cfg.learning_rate} --critic-warmup {cfg.critic_warmup} "
         f"--pool-fraction {cfg.pool_fraction} --pool-episodes {cfg.pool_episodes} --noise-scale {cfg.noise_scale} "
-        f"--eval-every {cfg.eval_every} --eval-episodes {cfg.eval_episodes} --seed {cfg.seed}"
+        f"--reward {cfg.reward} --eval-every {cfg.eval_every} --eval-episodes {cfg.eval_episodes} --seed {cfg.seed}"
     )
 
 
@@ -303,6 +311,11 @@ def write_provenance(cfg: RefineConfig, best: dict, seconds: float) -> Path:
     text = path.read_text() if path.exists() else ""
     if begin in text and end in text:
         text = text[: text.index(begin)].rstrip() + "\n" + text[text.index(end) + len(end) :].lstrip("\n")
+    reward_text = (
+        f"`-|x_velocity - {cfg.target_speed}| - ctrl_cost`"
+        if cfg.reward == "absolute"
+        else f"`SpeedTent` (the env's reward, forward term `{cfg.target_speed} - |x_velocity - {cfg.target_speed}|`)"
+    )
     section = f"""{begin}
 ## Refined level: {cfg.level}
 
@@ -312,7 +325,7 @@ def write_provenance(cfg: RefineConfig, best: dict, seconds: float) -> Path:
 {command_line(cfg)}
 ```
 
-PPO (same preset, learning rate {cfg.learning_rate}) on the reward `-|x_velocity - {cfg.target_speed}| - ctrl_cost`,
+PPO (same preset, learning rate {cfg.learning_rate}) on the reward {reward_text},
 with {cfg.pool_fraction:.0%} of the episodes starting from states that the other levels and a uniform-random policy
 visited, the snapshot's observation normalisation frozen, and only the new critic trained for the first
 {cfg.critic_warmup} steps. Every {cfg.eval_every} steps the actor was measured ({cfg.noise_scale} x noise,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gymnasium as gym
 import numpy as np
 
 
@@ -81,3 +82,18 @@ def start_from(env, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
     sim = env.unwrapped
     sim.set_state(qpos, qvel)
     return sim._get_obs()
+
+
+class PoolStart(gym.Wrapper):
+    """On reset, with probability `fraction`, move the simulator to a random pool state."""
+
+    def __init__(self, env, pool: StatePool, fraction: float, seed: int):
+        super().__init__(env)
+        self.pool, self.fraction, self.rng = pool, fraction, np.random.default_rng(seed)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        if self.rng.random() < self.fraction:
+            i = self.pool.sample(self.rng)
+            obs = start_from(self.env, self.pool.qpos[i], self.pool.qvel[i])
+        return obs, info

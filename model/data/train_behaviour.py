@@ -18,8 +18,16 @@ import numpy as np
 import torch
 
 from clients.tables import markdown_table
-from model.data.behaviour import BEHAVIOUR_DIR, BehaviourMeta, BehaviourPolicy, env_slug, save_behaviour
+from model.data.behaviour import (
+    BEHAVIOUR_DIR,
+    BehaviourMeta,
+    BehaviourPolicy,
+    env_slug,
+    load_behaviour,
+    save_behaviour,
+)
 from model.data.rollout import rollout, stuck_step
+from model.data.start_states import PoolStart, build_pool
 
 FASTEST = "max"
 
@@ -94,6 +102,10 @@ class BehaviourTrainConfig:
         preset: PPO hyperparameters.
         track: Train one PPO run per level, rewarded for tracking the level's target speed (`SpeedTent`)
             instead of for speed, and keep each level's snapshot from its own run. Targets must be numbers.
+        pool_start: With `track`, the share of training episodes that start from a state visited by the other
+            levels' current snapshots in `out_dir` (rolled out with `gmt data collect`'s noise), so the level
+            learns to reach its speed from theirs, as a switch asks of it.
+        pool_episodes: Episodes per other level rolled out for that pool.
     """
 
     env_id: str
@@ -108,6 +120,8 @@ class BehaviourTrainConfig:
     work_dir: Path | None = None
     preset: PPOPreset | None = None
     track: bool = False
+    pool_start: float = 0.0
+    pool_episodes: int = 10
 
     def __post_init__(self) -> None:
         slug = env_slug(self.env_id)
@@ -117,10 +131,16 @@ class BehaviourTrainConfig:
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
         if self.track and any(t == FASTEST for t in self.targets.values()):
             raise ValueError(f"tracking needs a numeric target speed for every level, got {self.targets}")
+        if not 0.0 <= self.pool_start <= 1.0:
+            raise ValueError(f"pool_start must be in [0, 1], got {self.pool_start}")
+        if self.pool_start > 0 and not self.track:
+            raise ValueError("pool_start needs track (each level's own run starts from the others' states)")
 
     def level_work_dir(self, level: str) -> Path:
         """Where one level's tracking run keeps its snapshots (`work_dir` itself without tracking)."""
-        return self.work_dir / f"track-{level}" if self.track else self.work_dir
+        if not self.track:
+            return self.work_dir
+        return self.work_dir / (f"track-{level}" + (f"-pool{self.pool_start:g}" if self.pool_start else ""))
 
 
 class SpeedTent(gym.Wrapper):
@@ -170,13 +190,23 @@ class StuckTermination(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def make_train_env(env_id: str, preset: PPOPreset, track: float | None = None):
-    """The training environment: Monitor over the (optionally stuck-terminated, speed-tracking) Gymnasium env."""
+def make_train_env(
+    env_id: str,
+    preset: PPOPreset,
+    track: float | None = None,
+    pool=None,
+    pool_start: float = 0.0,
+    seed: int = 0,
+):
+    """The training environment: Monitor over the (optionally stuck-terminated, speed-tracking, pool-started)
+    Gymnasium env."""
     from stable_baselines3.common.monitor import Monitor
 
     env = gym.make(env_id)
     if track is not None:
         env = SpeedTent(env, track)
+    if pool is not None and pool_start > 0:
+        env = PoolStart(env, pool, pool_start, seed)
     if preset.stuck_penalty > 0:
         env = StuckTermination(env, preset.stuck_penalty)
     return Monitor(env)
@@ -283,11 +313,30 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
     if not cfg.track:
         return select_levels(cfg, _train_run(cfg, cfg.work_dir, None))
     return select_levels(
-        cfg, {level: _train_run(cfg, cfg.level_work_dir(level), t) for level, t in cfg.targets.items()}
+        cfg, {level: _train_run(cfg, cfg.level_work_dir(level), t, level) for level, t in cfg.targets.items()}
     )
 
 
-def _train_run(cfg: BehaviourTrainConfig, work_dir: Path, track: float | None) -> list[dict]:
+def other_levels_pool(cfg: BehaviourTrainConfig, level: str):
+    """States visited by the current snapshots in `cfg.out_dir` other than `level` (collect's noise)."""
+    from model.data.collect import DEFAULT_NOISE_SCALE
+
+    env = gym.make(cfg.env_id)
+    others = {}
+    for path in sorted(cfg.out_dir.glob("*.safetensors")):
+        if path.stem != level:
+            others[path.stem] = load_behaviour(path.with_suffix(""), env.action_space)
+            others[path.stem].noise_scale = DEFAULT_NOISE_SCALE.get(env_slug(cfg.env_id), 1.0)
+    if not others:
+        raise ValueError(
+            f"pool_start needs other levels' snapshots in {cfg.out_dir}, found none besides {level}"
+        )
+    return build_pool(env, others, cfg.pool_episodes, cfg.seed + 777)
+
+
+def _train_run(
+    cfg: BehaviourTrainConfig, work_dir: Path, track: float | None, level: str | None = None
+) -> list[dict]:
     """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
@@ -296,7 +345,11 @@ def _train_run(cfg: BehaviourTrainConfig, work_dir: Path, track: float | None) -
     torch.set_num_threads(1)
     p = cfg.preset
     work_dir.mkdir(parents=True, exist_ok=True)
-    venv = VecNormalize(DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track)]), gamma=p.gamma)
+    pool = other_levels_pool(cfg, level) if cfg.pool_start > 0 else None
+    venv = VecNormalize(
+        DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed)]),
+        gamma=p.gamma,
+    )
     venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
     act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
@@ -439,6 +492,7 @@ def command_line(cfg: BehaviourTrainConfig) -> str:
         f"--dense-steps {cfg.dense_steps} --eval-episodes {cfg.eval_episodes} "
         f"--final-episodes {cfg.final_episodes} {targets} --seed {cfg.seed}"
         + (" --track" if cfg.track else "")
+        + (f" --pool-start {cfg.pool_start:g}" if cfg.pool_start else "")
     )
 
 

@@ -6,13 +6,12 @@ import torch
 from model.data.behaviour import BehaviourMeta, RandomPolicy, load_behaviour, save_behaviour
 from model.data.refine_behaviour import (
     FixedObsNorm,
-    PoolStart,
     RefineConfig,
     TargetSpeedReward,
     refine,
     write_provenance,
 )
-from model.data.start_states import build_pool, start_from
+from model.data.start_states import PoolStart, build_pool, start_from
 
 ENV = "HalfCheetah-v5"
 
@@ -92,3 +91,59 @@ def test_refine_starts_from_the_level_and_writes_a_snapshot_with_provenance(tmp_
     write_provenance(cfg, best, 12.0)
     text = path.read_text()
     assert text.count("<!-- refine:slow -->") == 1 and "gmt data refine --env HalfCheetah-v5" in text
+
+
+def test_speed_tent_pays_the_speed_up_to_the_target_and_charges_overshoot():
+    from model.data.train_behaviour import SpeedTent
+
+    action = np.full(3, 0.8, dtype=np.float32)
+
+    def last_step(env):
+        env.reset(seed=3)
+        for _ in range(5):
+            _, reward, _, _, info = env.step(action)
+        return reward, info["x_velocity"]
+
+    r_env, v = last_step(gym.make("Hopper-v5"))
+    assert abs(v) > 0.01
+    below, _ = last_step(SpeedTent(gym.make("Hopper-v5"), target=v + 0.5))
+    assert below == pytest.approx(r_env)  # under the target: the env's own reward, healthy reward included
+    above, _ = last_step(SpeedTent(gym.make("Hopper-v5"), target=v - 0.5))
+    assert above == pytest.approx(r_env - 1.0)  # 0.5 m/s over: pays v - 0.5 - 0.5 instead of v
+
+
+def test_refine_defaults_follow_the_task():
+    assert RefineConfig(ENV).reward == "absolute" and RefineConfig(ENV).noise_scale == pytest.approx(0.35)
+    hopper = RefineConfig("Hopper-v5")
+    assert hopper.reward == "tent" and hopper.noise_scale == 1.0
+    with pytest.raises(ValueError, match="reward"):
+        RefineConfig("Hopper-v5", reward="speed")
+
+
+def test_a_fall_is_a_failed_measurement():
+    from model.data.refine_behaviour import measure_refined
+
+    env = gym.make("Hopper-v5")
+    pool = build_pool(env, {"random": RandomPolicy(env.action_space)}, episodes=1, seed=0, skip=2, every=2)
+    m = measure_refined(env, RandomPolicy(env.action_space), pool, target=0.0, episodes=2, seed=0)
+    assert m["falls"] == 4 and m["fails"] == 4  # a random Hopper falls within ~30 steps, whatever its speed
+    assert all(np.isfinite(m["speeds"]["rest"] + m["speeds"]["pool"]))
+
+
+def test_tracking_with_pool_starts_begins_from_the_other_levels_states(tmp_path):
+    from model.data.train_behaviour import BehaviourTrainConfig, other_levels_pool
+
+    with pytest.raises(ValueError, match="needs track"):
+        BehaviourTrainConfig(ENV, targets={"slow": 1.0}, pool_start=0.5)
+    beh = tmp_path / "behaviour"
+    _snapshot(beh, "slow", 1.0, 0)
+    _snapshot(beh, "fast", 3.0, 1)
+    cfg = BehaviourTrainConfig(
+        ENV, targets={"slow": 1.0}, track=True, pool_start=0.5, pool_episodes=1, out_dir=beh / "halfcheetah"
+    )
+    assert cfg.level_work_dir("slow").name == "track-slow-pool0.5"  # never mixed with a plain run's snapshots
+    pool = other_levels_pool(cfg, "slow")
+    assert set(pool.source) == {"fast"} and len(pool) > 0
+    with pytest.raises(ValueError, match="other levels"):
+        lonely = BehaviourTrainConfig(ENV, targets={"x": 1.0}, track=True, pool_start=0.5, out_dir=tmp_path)
+        other_levels_pool(lonely, "x")
