@@ -149,6 +149,7 @@ def collect(
     ),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
     keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),
+    keep_falls: bool = typer.Option(False, help="Keep snapshot episodes that end in a fall (termination)."),
     pool_start: list[str] = typer.Option(
         None,
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "
@@ -194,6 +195,7 @@ def collect(
         noise_scale=noise_scale,
         include_random=not no_random,
         drop_stuck=not keep_stuck,
+        drop_falls=not keep_falls,
         pool_start=shares,
     )
     res = collect(cfg)
@@ -207,7 +209,7 @@ def collect(
         )
         typer.echo(
             f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states, "
-            f"{lv['stuck_dropped']} stuck ones replaced){speed}"
+            f"{lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
         )
 
 

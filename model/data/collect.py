@@ -22,15 +22,16 @@ from model.data.start_states import StatePool, build_pool
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
 # sized to keep `make data` to minutes (their agents also fall, so episodes can be short).
-DEFAULT_EPISODES = {"halfcheetah": 150, "hopper": 100, "walker2d": 100, "ant": 60}
+DEFAULT_EPISODES = {"halfcheetah": 150, "hopper": 150, "walker2d": 100, "ant": 60}
 # Behaviour-noise multipliers. HalfCheetah's PPO snapshots with their full noise (std ~0.13) run ~20% slower than
 # their mean action and stall in ~7% of episodes; a policy that imitates the mean then overshoots every goal. At
 # 0.35 x their noise they stay diverse (per-episode speed std 0.03-0.07 m/s) and none stalled in 36 test episodes.
 DEFAULT_NOISE_SCALE = {"halfcheetah": 0.35}
 # Share of a level's episodes that start from a state another level visited (see `start_states`). HalfCheetah's
 # slow level is refined (`gmt data refine`) to brake from a sprint and to get going after random flailing; half of
-# its episodes show that, the other half start at rest.
-DEFAULT_POOL_START = {"halfcheetah": {"slow": 0.5}}
+# its episodes show that, the other half start at rest. Hopper's two levels each start half their episodes from
+# the other's states (slow braking from a sprint, fast speeding up from a walk); falls are replaced (`drop_falls`).
+DEFAULT_POOL_START = {"halfcheetah": {"slow": 0.5}, "hopper": {"slow": 0.5, "fast": 0.5}}
 POOL_EPISODES = 10  # episodes per other level rolled out to build a level's start-state pool
 
 
@@ -58,6 +59,10 @@ class CollectConfig:
             blur the level's speed. Also replaces pool-started episodes that end standing still (a start
             pose the level cannot leave). Counted per level; the random policy is never filtered.
         stuck_window: Steps averaged by the standstill test.
+        drop_falls: Replace snapshot episodes that end in a fall (termination). A level's policy that falls
+            shows a failure, not its goal; Hopper's slow level started from a sprint falls in about half of
+            its episodes, and those would teach the model that braking means falling. Counted per level;
+            the random policy is never filtered.
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         pool_start: Level -> share of its episodes that start from a state visited by the other policies
             (None: per-env default; {} for none).
@@ -75,6 +80,7 @@ class CollectConfig:
     include_random: bool = True
     drop_stuck: bool = True
     stuck_window: int = 100
+    drop_falls: bool = True
     max_attempts: int = 3
     pool_start: dict[str, float] | None = None
     overwrite: bool = True
@@ -130,12 +136,13 @@ def collect_level(
     rng = np.random.default_rng(seeds)
     filtered = cfg.drop_stuck and name != RANDOM
     n_pool = round(cfg.pool_start.get(name, 0.0) * n) if pool is not None else 0
-    episodes, metadata, dropped = [], [], 0
+    episodes, metadata, dropped, fell = [], [], 0, 0
     while len(episodes) < n:
         reset_seed = next(reset_seeds, None)
         if reset_seed is None:
             raise RuntimeError(
-                f"{name}: {dropped} of {len(episodes) + dropped} episodes got stuck; giving up"
+                f"{name}: {dropped} of {len(episodes) + dropped + fell} episodes got stuck and {fell} fell; "
+                "giving up (raise max_attempts or improve the level's policy)"
             )
         start, meta = None, {}
         if len(episodes) < n_pool:
@@ -155,16 +162,20 @@ def collect_level(
         ):
             dropped += 1
             continue
+        if cfg.drop_falls and name != RANDOM and ep.terminated:
+            fell += 1
+            continue
         episodes.append(ep.to_episode(first_id + len(episodes)))
         metadata.append({"policy": name, "reset_seed": int(reset_seed), **meta})
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(level=name, stuck=dropped)
+            bar.set_postfix(level=name, stuck=dropped, fell=fell)
     speeds = [float(e.infos["x_velocity"].mean()) for e in episodes if "x_velocity" in e.infos]
     summary = {
         "episodes": n,
         "pool_starts": n_pool,
         "stuck_dropped": dropped,
+        "falls_dropped": fell,
         "mean_speed": float(np.mean(speeds)) if speeds else None,
         "std_speed": float(np.std(speeds)) if speeds else None,
     }
@@ -214,12 +225,14 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             episodes += eps
             metadata += meta
     dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
+    fell = ", ".join(f"{k} {v['falls_dropped']}" for k, v in levels.items())
     description = (
         f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} (PPO snapshots rolled out with "
         f"{cfg.noise_scale:g} x their Gaussian noise{', and a uniform-random policy' * cfg.include_random}), {cfg.episodes_per_level} "
         f"episodes each, seed {cfg.seed}. "
         + f"Snapshot episodes where a running agent came to a standstill were replaced ({dropped}). "
         * cfg.drop_stuck
+        + f"Snapshot episodes that ended in a fall were replaced ({fell}). " * cfg.drop_falls
         + "".join(
             f"{round(share * cfg.episodes_per_level)} {name} episodes start from states the other policies "
             "visited (episode metadata start_from / start_step). "

@@ -130,7 +130,7 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
     beh = tmp_path / "behaviour"
     fake_snapshot(beh, "fast", 2.0, 0)
     fake_snapshot(beh, "slow", 1.0, 1)
-    assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Hopper-v5").pool_start == {}
+    assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Walker2d-v5").pool_start == {}
     with pytest.raises(ValueError, match="pool_start"):
         CollectConfig(ENV, pool_start={"slow": 1.5})
     # These random-weight snapshots barely move: pool-started episodes that end standing still are replaced
@@ -163,3 +163,27 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
     again = collect(CollectConfig(ENV, 4, 3, "gmt/again-v0", tmp_path / "d", beh, 40, pool_start={"slow": 0.5},
                                   drop_stuck=False), progress=False)  # fmt: skip
     assert load_dataset(again.dataset_id, tmp_path / "d").fingerprint == ds.fingerprint
+
+
+def test_snapshot_episodes_that_fall_are_replaced(tmp_path):
+    beh = tmp_path / "behaviour"
+    torch.manual_seed(0)
+    meta = BehaviourMeta("Hopper-v5", "slow", [8], "tanh", [0.0] * 11, [1.0] * 11, mean_speed=1.0)
+    state = {
+        "mean_net.0.weight": 0.1 * torch.randn(8, 11),
+        "mean_net.0.bias": 0.1 * torch.randn(8),
+        "mean_net.2.weight": 0.1 * torch.randn(3, 8),
+        "mean_net.2.bias": 0.1 * torch.randn(3),
+        "log_std": torch.zeros(3),  # std 1: this hopper topples within a few dozen steps
+    }
+    save_behaviour(beh / "hopper" / "slow", state, meta)
+    cfg = CollectConfig("Hopper-v5", 2, 0, data_dir=tmp_path / "d", behaviour_dir=beh, include_random=False)
+    assert cfg.drop_falls and cfg.pool_start == {"slow": 0.5, "fast": 0.5}
+    cfg.pool_start = {}
+    with pytest.raises(RuntimeError, match=r"slow: 0 of 6 episodes got stuck and 6 fell"):
+        collect(cfg, progress=False)
+    cfg.drop_falls = False
+    res = collect(cfg, progress=False)
+    assert res.levels["slow"]["falls_dropped"] == 0
+    ds = load_dataset(res.dataset_id, tmp_path / "d")
+    assert all(ep.terminated for ep in ds.episodes)  # kept: both end in a fall
