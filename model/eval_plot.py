@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,9 @@ SMOOTH = 25  # steps of the trailing mean drawn per episode before the mean and 
 
 def _band(ax, sig: np.ndarray, label: str, color) -> None:
     s = moving_average(sig, SMOOTH)
-    with np.errstate(invalid="ignore"):
+    # Steps after every seed's episode ended (falls) are all NaN: their mean is NaN, drawn as a gap, not a warning.
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         m, sd = np.nanmean(s, 0), np.nanstd(s, 0)
     t = np.arange(len(m))
     ax.plot(t, m, color=color, label=label, lw=1.3)
