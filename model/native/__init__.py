@@ -28,7 +28,7 @@ TILE = 32  # NB in gmt_step.c: output columns per packed weight tile
 CFLAGS = [
     "-O3",
     "-march=native",
-    "-mprefer-vector-width=512",
+    *(["-mprefer-vector-width=512"] if platform.machine() in ("x86_64", "AMD64") else []),  # an x86-only flag
     "-fPIC",
     "-shared",
     "-std=c11",
@@ -78,12 +78,35 @@ def _cache_dir() -> Path:
     return Path(root)
 
 
+def _cpu_features() -> str:
+    """The CPU's instruction-set features as the kernel reports them ('' where /proc/cpuinfo has none)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor()
+    for line in text.splitlines():
+        name, _, value = line.partition(":")
+        if name.strip() in ("flags", "Features"):  # x86, Arm
+            return " ".join(sorted(value.split()))
+    return ""
+
+
+def library_key(cc: str) -> str:
+    """Cache key of the compiled library: source, compiler, flags, and the host and CPU it is built for.
+
+    `-march=native` makes the library specific to the CPU's features: a cache shared by machines with other
+    features (a home directory on NFS, a copied container layer) must not hand one CPU another's build (SIGILL).
+    """
+    parts = [cc, *CFLAGS, platform.machine(), platform.node(), _cpu_features()]
+    return hashlib.sha256(SOURCE.read_bytes() + " ".join(parts).encode()).hexdigest()[:16]
+
+
 _lib: ctypes.CDLL | None = None
 _tried = False
 
 
 def load() -> ctypes.CDLL | None:
-    """The compiled library (built once per source, flags and machine, cached on disk), or None if unavailable."""
+    """The compiled library (built once per `library_key`, cached on disk), or None if unavailable."""
     global _lib, _tried
     if _tried:
         return _lib
@@ -92,10 +115,7 @@ def load() -> ctypes.CDLL | None:
         log.info("native step disabled by GMT_NATIVE=0")
         return None
     cc = os.environ.get("CC", "cc")
-    key = hashlib.sha256(
-        SOURCE.read_bytes() + " ".join([cc, *CFLAGS, platform.machine(), platform.node()]).encode()
-    ).hexdigest()[:16]
-    so = _cache_dir() / f"gmt_step-{key}.so"
+    so = _cache_dir() / f"gmt_step-{library_key(cc)}.so"
     try:
         if not so.exists():
             so.parent.mkdir(parents=True, exist_ok=True)

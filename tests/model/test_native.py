@@ -203,3 +203,23 @@ def test_a_corrupt_stored_context_is_refused_not_embedded(field, value):
     stored = stored.__class__(**{**vars(stored), field: bad})
     with pytest.raises(ValueError, match="stored"):
         engine.from_stored(stored, key="moved")
+
+
+def test_the_library_cache_key_names_the_cpus_features(monkeypatch):
+    """A build for one CPU (-march=native) is never handed to a CPU with other features from a shared cache."""
+    import model.native as native
+
+    monkeypatch.setattr(native, "_cpu_features", lambda: "avx2 fma sse4_2")
+    here = native.library_key("cc")
+    assert native.library_key("cc") == here  # stable for one machine
+    monkeypatch.setattr(native, "_cpu_features", lambda: "avx2 avx512f fma sse4_2")
+    assert native.library_key("cc") != here
+    assert native.library_key("gcc") != native.library_key("cc")
+
+
+def test_the_cpu_features_are_read_from_this_machine():
+    import model.native as native
+
+    feats = native._cpu_features()
+    if os.path.exists("/proc/cpuinfo") and "flags" in open("/proc/cpuinfo").read():
+        assert feats and feats.split() == sorted(feats.split())
