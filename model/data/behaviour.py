@@ -2,6 +2,10 @@
 
 A behaviour snapshot is the deterministic mean network of a PPO actor plus its state-independent log-std and
 the observation normalisation it was trained with. Loading needs only torch and safetensors.
+
+A commanded snapshot (`model.data.train_commanded`) is one speed-conditioned actor with a fixed command: its
+network reads the observation with the commanded speed appended (`extra["command"]`), so several levels can
+share one actor, and each level's episodes still have one goal.
 """
 
 from __future__ import annotations
@@ -40,7 +44,8 @@ class BehaviourMeta:
         mean_speed: Measured mean of the per-episode mean x-velocity (stochastic policy).
         std_speed: Standard deviation of the per-episode mean x-velocity.
         train_step: Environment steps of training when the snapshot was taken.
-        extra: Free-form measurements (episodes used, mean return, mean length).
+        extra: Free-form measurements (episodes used, mean return, mean length); `command` (m/s), when present,
+            is appended to every observation before the network reads it.
     """
 
     env_id: str
@@ -76,10 +81,15 @@ class BehaviourPolicy(nn.Module):
         self.low = np.asarray(low, dtype=np.float32)
         self.high = np.asarray(high, dtype=np.float32)
         self.noise_scale = 1.0  # multiplies the Gaussian noise std of `act`
+        command = meta.extra.get("command")
+        self.command = None if command is None else float(command)
 
     def normalise(self, obs: np.ndarray) -> torch.Tensor:
-        """VecNormalize's observation transform, computed in float64 then cast to float32."""
-        x = torch.as_tensor(np.asarray(obs), dtype=torch.float64)
+        """VecNormalize's observation transform (after appending the command, if any), float64 then float32."""
+        obs = np.asarray(obs, dtype=np.float64)
+        if self.command is not None:
+            obs = np.concatenate([obs, np.full((*obs.shape[:-1], 1), self.command)], axis=-1)
+        x = torch.as_tensor(obs, dtype=torch.float64)
         x = (x - self.obs_mean) / torch.sqrt(self.obs_var + self.meta.obs_epsilon)
         return x.clamp(-self.meta.obs_clip, self.meta.obs_clip).float()
 

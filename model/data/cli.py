@@ -86,6 +86,54 @@ def behaviour(
 
 
 @app.command()
+@needs("train", "gmt data commanded")
+def commanded(
+    env: str = typer.Option(..., help="Gymnasium id, e.g. Hopper-v5."),
+    target: list[str] = typer.Option(..., help="LEVEL=SPEED (m/s), slowest first; repeat."),
+    timesteps: int = typer.Option(2_000_000, help="PPO environment steps."),
+    eval_every: int = typer.Option(50_000, help="Steps between measured snapshots."),
+    switch_every: int = typer.Option(300, help="Mean steps between command changes in training episodes."),
+    eval_seeds: int = typer.Option(2, help="Episodes per hold and per switch in a snapshot's measurement."),
+    final_seeds: int = typer.Option(8, help="Episodes per hold and per switch when choosing among the best."),
+    seed: int = typer.Option(0, help="Seed of PPO and of the measurements."),
+    out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/<env>/)."),
+    select_only: bool = typer.Option(False, help="Skip training; choose among the kept snapshots."),
+) -> None:
+    """Train one speed-commanded PPO agent that switches between levels; export each level (`train` extra)."""
+    import json
+    import shlex
+    import sys
+
+    from model.data.train_commanded import (
+        CommandedConfig,
+        select_commanded,
+        train_commanded,
+        write_commanded_provenance,
+    )
+
+    targets = _parse_targets(target) or {}
+    if any(v == "max" for v in targets.values()):
+        raise typer.BadParameter("commanded levels need speeds in m/s, not max", param_hint="--target")
+    cfg = CommandedConfig(
+        env_id=env,
+        targets=targets,
+        total_timesteps=timesteps,
+        eval_every=eval_every,
+        switch_every=switch_every,
+        eval_seeds=eval_seeds,
+        final_seeds=final_seeds,
+        seed=seed,
+        out_dir=out_dir,
+    )
+    if select_only:
+        best = select_commanded(cfg, json.loads((cfg.work_dir / "records.json").read_text()))
+    else:
+        best = train_commanded(cfg)
+    command = "gmt data commanded " + " ".join(shlex.quote(a) for a in sys.argv[3:])
+    typer.echo(f"wrote {write_commanded_provenance(cfg, best, command)}")
+
+
+@app.command()
 @needs("train", "gmt data refine")
 def refine(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),

@@ -1,0 +1,329 @@
+"""One speed-commanded PPO agent whose levels differ only in the commanded speed, trained to switch between them.
+
+Separately trained agents per level (`train_behaviour --track`) each know one gait; asked to start from another
+level's states (a sprint, for a slow Hopper) they fall most of the time, so the data shows few transitions and a
+GMT imitating it falls when its goal switches. Here one actor reads the observation with the commanded speed
+appended, and during training the command changes at random steps within an episode (`SpeedCommand`), so the
+agent learns every level and every change between them in one gait family. Each level is exported as the same
+actor with its command fixed (`BehaviourMeta.extra["command"]`); `gmt data collect` rolls each level out like any
+snapshot, so every collected episode still has one goal. Needs the optional `train` extra.
+
+Snapshots are chosen by `command_score`: each level held from rest, and each ordered switch between levels
+after `switch_at` steps, judged like the GMT protocol (speed of the level after the switch, no fall).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from clients.tables import markdown_table
+from model.data.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
+from model.data.train_behaviour import PRESETS, PPOPreset, export_actor
+
+
+class SpeedCommand(gym.Wrapper):
+    """Training-only: a commanded speed appended to the observation, changed at random steps, and tracked.
+
+    The reward is `SpeedTent`'s for the command in force: the environment's reward with its forward term
+    replaced by `command - |x_velocity - command|`.
+    """
+
+    def __init__(self, env, commands: list[float], switch_prob: float, seed: int):
+        super().__init__(env)
+        self.commands = np.asarray(commands, dtype=np.float64)
+        self.switch_prob = float(switch_prob)
+        self.rng = np.random.default_rng(seed)
+        box = env.observation_space
+        lo, hi = float(self.commands.min()), float(self.commands.max())
+        self.observation_space = gym.spaces.Box(
+            np.append(box.low, lo).astype(box.dtype),
+            np.append(box.high, hi).astype(box.dtype),
+            dtype=box.dtype,
+        )
+        self.command = float(self.commands[0])
+
+    def _obs(self, obs: np.ndarray) -> np.ndarray:
+        return np.append(obs, self.command).astype(obs.dtype)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.command = float(self.rng.choice(self.commands))
+        return self._obs(obs), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        v = float(info["x_velocity"])
+        reward = float(reward) - float(info["reward_forward"]) + self.command - abs(v - self.command)
+        if len(self.commands) > 1 and self.rng.random() < self.switch_prob:  # from the next step on
+            self.command = float(self.rng.choice(self.commands[self.commands != self.command]))
+        return self._obs(obs), reward, terminated, truncated, {**info, "command": self.command}
+
+
+@dataclass
+class CommandedConfig:
+    """One commanded-agent training run.
+
+    Attributes:
+        env_id: Gymnasium environment id (a MuJoCo task reporting `x_velocity` and `reward_forward`).
+        targets: Level name -> commanded speed (m/s), slowest first.
+        total_timesteps: PPO environment steps.
+        eval_every: Steps between snapshots (each is measured by `command_score`).
+        switch_every: Mean steps between command changes in training episodes.
+        switch_at: Step of the command change in the measurement episodes.
+        eval_seeds: Episodes per hold and per ordered switch in a coarse measurement.
+        final_seeds: Episodes per hold and per switch when the best coarse snapshots are measured again.
+        candidates: Coarse-best snapshots measured again.
+        seed: Seed of PPO, its environment and the measurements.
+        out_dir: Where the chosen levels go (behaviour/<env>/).
+        work_dir: Where every snapshot is kept during training.
+        preset: PPO hyperparameters (default: the environment's `train_behaviour` preset).
+    """
+
+    env_id: str
+    targets: dict[str, float]
+    total_timesteps: int = 2_000_000
+    eval_every: int = 50_000
+    switch_every: int = 300
+    switch_at: int = 500
+    eval_seeds: int = 2
+    final_seeds: int = 8
+    candidates: int = 4
+    seed: int = 0
+    out_dir: Path | None = None
+    work_dir: Path | None = None
+    preset: PPOPreset | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        slug = env_slug(self.env_id)
+        if len(self.targets) < 2:
+            raise ValueError(f"a commanded agent needs at least two levels, got {self.targets}")
+        if any(isinstance(v, str) for v in self.targets.values()):
+            raise ValueError(f"commanded levels need numeric speeds, got {self.targets}")
+        if self.switch_every < 1 or not 0 < self.switch_at < 1000:
+            raise ValueError("switch_every must be >= 1 and switch_at within an episode (0, 1000)")
+        self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
+        self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug / "commanded")
+        self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+
+
+def with_command(policy: BehaviourPolicy, command: float) -> BehaviourPolicy:
+    """`policy` (a commanded actor) set to `command`."""
+    policy.command = float(command)
+    return policy
+
+
+def play(env, policy: BehaviourPolicy, commands: list[float], switch_at: int, seed: int, rng) -> dict:
+    """One stochastic episode commanded `commands[0]`, then `commands[-1]` from step `switch_at`.
+
+    Returns:
+        Whether it fell, and the mean x-velocity of the last command's segment after a 100-step transient.
+    """
+    obs, _ = env.reset(seed=seed)
+    speeds, fell = [], False
+    start = switch_at if len(commands) > 1 else 0
+    for t in range(env.spec.max_episode_steps or 1000):
+        with_command(policy, commands[-1] if t >= start else commands[0])
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
+        speeds.append(float(info["x_velocity"]))
+        if terminated or truncated:
+            fell = bool(terminated)
+            break
+    tail = speeds[start + 100 :]
+    return {"fell": fell, "speed": float(np.mean(tail)) if tail else float("nan")}
+
+
+def command_score(
+    env, policy: BehaviourPolicy, targets: dict[str, float], switch_at: int, seeds: int
+) -> dict:
+    """Holds of every level and every ordered switch, `seeds` stochastic episodes each.
+
+    The score (lower is better) adds, over every episode, the distance of the measured speed from its command,
+    plus 10 per episode that fell.
+    """
+    rng = np.random.default_rng(30_000)
+    speeds = list(targets.values())
+    cases = [[v] for v in speeds] + [[a, b] for a in speeds for b in speeds if a != b]
+    records = []
+    for case in cases:
+        for s in range(seeds):
+            r = play(env, policy, case, switch_at, 30_000 + s, rng)
+            records.append({"commands": case, **r})
+    falls = sum(r["fell"] for r in records)
+    err = [abs(r["speed"] - r["commands"][-1]) for r in records if not r["fell"]]
+    return {
+        "score": float(sum(err) + 10.0 * falls),
+        "falls": int(falls),
+        "episodes": len(records),
+        "mean_error": float(np.mean(err)) if err else float("nan"),
+        "episodes_detail": records,
+    }
+
+
+def train_commanded(cfg: CommandedConfig) -> dict:
+    """Train the commanded agent, keep a measured snapshot every `eval_every` steps, export the best.
+
+    Returns:
+        The chosen snapshot's record (step, fine measurement).
+    """
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)
+    p = cfg.preset
+    cfg.work_dir.mkdir(parents=True, exist_ok=True)
+    commands = list(cfg.targets.values())
+    venv = VecNormalize(
+        DummyVecEnv(
+            [lambda: Monitor(SpeedCommand(gym.make(cfg.env_id), commands, 1.0 / cfg.switch_every, cfg.seed))]
+        ),
+        gamma=p.gamma,
+    )
+    venv.seed(cfg.seed)
+    eval_env = gym.make(cfg.env_id)
+    act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
+    model = PPO(
+        "MlpPolicy",
+        venv,
+        n_steps=p.n_steps,
+        batch_size=p.batch_size,
+        n_epochs=p.n_epochs,
+        learning_rate=p.learning_rate,
+        gamma=p.gamma,
+        gae_lambda=p.gae_lambda,
+        clip_range=p.clip_range,
+        ent_coef=p.ent_coef,
+        vf_coef=p.vf_coef,
+        max_grad_norm=p.max_grad_norm,
+        policy_kwargs=dict(
+            log_std_init=p.log_std_init,
+            ortho_init=p.ortho_init,
+            activation_fn=act,
+            net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
+        ),
+        seed=cfg.seed,
+        device="cpu",
+        verbose=0,
+    )
+    records: list[dict] = []
+    start = time.time()
+
+    class Snapshotter(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps % cfg.eval_every == 0:
+                path = cfg.work_dir / f"step_{self.num_timesteps:08d}"
+                state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
+                meta.extra = {"command": commands[0]}
+                save_behaviour(path, state, meta)
+                m = command_score(eval_env, load_behaviour(path, eval_env.action_space), cfg.targets,
+                                  cfg.switch_at, cfg.eval_seeds)  # fmt: skip
+                records.append(
+                    {"step": self.num_timesteps, **{k: v for k, v in m.items() if k != "episodes_detail"}}
+                )
+                (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
+                fps = self.num_timesteps / (time.time() - start)
+                print(
+                    f"step {self.num_timesteps:>8d}  score {m['score']:7.2f}  falls {m['falls']}/{m['episodes']}  "
+                    f"speed error {m['mean_error']:.3f}  {fps:5.0f} steps/s",
+                    flush=True,
+                )
+            return True
+
+    model.learn(total_timesteps=cfg.total_timesteps, callback=Snapshotter())
+    return select_commanded(cfg, records)
+
+
+def select_commanded(cfg: CommandedConfig, records: list[dict]) -> dict:
+    """Measure the `candidates` best coarse snapshots on `final_seeds` episodes per case; export the best."""
+    env = gym.make(cfg.env_id)
+    best = None
+    for rec in sorted(records, key=lambda r: r["score"])[: cfg.candidates]:
+        policy = load_behaviour(cfg.work_dir / f"step_{rec['step']:08d}", env.action_space)
+        fine = {
+            "step": rec["step"],
+            **command_score(env, policy, cfg.targets, cfg.switch_at, cfg.final_seeds),
+        }
+        print(
+            f"step {rec['step']:>8d}: fine score {fine['score']:.2f}, falls {fine['falls']}/{fine['episodes']}"
+        )
+        if best is None or fine["score"] < best["score"]:
+            best = fine
+    if best is None:
+        raise ValueError(f"no snapshots in {cfg.work_dir}")
+    policy = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
+    state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
+    for old in [*cfg.out_dir.glob("*.safetensors"), *cfg.out_dir.glob("*.json")]:
+        old.unlink()  # a level no longer commanded must not be collected
+    for level, speed in cfg.targets.items():
+        holds = [r for r in best["episodes_detail"] if r["commands"] == [speed] and not r["fell"]]
+        meta = policy.meta
+        meta.level, meta.train_step = level, best["step"]
+        meta.mean_speed = float(np.mean([r["speed"] for r in holds])) if holds else None
+        meta.std_speed = float(np.std([r["speed"] for r in holds])) if holds else None
+        meta.extra = {
+            "command": speed,
+            "target_speed": speed,
+            "commanded": True,
+            "fine_falls": best["falls"],
+            "fine_episodes": best["episodes"],
+        }
+        save_behaviour(cfg.out_dir / level, state, meta)
+    return best
+
+
+def write_commanded_provenance(cfg: CommandedConfig, best: dict, command: str) -> Path:
+    """`<out_dir>/TRAINED_WITH.md`: the command, packages, hyperparameters and the chosen snapshot's cases."""
+    from importlib.metadata import version
+
+    pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
+    rows = {}
+    for r in best["episodes_detail"]:
+        key = " -> ".join(f"{c:g}" for c in r["commands"])
+        rows.setdefault(key, []).append(r)
+    table = markdown_table(
+        ("commanded (m/s)", "episodes", "fell", "speed of the last command (mean +- std)"),
+        [
+            (
+                k,
+                len(v),
+                sum(r["fell"] for r in v),
+                "{:.3f} +- {:.3f}".format(
+                    np.mean([r["speed"] for r in v if not r["fell"]] or [np.nan]),
+                    np.std([r["speed"] for r in v if not r["fell"]] or [np.nan]),
+                ),
+            )
+            for k, v in rows.items()
+        ],
+    )
+    text = f"""# Behaviour agent for {cfg.env_id}: one speed-commanded actor
+
+Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
+
+```bash
+{command}
+```
+
+Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
+
+One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
+(on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force
+(`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
+{cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}),
+{cfg.eval_seeds} stochastic episodes each; the {cfg.candidates} best were measured again on {cfg.final_seeds}
+episodes each, and step {best["step"]} was kept:
+
+{table}
+
+Speeds: mean x-velocity over the last command's steps after a 100-step transient.
+"""
+    path = cfg.out_dir / "TRAINED_WITH.md"
+    path.write_text(text)
+    return path

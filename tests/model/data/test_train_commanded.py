@@ -1,0 +1,89 @@
+"""The speed-commanded behaviour agent: its training wrapper, commanded snapshots, and the switch measurement."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from model.data.train_commanded import CommandedConfig, SpeedCommand, play
+
+ENV = "Hopper-v5"
+
+
+def test_the_command_is_appended_tracked_and_changed():
+    env = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0)
+    assert env.observation_space.shape == (12,)  # Hopper's 11 + the command
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (12,) and obs[-1] in (1.0, 2.2) and obs[-1] == env.command
+    seen = []
+    for _ in range(4):
+        before = env.command
+        obs, reward, terminated, _, info = env.step(np.zeros(3, np.float32))
+        v, fwd = info["x_velocity"], info["reward_forward"]
+        base = info["reward_survive"] + info["reward_ctrl"]  # Hopper's reward without its forward term
+        assert reward == pytest.approx(base + before - abs(v - before))  # tracked: the command of this step
+        assert env.command != before and obs[-1] == env.command  # switch_prob 1: every step
+        assert fwd == pytest.approx(v)
+        seen.append(env.command)
+        if terminated:
+            break
+    assert set(seen) == {1.0, 2.2}
+    held = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0)
+    held.reset(seed=0)
+    first = held.command
+    for _ in range(5):
+        held.step(np.zeros(3, np.float32))
+    assert held.command == first
+
+
+def test_a_commanded_snapshot_reads_its_command(tmp_path):
+    env = gym.make(ENV)
+    torch.manual_seed(0)
+    state = {
+        "mean_net.0.weight": 0.1 * torch.randn(8, 12),
+        "mean_net.0.bias": torch.zeros(8),
+        "mean_net.2.weight": 0.1 * torch.randn(3, 8),
+        "mean_net.2.bias": torch.zeros(3),
+        "log_std": torch.zeros(3),
+    }
+    meta = BehaviourMeta(ENV, "slow", [8], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
+    save_behaviour(tmp_path / "slow", state, meta)
+    policy = load_behaviour(tmp_path / "slow", env.action_space)
+    obs = np.linspace(-0.5, 0.5, 11)
+    expected = torch.tanh(
+        torch.as_tensor(np.append(obs, 1.0), dtype=torch.float32) @ state["mean_net.0.weight"].T
+    )
+    expected = (expected @ state["mean_net.2.weight"].T).clamp(-1, 1).numpy()
+    np.testing.assert_allclose(policy.act(obs), expected, rtol=1e-5, atol=1e-6)
+    slow = policy.act(obs)
+    policy.command = 2.2
+    assert not np.allclose(policy.act(obs), slow)  # the command changes the action
+    batch = policy.act(np.stack([obs, obs]))
+    assert batch.shape == (2, 3)
+
+
+class _Recorder:
+    """A stand-in actor that stands still and records the command it was given at each step."""
+
+    def __init__(self):
+        self.command, self.seen = None, []
+
+    def act(self, obs, rng=None):
+        self.seen.append(self.command)
+        return np.zeros(3, np.float32)
+
+
+def test_play_switches_the_command_at_the_given_step():
+    env = gym.make(ENV)
+    rec = _Recorder()
+    out = play(env, rec, [1.0, 2.2], switch_at=5, seed=0, rng=np.random.default_rng(0))
+    assert rec.seen[:5] == [1.0] * 5 and set(rec.seen[5:]) <= {2.2}
+    assert out["fell"] == (len(rec.seen) < 1000)  # a Hopper that does nothing falls over
+
+
+def test_commanded_levels_need_two_numeric_speeds():
+    with pytest.raises(ValueError, match="at least two"):
+        CommandedConfig(ENV, {"slow": 1.0})
+    with pytest.raises(ValueError, match="numeric"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": "max"})
