@@ -66,8 +66,8 @@ class CollectConfig:
             pose the level cannot leave). Counted per level; the random policy is never filtered.
         stuck_window: Steps averaged by the standstill test.
         drop_falls: Replace snapshot episodes that end in a fall (termination). A level's policy that falls
-            shows a failure, not its goal; Hopper's slow level started from a sprint falls in about half of
-            its episodes, and those would teach the model that braking means falling. Counted per level;
+            shows a failure, not its goal (a level started from another's states may fall while changing
+            speed), and such episodes would teach the model that braking means falling. Counted per level;
             the random policy is never filtered.
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         pool_start: Level -> share of its episodes that start from a state visited by the other policies
