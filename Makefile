@@ -47,7 +47,7 @@ proto: $(VENV)/.installed-dev
 data: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env HalfCheetah-v5
 	$(BIN)/gmt data collect --env Hopper-v5 --no-random  # see behaviour/hopper/TRAINED_WITH.md
-	$(BIN)/gmt data collect --env Walker2d-v5 --no-random  # the random policy falls within ~20 steps (docs/results.md)
+	$(BIN)/gmt data collect --env Walker2d-v5 --no-random  # see behaviour/walker2d/TRAINED_WITH.md
 	$(BIN)/gmt data collect --env Ant-v5 --no-random  # see behaviour/ant/TRAINED_WITH.md
 	$(BIN)/gmt data collect --env ALE/Breakout-v5     # scripted RAM agents, ~5 min (docs/breakout-data.md)
 
