@@ -41,6 +41,7 @@ MODES = ("argmax", "sample", "expert", "mean")  # index stored per slot
 # recovers from (6 of 15 switches out of the random goal failed uncapped; 0 of 15 capped at 0.1).
 SAMPLE_STD_CAP = 0.1
 EXPERT_QUANTILE = 0.6
+TORCH_ROW_MULTIPLE = 8  # the torch step runs batches padded to a multiple of this many rows (exactness)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
@@ -605,11 +606,14 @@ class PolicyEngine(PolicyRuntime):
         return self._native(prev, g, states, t, p.cache, slots, goal if blend else None, w if blend else None)
 
     def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
-        if len(slots) == 1:
-            # A lone row is run twice (same slot, same values): a one-row matrix product takes a GEMV path
-            # whose last bit differs from the batched GEMM, and batched == unbatched must hold exactly.
-            two = [np.repeat(x, 2, axis=0) for x in (slots, t, g, goal, w, states)]
-            return self._predict_incremental(*two)[:1]
+        n = len(slots)
+        if n % TORCH_ROW_MULTIPLE:
+            # The BLAS kernel behind a matrix product depends on its row count, and a row's last bit on the
+            # kernel: one row takes a GEMV path, and on AVX-512 here the rows past a multiple of 4 take another
+            # micro-kernel. Padding every batch to a multiple of 8 rows (repeats of the last row: same slot,
+            # same values) keeps batched == unbatched exact.
+            pad = np.concatenate([np.arange(n), np.full(-n % TORCH_ROW_MULTIPLE, n - 1)])
+            return self._predict_incremental(*[x[pad] for x in (slots, t, g, goal, w, states)])[:n]
         if (
             np.diff(slots) < 0
         ).any():  # rows in slot order: consecutive slots are read from the cache as views

@@ -320,9 +320,9 @@ class GMT(nn.Module):
     @staticmethod
     def _slot_reader(slots: torch.Tensor):
         """A function reading rows `slots` [B] of a cache [n_slots, ...]: a view where it can, else a gather."""
+        # No broadcast view for repeated slots: torch folds a product with a stride-0 batch into one larger
+        # matrix product, whose last bits differ from the per-row products of other batches.
         B, first = slots.shape[0], int(slots[0])
-        if bool((slots == first).all()):  # one slot (a lone row runs twice): broadcast it
-            return lambda cache: cache[first : first + 1].expand(B, *cache.shape[1:])
         if bool((slots == torch.arange(first, first + B)).all()):  # consecutive slots
             return lambda cache: cache[first : first + B]
         return lambda cache: cache.index_select(0, slots)
