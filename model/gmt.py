@@ -280,7 +280,7 @@ class GMT(nn.Module):
             states: [B, *obs_shape] normalised states of timestep t.
             timesteps: [B] t.
             cache: the key/value pool.
-            slots: [B] distinct slot of each row.
+            slots: [B] slot of each row (a slot repeats only in identical rows: padding).
             blend_to: optional [B] second goal of a gradual switch.
             blend_w: optional [B] weight of `blend_to`.
 
