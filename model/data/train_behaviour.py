@@ -334,26 +334,12 @@ def other_levels_pool(cfg: BehaviourTrainConfig, level: str):
     return build_pool(env, others, cfg.pool_episodes, cfg.seed + 777)
 
 
-def _train_run(
-    cfg: BehaviourTrainConfig, work_dir: Path, track: float | None, level: str | None = None
-) -> list[dict]:
-    """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
+def make_ppo(venv, p: PPOPreset, seed: int):
+    """An SB3 PPO learner with preset `p` on the (normalised) vector env `venv`, on the CPU."""
     from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    torch.set_num_threads(1)
-    p = cfg.preset
-    work_dir.mkdir(parents=True, exist_ok=True)
-    pool = other_levels_pool(cfg, level) if cfg.pool_start > 0 else None
-    venv = VecNormalize(
-        DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed)]),
-        gamma=p.gamma,
-    )
-    venv.seed(cfg.seed)
-    eval_env = gym.make(cfg.env_id)
     act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
-    model = PPO(
+    return PPO(
         "MlpPolicy",
         venv,
         n_steps=p.n_steps,
@@ -372,10 +358,30 @@ def _train_run(
             activation_fn=act,
             net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
         ),
-        seed=cfg.seed,
+        seed=seed,
         device="cpu",
         verbose=0,
     )
+
+
+def _train_run(
+    cfg: BehaviourTrainConfig, work_dir: Path, track: float | None, level: str | None = None
+) -> list[dict]:
+    """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    torch.set_num_threads(1)
+    p = cfg.preset
+    work_dir.mkdir(parents=True, exist_ok=True)
+    pool = other_levels_pool(cfg, level) if cfg.pool_start > 0 else None
+    venv = VecNormalize(
+        DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed)]),
+        gamma=p.gamma,
+    )
+    venv.seed(cfg.seed)
+    eval_env = gym.make(cfg.env_id)
+    model = make_ppo(venv, p, cfg.seed)
     records: list[dict] = []
     start = time.time()
 

@@ -25,7 +25,7 @@ import torch
 
 from clients.tables import markdown_table
 from model.data.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
-from model.data.train_behaviour import PRESETS, PPOPreset, export_actor
+from model.data.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo
 
 
 class SpeedCommand(gym.Wrapper):
@@ -172,7 +172,6 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     Returns:
         The chosen snapshot's record (step, fine measurement).
     """
-    from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
@@ -189,30 +188,7 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     )
     venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
-    act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
-    model = PPO(
-        "MlpPolicy",
-        venv,
-        n_steps=p.n_steps,
-        batch_size=p.batch_size,
-        n_epochs=p.n_epochs,
-        learning_rate=p.learning_rate,
-        gamma=p.gamma,
-        gae_lambda=p.gae_lambda,
-        clip_range=p.clip_range,
-        ent_coef=p.ent_coef,
-        vf_coef=p.vf_coef,
-        max_grad_norm=p.max_grad_norm,
-        policy_kwargs=dict(
-            log_std_init=p.log_std_init,
-            ortho_init=p.ortho_init,
-            activation_fn=act,
-            net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
-        ),
-        seed=cfg.seed,
-        device="cpu",
-        verbose=0,
-    )
+    model = make_ppo(venv, p, cfg.seed)
     records: list[dict] = []
     start = time.time()
 
