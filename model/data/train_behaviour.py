@@ -334,12 +334,19 @@ def other_levels_pool(cfg: BehaviourTrainConfig, level: str):
     return build_pool(env, others, cfg.pool_episodes, cfg.seed + 777)
 
 
-def make_ppo(venv, p: PPOPreset, seed: int):
-    """An SB3 PPO learner with preset `p` on the (normalised) vector env `venv`, on the CPU."""
-    from stable_baselines3 import PPO
+def make_ppo(make_env, p: PPOPreset, seed: int):
+    """An SB3 PPO learner with preset `p`, on the CPU, over one env from `make_env` with normalised observations.
 
+    Returns:
+        The learner and its `VecNormalize` env (whose statistics a snapshot exports).
+    """
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    venv = VecNormalize(DummyVecEnv([make_env]), gamma=p.gamma)
+    venv.seed(seed)
     act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
-    return PPO(
+    model = PPO(
         "MlpPolicy",
         venv,
         n_steps=p.n_steps,
@@ -362,6 +369,7 @@ def make_ppo(venv, p: PPOPreset, seed: int):
         device="cpu",
         verbose=0,
     )
+    return model, venv
 
 
 def _train_run(
@@ -369,19 +377,15 @@ def _train_run(
 ) -> list[dict]:
     """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
     p = cfg.preset
     work_dir.mkdir(parents=True, exist_ok=True)
     pool = other_levels_pool(cfg, level) if cfg.pool_start > 0 else None
-    venv = VecNormalize(
-        DummyVecEnv([lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed)]),
-        gamma=p.gamma,
+    model, venv = make_ppo(
+        lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed), p, cfg.seed
     )
-    venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
-    model = make_ppo(venv, p, cfg.seed)
     records: list[dict] = []
     start = time.time()
 

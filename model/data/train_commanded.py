@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -98,7 +98,7 @@ class CommandedConfig:
     seed: int = 0
     out_dir: Path | None = None
     work_dir: Path | None = None
-    preset: PPOPreset | None = field(default=None)
+    preset: PPOPreset | None = None
 
     def __post_init__(self) -> None:
         slug = env_slug(self.env_id)
@@ -113,12 +113,6 @@ class CommandedConfig:
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
 
 
-def with_command(policy: BehaviourPolicy, command: float) -> BehaviourPolicy:
-    """`policy` (a commanded actor) set to `command`."""
-    policy.command = float(command)
-    return policy
-
-
 def play(env, policy: BehaviourPolicy, commands: list[float], switch_at: int, seed: int, rng) -> dict:
     """One stochastic episode commanded `commands[0]`, then `commands[-1]` from step `switch_at`.
 
@@ -129,7 +123,7 @@ def play(env, policy: BehaviourPolicy, commands: list[float], switch_at: int, se
     speeds, fell = [], False
     start = switch_at if len(commands) > 1 else 0
     for t in range(env.spec.max_episode_steps or 1000):
-        with_command(policy, commands[-1] if t >= start else commands[0])
+        policy.command = float(commands[-1] if t >= start else commands[0])  # a commanded actor
         obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
         speeds.append(float(info["x_velocity"]))
         if terminated or truncated:
@@ -174,21 +168,16 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     """
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
     p = cfg.preset
     cfg.work_dir.mkdir(parents=True, exist_ok=True)
     commands = list(cfg.targets.values())
-    venv = VecNormalize(
-        DummyVecEnv(
-            [lambda: Monitor(SpeedCommand(gym.make(cfg.env_id), commands, 1.0 / cfg.switch_every, cfg.seed))]
-        ),
-        gamma=p.gamma,
+    switch_prob = 1.0 / cfg.switch_every
+    model, venv = make_ppo(
+        lambda: Monitor(SpeedCommand(gym.make(cfg.env_id), commands, switch_prob, cfg.seed)), p, cfg.seed
     )
-    venv.seed(cfg.seed)
     eval_env = gym.make(cfg.env_id)
-    model = make_ppo(venv, p, cfg.seed)
     records: list[dict] = []
     start = time.time()
 
