@@ -59,6 +59,7 @@ class ModelInfo:
     context_length: int
     statistic: str
     goals: list[GoalInfo] = field(default_factory=list)
+    preprocessing: dict | None = None  # the observation pipeline (Atari), None for raw observations
 
     def goal(self, id_or_name: int | str) -> GoalInfo:
         """The goal with this id or name.

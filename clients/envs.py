@@ -37,8 +37,10 @@ def is_atari(env_id: str) -> bool:
 def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:
     """ALE game with DQN preprocessing (frame skip 4, grayscale, square resize, stacking) matching the spec.
 
-    The raw game is returned unchanged when the spec describes raw frames. Preprocessing uses Gymnasium's
-    `AtariPreprocessing` (OpenCV). Both come with the `atari` extra.
+    The raw game is returned unchanged when the spec describes raw frames. The arguments come from the spec's
+    `preprocessing` (what the model's training data declared); a spec without one gets the defaults of
+    `atari_env`, sized by its observation shape. Preprocessing uses Gymnasium's `AtariPreprocessing` (OpenCV).
+    Both come with the `atari` extra.
     """
     require_module("ale_py", "atari", f"environment {env_id}")
     require_module("cv2", "atari", f"environment {env_id}")
@@ -51,8 +53,11 @@ def _make_atari(spec: ModelInfo, env_id: str, max_steps: int | None, render: boo
     if list(raw.observation_space.shape) == shape:
         return raw
     raw.close()
-    size = shape[-1] if shape else 84
-    env = atari_env(env_id, size, shape[0] if len(shape) == 3 else 0, **kw)
+    p = spec.preprocessing or {}
+    size = int(p.get("screen_size", shape[-1] if shape else 84))
+    stack = int(p.get("stack", shape[0] if len(shape) == 3 else 0))
+    args = {k: p[k] for k in ("frame_skip", "noop_max", "repeat_action_probability") if k in p}
+    env = atari_env(env_id, size, stack, **args, **kw)
     # The limit counts agent steps: on the raw game it would count frames, reset's no-ops included.
     return gym.wrappers.TimeLimit(env, max_steps) if max_steps else env
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import queue
 import threading
@@ -112,6 +113,7 @@ def model_from_proto(m: pb.ModelInfo) -> ModelInfo:
         context_length=m.context_length,
         statistic=m.statistic,
         goals=[GoalInfo(g.id, g.name, g.mean, g.std, g.min, g.max, g.count) for g in m.goals],
+        preprocessing=json.loads(m.preprocessing_json) if m.preprocessing_json else None,
     )
 
 

@@ -71,6 +71,7 @@ def model_from_json(d: dict) -> ModelInfo:
         context_length=int(d.get("context_length", 0)),
         statistic=d.get("statistic", ""),
         goals=[GoalInfo(**{k: g[k] for k in GoalInfo.__dataclass_fields__}) for g in d.get("goals", [])],
+        preprocessing=d.get("preprocessing"),
     )
 
 

@@ -44,6 +44,11 @@ class Checkpoint:
         meta: The whole gmt.json (training config, dataset fingerprint, code revision, ...).
         action_noise: [n_goals, A] per-goal action std in model space for sampled continuous actions
             (`model.calibrate`), or None when not calibrated.
+        preprocessing: The observation pipeline of the training data (Atari frames: wrappers and their
+            arguments, from the dataset's metadata), or None for raw environment observations. Clients build
+            their environment from it.
+        default_action_mode: Action mode of sessions that name none (None: the engine's default), e.g.
+            `sample` for a model whose goals differ in how often the data's agents acted at random.
     """
 
     name: str
@@ -57,6 +62,8 @@ class Checkpoint:
     goals: list[Goal]
     meta: dict = field(default_factory=dict)
     action_noise: np.ndarray | None = None
+    preprocessing: dict | None = None
+    default_action_mode: str | None = None
 
     @property
     def config(self) -> GMTConfig:
@@ -100,12 +107,16 @@ def save_checkpoint(ckpt: Checkpoint, directory: str | Path, extra_meta: dict | 
             "env_id": ckpt.env_id,
             "observation_space": ckpt.observation_space,
             "action_space": ckpt.action_space,
+            **({"preprocessing": ckpt.preprocessing} if ckpt.preprocessing else {}),
         },
         "normalization": {"observation": ckpt.obs_norm.to_dict(), "action": ckpt.action_codec.to_dict()},
         "statistic": ckpt.statistic,
         "goals": [asdict(g) for g in ckpt.goals],
     }
     meta.pop("action_noise", None)
+    meta.pop("default_action_mode", None)
+    if ckpt.default_action_mode:
+        meta["default_action_mode"] = ckpt.default_action_mode
     if ckpt.action_noise is not None:
         meta["action_noise"] = {
             "std": np.asarray(ckpt.action_noise, dtype=np.float32).astype(np.float64).tolist(),
@@ -177,6 +188,8 @@ def load_checkpoint(directory: str | Path, name: str | None = None) -> Checkpoin
         goals=[Goal(**g) for g in meta["goals"]],
         meta=meta,
         action_noise=_action_noise(meta, cfg, meta_path),
+        preprocessing=env.get("preprocessing"),
+        default_action_mode=meta.get("default_action_mode"),
     )
 
 

@@ -222,12 +222,20 @@ class PolicyEngine(PolicyRuntime):
         noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] std or None
         # [n_goals, A] variance of the capped noise `sample` adds (interpolated during a blend).
         self.noise_var = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP).astype(np.float64) ** 2
-        # Default first: argmax for discrete actions; sample for calibrated continuous models (it reproduces
-        # the goal statistics measured under the behaviour noise), else mean.
+        # Default first: expert for discrete actions (paper A.1.3); sample for calibrated continuous models (it
+        # reproduces the goal statistics measured under the behaviour noise), else mean. A checkpoint may name
+        # its own default.
         if self.discrete:
             self.action_modes: tuple[str, ...] = ACTION_MODES
         else:
             self.action_modes = CONTINUOUS_MODES if self.noise_var is not None else ("mean",)
+        default = checkpoint.default_action_mode
+        if default is not None:  # the checkpoint's own default goes first
+            if default not in self.action_modes:
+                raise ValueError(
+                    f"checkpoint default_action_mode {default!r} is not one of {self.action_modes}"
+                )
+            self.action_modes = (default, *(m for m in self.action_modes if m != default))
         self._lock = threading.RLock()
         self.pool = SessionPool(self, n_slots)
         self._arange_h = np.arange(self.pool.H)

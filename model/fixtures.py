@@ -29,12 +29,15 @@ def tiny_checkpoint(
     n_layer: int = 2,
     observation_space: gym.spaces.Space | None = None,
     statistic: str = "mean_x_velocity",
+    preprocessing: dict | None = None,
+    default_action_mode: str | None = None,
 ) -> Checkpoint:
     """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
 
     The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded. `calibrated` gives a
     continuous-action model a synthetic action noise (std 0.1 * (goal + 1)), enabling its `sample` mode.
-    `observation_space` replaces the environment's (e.g. preprocessed Atari frames [stack, H, W]).
+    `observation_space` replaces the environment's (e.g. preprocessed Atari frames [stack, H, W]);
+    `preprocessing` and `default_action_mode` are stored as a trained checkpoint would store them.
     """
     if env_id.startswith("ALE/"):
         import ale_py
@@ -96,6 +99,8 @@ def tiny_checkpoint(
             if calibrated and not discrete
             else None
         ),
+        preprocessing=preprocessing,
+        default_action_mode=default_action_mode,
     )
     if directory is not None:
         save_checkpoint(ckpt, directory)

@@ -267,6 +267,7 @@ def train(
         goals=goals,
         meta=meta,
         action_noise=noise,
+        preprocessing=dataset.preprocessing,
     )
     save_checkpoint(ckpt, out)
     par.close()

@@ -51,6 +51,7 @@ class ModelView:
     goals: list[Goal]
     discrete_actions: bool
     action_modes: tuple[str, ...]  # the first is the default
+    preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
 
 
 @dataclass(frozen=True)
@@ -234,6 +235,7 @@ class Core:
             goals=list(c.goals),
             discrete_actions=c.config.discrete_actions,
             action_modes=m.engine.describe().action_modes,
+            preprocessing=c.preprocessing,
         )
 
     def list_models(self) -> list[ModelView]:

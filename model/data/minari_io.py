@@ -12,6 +12,7 @@ Data root: `$GMT_DATA_DIR` if set, else `data/minari` in the repository. It is M
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import warnings
@@ -65,6 +66,8 @@ class OfflineDataset:
         action_space: The environment's action space.
         episodes: All episodes, in dataset order.
         fingerprint: sha256 hex of the observation, action and reward bytes (checkpoint provenance).
+        preprocessing: The observation pipeline the collector declared in metadata.json (Atari frames), or None
+            for raw environment observations.
     """
 
     dataset_id: str
@@ -73,6 +76,7 @@ class OfflineDataset:
     action_space: gym.spaces.Space
     episodes: list[Episode]
     fingerprint: str
+    preprocessing: dict | None = None
 
     @property
     def n_transitions(self) -> int:
@@ -197,7 +201,8 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
     """
     from minari import MinariDataset
 
-    ds = MinariDataset(resolve(dataset, data_dir))
+    path = resolve(dataset, data_dir)
+    ds = MinariDataset(path)
     obs_space, act_space = ds.observation_space, ds.action_space
     if not isinstance(obs_space, gym.spaces.Box):
         raise ValueError(f"{dataset}: only Box observation spaces are supported, got {obs_space}")
@@ -231,7 +236,8 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
                 episode_id=int(raw.id),
             )
         )
-    return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes))
+    prep = json.loads((Path(path) / "metadata.json").read_text()).get("preprocessing")
+    return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes), prep)
 
 
 def write_dataset(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict
 
@@ -39,6 +40,7 @@ def model_info(v: ModelView) -> pb.ModelInfo:
         context_length=v.context_length,
         statistic=v.statistic,
         goals=[pb.Goal(**asdict(g)) for g in v.goals],
+        preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
     )
 
 

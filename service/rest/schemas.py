@@ -85,6 +85,11 @@ class ModelOut(BaseModel):
     goals: list[GoalOut]
     discrete_actions: bool
     action_modes: list[str] = Field(description="Accepted `action_mode` values; the first is the default.")
+    preprocessing: dict | None = Field(
+        default=None,
+        description="The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
+        "arguments), to reproduce observations client-side; null for raw environment observations.",
+    )
 
     @classmethod
     def of(cls, v: ModelView) -> ModelOut:
@@ -99,6 +104,7 @@ class ModelOut(BaseModel):
             goals=[GoalOut(**asdict(g)) for g in v.goals],
             discrete_actions=v.discrete_actions,
             action_modes=list(v.action_modes),
+            preprocessing=v.preprocessing,
         )
 
 

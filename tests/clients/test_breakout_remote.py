@@ -17,6 +17,13 @@ pytest.importorskip("cv2")  # AtariPreprocessing
 
 FRAMES = gym.spaces.Box(0, 255, (4, 84, 84), np.uint8)  # 4 stacked 84 x 84 grayscale frames
 STEPS = 40
+PREPROCESSING = {
+    "screen_size": 84,
+    "stack": 4,
+    "frame_skip": 4,
+    "noop_max": 30,
+    "repeat_action_probability": 0.25,
+}
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +36,7 @@ def breakout_server(tmp_path_factory, serve_root):
         observation_space=FRAMES,
         statistic="return",
         context_length=4,
+        preprocessing=PREPROCESSING,
     )
     return serve_root(root)
 
@@ -62,6 +70,15 @@ def test_frames_go_out_and_discrete_actions_come_back(episodes, kind):
     assert trace.server_step == list(range(len(trace)))  # every frame was one step of the session
     assert all(isinstance(a, int) and 0 <= a < 4 for a in trace.action)
     assert len(set(trace.action)) > 1  # sampled from the logits (expert mode), not a constant
+
+
+@pytest.mark.parametrize("kind", ["rest", "grpc"])
+def test_the_model_spec_declares_its_preprocessing(breakout_server, kind):
+    client = (
+        RestClient(breakout_server.rest_url) if kind == "rest" else GrpcClient(breakout_server.grpc_target)
+    )
+    with client as c:
+        assert c.get_model("tiny-breakout").preprocessing == PREPROCESSING
 
 
 def test_every_transport_answers_the_same_actions(episodes):

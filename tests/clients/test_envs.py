@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import pytest
 
 from clients.base import ModelInfo
 from clients.envs import SpaceMismatch, describe_space, make_env
 
+PONG_ACTIONS = {"type": "discrete", "n": 6, "shape": []}
 PONG_FRAMES = {"type": "box", "shape": [210, 160, 3], "dtype": "uint8", "low": None, "high": None}
 
 
@@ -20,6 +22,24 @@ def test_atari_spec_of_raw_frames_gets_the_raw_game():
         obs, _ = env.reset(seed=0)
         assert obs.shape == (210, 160, 3) and env.action_space.n == 6
         assert env.step(0)[0].shape == (210, 160, 3)
+    finally:
+        env.close()
+
+
+def test_atari_frames_follow_the_specs_declared_preprocessing():
+    frames = {"type": "box", "shape": [2, 48, 48], "dtype": "uint8", "low": None, "high": None}
+    prep = {"screen_size": 48, "stack": 2, "frame_skip": 2, "noop_max": 0, "repeat_action_probability": 0.0}
+    s = ModelInfo(
+        "m", "ALE/Pong-v5", frames, PONG_ACTIONS, context_length=5, statistic="return", preprocessing=prep
+    )
+    env = make_env(s, max_steps=3)
+    try:
+        prep = env
+        while not isinstance(prep, gym.wrappers.AtariPreprocessing):
+            prep = prep.env
+        assert prep.frame_skip == 2 and prep.noop_max == 0 and prep.screen_size == (48, 48)
+        assert env.unwrapped.ale.getFloat("repeat_action_probability") == 0.0
+        assert env.reset(seed=0)[0].shape == (2, 48, 48)
     finally:
         env.close()
 

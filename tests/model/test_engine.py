@@ -240,6 +240,18 @@ def test_discrete_modes_pick_valid_actions(tmp_path):
         assert (runs[0] == runs[1]) == (mode != "sample"), mode
 
 
+def test_a_checkpoint_names_its_default_action_mode(tmp_path):
+    tiny_checkpoint(tmp_path / "c", env_id="CartPole-v1", default_action_mode="sample")
+    ckpt = load_checkpoint(tmp_path / "c")  # stored in gmt.json and read back
+    assert ckpt.default_action_mode == "sample"
+    engine = PolicyEngine(ckpt)
+    assert engine.action_modes == ("sample", "expert", "argmax") and engine.default_action_mode == "sample"
+    assert engine.new_context(0).action_mode == "sample"
+    ckpt.default_action_mode = "mean"  # not a discrete mode
+    with pytest.raises(ValueError, match="default_action_mode 'mean'"):
+        PolicyEngine(ckpt)
+
+
 def test_continuous_sample_mode_adds_the_goals_calibrated_noise():
     ckpt = tiny_checkpoint(context_length=5)
     assert PolicyEngine(ckpt).action_modes == ("mean",)  # uncalibrated: deterministic only

@@ -41,7 +41,7 @@ def test_ram_gives_ball_paddle_and_score(env):
     assert moved[2] > moved[0] and moved[-1] < moved[2]  # RIGHT moves the paddle right, LEFT back
     # With the paddle kept under it (the calibrated offset), it bounces back up instead.
     env.reset(seed=0)
-    agent, rng, ys = b.make_agent("strong"), np.random.default_rng(0), []
+    agent, rng, ys = b.TrackingAgent(b.Skill("aim")), np.random.default_rng(0), []  # predicts the landing x
     for _ in range(60):
         env.step(agent.act(b.read_ram(env), rng))
         ys.append(b.read_ram(env).ball_y)
@@ -105,6 +105,7 @@ def test_tiny_collection_reads_back(tmp_path):
     )
     meta = json.loads((res.path / "metadata.json").read_text())
     assert meta["preprocessing"]["observation_shape"] == [4, 64, 64] and meta["max_episode_steps"] == 40
+    assert ds.preprocessing == meta["preprocessing"]  # what a checkpoint trained on it declares
     assert meta["jpeg_encoding"] is False and meta["max_burst"] == 30
     import h5py
 
