@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve cluster cluster-down test lint proto data train eval bench constraints clean
+.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -59,6 +59,16 @@ train: $(VENV)/.installed-train
 eval: $(VENV)/.installed-eval
 	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 2 --json $(CHECKPOINT)/eval.json \
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
+
+# The exact commands behind the shipped checkpoints/breakout-gmt (its PROVENANCE.md): ~40 min on 2 cores.
+train-breakout: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/breakout/mixed-v0 --out checkpoints/breakout-gmt --statistic return --k 3 \
+		--attention window --context-length 4 --sequence-length 8 --batch-size 64 --steps 14000 --lr 5e-4 \
+		--warmup-steps 300 --threads 2 --seed 0 --log-every 50 --save-every 2000 --default-action-mode sample
+
+eval-breakout: $(VENV)/.installed-eval $(VENV)/.installed-atari
+	$(BIN)/gmt eval checkpoints/breakout-gmt --seeds 15 --threads 2 --json checkpoints/breakout-gmt/eval.json \
+		--markdown checkpoints/breakout-gmt/eval.md --plot checkpoints/breakout-gmt/eval.png
 
 # Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
 # transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.

@@ -126,6 +126,9 @@ class TrainConfig:
             attention (a window model must learn from sequences longer than its span).
         device: Where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda. Under
             `torchrun`, every process trains on its share of each batch (`model.distributed`).
+        default_action_mode: Action mode of sessions that name none, stored in the checkpoint (None: the
+            engine's default, `expert` for discrete actions), e.g. `sample` when the goals differ in how often
+            the data's agents acted at random.
     """
 
     steps: int = 20000
@@ -148,6 +151,7 @@ class TrainConfig:
     bf16: bool = False
     sequence_length: int = 0
     device: Device = "auto"
+    default_action_mode: str | None = None
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -161,6 +165,11 @@ class TrainConfig:
             raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
         if self.sequence_length < 0:
             raise ValueError(f"sequence_length must be >= 0, got {self.sequence_length}")
+        if self.default_action_mode not in (None, "expert", "argmax", "sample", "mean"):
+            raise ValueError(
+                "default_action_mode must be expert, argmax or sample (discrete) or sample or mean "
+                f"(continuous), got {self.default_action_mode!r}"
+            )
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
         if self.warmup_steps < 0 or self.lr <= 0:

@@ -126,6 +126,7 @@ class SyntheticDataset:
         env.close()
         rng = np.random.default_rng(seed)
         self.env_id, self.dataset_id, self.fingerprint = "HalfCheetah-v5", "synthetic", f"synthetic-{seed}"
+        self.preprocessing = None  # raw observations
         self.labels = [i % n_goals for i in range(n_episodes)]
         self.episodes = []
         for g in self.labels:

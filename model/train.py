@@ -267,7 +267,8 @@ def train(
         goals=goals,
         meta=meta,
         action_noise=noise,
-        preprocessing=dataset.preprocessing,
+        preprocessing=getattr(dataset, "preprocessing", None),
+        default_action_mode=tc.default_action_mode,
     )
     save_checkpoint(ckpt, out)
     par.close()

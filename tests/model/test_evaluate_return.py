@@ -44,7 +44,7 @@ def test_the_protocol_holds_every_goal_and_switches_low_middle_high_both_ways():
     assert c.goal_at(299) == c.first and c.goal_at(300) == c.second
 
 
-def test_switch_returns_add_up_and_are_judged_against_the_holds_per_step_returns():
+def test_switch_returns_add_up_and_are_judged_against_the_share_weighted_holds():
     res = evaluate_returns(_ckpt(), seeds=[0, 1], steps=60, switch_at=20, progress=False)
     d = res.to_dict()
     assert [h["goal"] for h in d["holds"]] == [0, 1, 2] and len(d["switches"]) == 6
@@ -56,22 +56,20 @@ def test_switch_returns_add_up_and_are_judged_against_the_holds_per_step_returns
     for s in d["switches"]:
         np.testing.assert_allclose(np.add(s["before"], s["after"]), s["returns"])
         n = np.asarray(s["lengths"])
-        per_step = np.mean([min(k, 20) * rates[s["first"]] + max(k - 20, 0) * rates[s["second"]] for k in n])
-        assert s["expected"] == pytest.approx(per_step)
-        assert s["within_20pct"] == (abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))
         share = np.mean(np.minimum(n, 20) / n)
         assert s["share_first"] == pytest.approx(share)
-        assert s["expected_share"] == pytest.approx(
-            share * means[s["first"]] + (1 - share) * means[s["second"]]
-        )
-        assert s["within_20pct_share"] == (
-            abs(s["mean"] - s["expected_share"]) <= 0.2 * abs(s["expected_share"])
+        assert s["expected"] == pytest.approx(share * means[s["first"]] + (1 - share) * means[s["second"]])
+        assert s["within_20pct"] == (abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))
+        per_step = np.mean([min(k, 20) * rates[s["first"]] + max(k - 20, 0) * rates[s["second"]] for k in n])
+        assert s["expected_per_step"] == pytest.approx(per_step)
+        assert s["within_20pct_per_step"] == (
+            abs(s["mean"] - s["expected_per_step"]) <= 0.2 * abs(s["expected_per_step"])
         )
     assert d["summary"]["switches_within_20pct"] == sum(s["within_20pct"] for s in d["switches"])
     assert expected_return(10.0, 40.0, 0.3) == pytest.approx(31.0)  # the paper's 0.3 / 0.7 example
 
 
-def test_the_per_step_expectation_is_the_papers_formula_for_full_length_episodes():
+def test_the_per_step_expectation_agrees_with_the_papers_formula_for_full_length_episodes():
     # Holds of 1000 steps earning 10 and 40: a 1000-step switch at 300 expects 0.3 x 10 + 0.7 x 40.
     assert expected_return_per_step(np.array([1000, 1000]), 300, 10 / 1000, 40 / 1000) == pytest.approx(31.0)
     # A game over at step 200 never reaches the second goal: only the first goal's rate counts.

@@ -74,8 +74,18 @@ def test_resume_continues_exactly(tmp_path):
 
 def test_checkpoint_round_trip_is_exact(tmp_path):
     ds = SyntheticDataset()
-    ckpt = train(ds, ds.labels, ds.goals, tmp_path / "c", _tc(steps=5), SMALL, progress=False)
+    ds.preprocessing = {"screen_size": 7}  # what a collector declared; the checkpoint carries it on
+    ckpt = train(
+        ds,
+        ds.labels,
+        ds.goals,
+        tmp_path / "c",
+        _tc(steps=5, default_action_mode="mean"),
+        SMALL,
+        progress=False,
+    )
     loaded = load_checkpoint(tmp_path / "c")
+    assert loaded.preprocessing == {"screen_size": 7} and loaded.default_action_mode == "mean"
     assert state_dicts_equal(ckpt.model, loaded.model)
     assert loaded.config == ckpt.config and loaded.goals == ckpt.goals and loaded.env_id == "HalfCheetah-v5"
     assert np.array_equal(loaded.obs_norm.mean, ckpt.obs_norm.mean)

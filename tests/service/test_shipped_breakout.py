@@ -1,0 +1,60 @@
+"""The shipped Breakout checkpoint, served for real: frames go out over REST and gRPC, and the goal changes play.
+
+A real server on a loopback port serves `checkpoints/breakout-gmt`; the client builds its environment from the
+preprocessing the model declares (`GET /models/{name}`) and steps real ALE Breakout. The high goal must score
+more than the low goal over the same seeds (the low goal's data acts at random most of the time), and a goal
+change mid-episode over gRPC must take effect at the step it was made.
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+from service_harness import RunningServer, make_settings
+
+from clients.grpc import GrpcClient
+from clients.rest import RestClient
+from clients.runner import RunConfig, run
+
+pytest.importorskip("ale_py")
+pytest.importorskip("cv2")  # AtariPreprocessing
+
+CKPT = Path(__file__).resolve().parents[2] / "checkpoints" / "breakout-gmt"
+STEPS, SEEDS = 300, 3
+
+
+@pytest.fixture(scope="module")
+def server():
+    if not (CKPT / "gmt.json").is_file():
+        pytest.fail("checkpoints/breakout-gmt is not shipped")
+    s = RunningServer(make_settings(checkpoints=[CKPT])).start()
+    yield s
+    s.stop()
+
+
+def test_the_spec_declares_the_training_datas_preprocessing(server):
+    declared = json.loads((CKPT / "gmt.json").read_text())["env"]["preprocessing"]
+    with RestClient(server.url) as c:
+        spec = c.get_model("breakout-gmt")
+    assert spec.preprocessing == declared and declared["observation_shape"] == [4, 64, 64]
+    with GrpcClient(server.target) as c:
+        assert c.get_model("breakout-gmt").preprocessing == declared
+
+
+def test_the_high_goal_outscores_the_low_goal_over_rest(server):
+    total = {}
+    for goal in ("low", "high"):
+        cfg = RunConfig(model="breakout-gmt", goal=goal, steps=STEPS, episodes=SEEDS, transport="rest")
+        with RestClient(server.url) as c:
+            eps = run(c, cfg, echo=lambda _: None)
+        assert all(a in range(4) for e in eps for a in e.trace.action)
+        total[goal] = sum(sum(e.trace.reward) for e in eps)
+    assert total["high"] > total["low"] + 5, total
+
+
+def test_a_goal_change_over_grpc_takes_effect_at_its_step(server):
+    cfg = RunConfig(model="breakout-gmt", goal="high", schedule=[(100, "low")], steps=150, transport="grpc")
+    with GrpcClient(server.target) as c:
+        (ep,) = run(c, cfg, echo=lambda _: None)
+    goals = ep.trace.goal
+    assert set(goals[:100]) == {2} and set(goals[100:]) == {0}, goals
