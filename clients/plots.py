@@ -13,7 +13,11 @@ from clients.segments import MOVING_AVERAGE, Segment, moving_average
 def plot_episode(
     path: Path, signal: Sequence[float], segments: Sequence[Segment], statistic: str, title: str
 ) -> Path:
-    """Draw the per-step signal, its moving average, dashed lines at goal changes, and target ± tolerance bands."""
+    """Draw the per-step signal, its moving average, dashed lines at goal changes, and target ± tolerance bands.
+
+    A summed statistic (`return`, segments with `within` None) is drawn as its running total, each segment
+    shaded and labelled with its sum.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -21,6 +25,16 @@ def plot_episode(
 
     fig, ax = plt.subplots(figsize=(10, 4), dpi=100)
     steps = np.arange(len(signal))
+    if segments and segments[0].within is None:  # a summed statistic (return): its running total
+        ax.plot(steps, np.nancumsum(signal), color="C0", lw=1.8, label=f"{statistic} so far")
+        for s in segments:
+            c = f"C{1 + s.goal % 9}"
+            ax.axvspan(
+                s.start, s.end, color=c, alpha=0.15, label=f"goal {s.goal} ({s.name}): +{s.achieved:g}"
+            )
+            if s.start > 0:
+                ax.axvline(s.start, color="k", ls="--", lw=1)
+        return _finish(fig, ax, path, statistic, title)
     ax.plot(steps, signal, color="0.75", lw=0.8, label="per step")
     ax.plot(steps, moving_average(signal), color="C0", lw=1.8, label=f"moving average ({MOVING_AVERAGE})")
     seen: set[int] = set()
@@ -47,6 +61,12 @@ def plot_episode(
         )
         if s.start > 0:
             ax.axvline(s.start, color="k", ls="--", lw=1)
+    return _finish(fig, ax, path, statistic, title)
+
+
+def _finish(fig, ax, path: Path, statistic: str, title: str) -> Path:
+    import matplotlib.pyplot as plt
+
     ax.set_xlabel("step")
     ax.set_ylabel(statistic)
     ax.set_title(title)

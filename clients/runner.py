@@ -280,7 +280,12 @@ def run(
                     files = [video.close(), video.write_strip()] if video is not None else []
                     files = [f for f in files if f is not None]
             res = EpisodeResult(
-                ep, seed, session.id, trace, measure(trace.goal, trace.signal, spec.goals), terminated
+                ep,
+                seed,
+                session.id,
+                trace,
+                measure(trace.goal, trace.signal, spec.goals, spec.statistic),
+                terminated,
             )
             if cfg.out is not None:
                 res.files = _write_outputs(res, spec, cfg, env_id) + files

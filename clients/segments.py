@@ -6,6 +6,10 @@ is measured after a settle-in of min(100, length // 4) steps: the mean of the pe
 the rest (`achieved`), compared with the goal's dataset mean within `tolerance`. An episode succeeds when it
 never terminated early and every segment is `within` tolerance.
 
+A statistic that sums its signal (`return`) is measured as the sum over the whole segment, with no settle-in
+and no judgement (`within` None): its goals are whole-episode returns, which part of an episode cannot be held
+to (`gmt eval` judges such models on whole episodes, `model/evaluate_return.py`).
+
 Torch-free (numpy only), like everything under `clients/`.
 """
 
@@ -17,6 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
+from clients.statistics import is_sum
 from clients.tables import text_table
 
 SETTLE_MAX = 100
@@ -100,9 +105,9 @@ class Segment:
         end: One past the last step.
         measured_from: First measured step (start + settle-in).
         target: The goal's dataset mean of the statistic.
-        tolerance: Allowed distance from the target.
-        achieved: Mean signal over [measured_from, end).
-        within: Whether |achieved - target| <= tolerance.
+        tolerance: Allowed distance from the target (None when not judged).
+        achieved: Mean signal over [measured_from, end); for a summed statistic, the sum over [start, end).
+        within: Whether |achieved - target| <= tolerance; None for a summed statistic (not judged).
     """
 
     goal: int
@@ -111,27 +116,35 @@ class Segment:
     end: int
     measured_from: int
     target: float
-    tolerance: float
+    tolerance: float | None
     achieved: float
-    within: bool
+    within: bool | None
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
         return asdict(self)
 
 
-def measure(goals: Sequence[int], signal: Sequence[float], table: Sequence[GoalLike]) -> list[Segment]:
+def measure(
+    goals: Sequence[int], signal: Sequence[float], table: Sequence[GoalLike], statistic: str = ""
+) -> list[Segment]:
     """The segments of one episode, from the goal acted on at each step and the step's signal.
 
     Args:
         goals: Goal id of each step's action.
         signal: The statistic's per-step signal.
         table: The model's goal table (ids, names and dataset means).
+        statistic: The statistic's name; one that sums (`return`) is summed per segment and not judged.
     """
     by_id = {g.id: g for g in table}
     segs = []
+    summed = is_sum(statistic)
     for (g, a, b), (_, m, _) in zip(runs(goals), measured_spans(goals), strict=True):
         goal = by_id[g]
+        if summed:
+            total = float(np.nansum(np.asarray(signal, dtype=np.float64)[a:b]))
+            segs.append(Segment(g, goal.name, a, b, a, goal.mean, None, total, None))
+            continue
         value, tol = achieved(signal, m, b), tolerance(goal, table)
         segs.append(Segment(g, goal.name, a, b, m, goal.mean, tol, value, within(value, goal.mean, tol)))
     return segs
@@ -145,9 +158,9 @@ def table(segments: Sequence[Segment], statistic: str) -> str:
             f"{s.goal} ({s.name})",
             f"{s.start}-{s.end - 1}",
             f"{s.measured_from}-{s.end - 1}",
-            f"{s.target:.3f} ± {s.tolerance:.3f}",
+            f"{s.target:.3f} ± {s.tolerance:.3f}" if s.within is not None else f"{s.target:.3f} per episode",
             f"{s.achieved:.3f}",
-            "yes" if s.within else "no",
+            "-" if s.within is None else "yes" if s.within else "no",
         )
         for s in segments
     ]

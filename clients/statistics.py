@@ -152,6 +152,12 @@ def aggregate(name: str, values: np.ndarray | list[float]) -> float:
     return float(get_statistic(name).aggregate(np.asarray(values, dtype=np.float64)))
 
 
+def is_sum(name: str) -> bool:
+    """Whether statistic `name` sums its per-step signal (e.g. `return`): a segment's value is then a sum over
+    that segment, not comparable with a whole episode's value. Unknown names are not sums."""
+    return name in _REGISTRY and _REGISTRY[name].aggregate is _sum
+
+
 def _sum(values: np.ndarray) -> float:
     return float(np.sum(values))
 

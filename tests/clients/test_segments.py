@@ -55,6 +55,26 @@ def test_measure_reads_any_goal_table():
         assert all(s.within for s in segs) and segs[1].tolerance == pytest.approx(tolerance(table[1], table))
 
 
+def test_a_summed_statistic_is_summed_over_each_whole_segment_and_not_judged():
+    table = [GoalInfo(0, "low", 4.0, 1, 0, 9, 5), GoalInfo(1, "high", 30.0, 5, 20, 50, 5)]
+    reward = np.r_[np.ones(40), np.zeros(10), np.full(20, 2.0), [np.nan]]  # NaN: a step after the game ended
+    segs = measure([1] * 50 + [0] * 21, reward, table, "return")
+    assert [(s.goal, s.start, s.measured_from, s.end, s.achieved) for s in segs] == [
+        (1, 0, 0, 50, 40.0),
+        (0, 50, 50, 71, 40.0),
+    ]
+    assert all(s.within is None and s.tolerance is None for s in segs)
+    assert "30.000 per episode" in text_table_of(segs)
+    mean = measure([1] * 50 + [0] * 21, reward, table, "mean_x_velocity")  # the same signal, averaged
+    assert mean[0].achieved == pytest.approx(np.mean(reward[settle_in(50) : 50])) and mean[0].within is False
+
+
+def text_table_of(segs):
+    from clients.segments import table
+
+    return table(segs, "return")
+
+
 def test_tables():
     assert text_table(("a", "bb"), [(1, "x"), (22, "")], align="><") == " a  bb\n--  --\n 1  x\n22"
     assert markdown_table(("a", "b"), [(1, 2)]) == "| a | b |\n| --- | --- |\n| 1 | 2 |"
