@@ -126,6 +126,10 @@ class TrainConfig:
             attention (a window model must learn from sequences longer than its span).
         device: Where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda. Under
             `torchrun`, every process trains on its share of each batch (`model.distributed`).
+        augment_shift: Image models: largest random shift of each training sequence's frames, in pixels
+            (`model.augment`; 0 = off).
+        augment_degrees: Image models: largest random rotation of each training sequence's frames, in degrees
+            (0 = off).
         default_action_mode: Action mode of sessions that name none, stored in the checkpoint (None: the
             engine's default, `expert` for discrete actions), e.g. `sample` when the goals differ in how often
             the data's agents acted at random.
@@ -151,6 +155,8 @@ class TrainConfig:
     bf16: bool = False
     sequence_length: int = 0
     device: Device = "auto"
+    augment_shift: float = 0.0
+    augment_degrees: float = 0.0
     default_action_mode: str | None = None
     extra: dict = field(default_factory=dict)
 
@@ -165,6 +171,8 @@ class TrainConfig:
             raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
         if self.sequence_length < 0:
             raise ValueError(f"sequence_length must be >= 0, got {self.sequence_length}")
+        if self.augment_shift < 0 or self.augment_degrees < 0:
+            raise ValueError("augment_shift and augment_degrees must be >= 0")
         if self.default_action_mode not in (None, "expert", "argmax", "sample", "mean"):
             raise ValueError(
                 "default_action_mode must be expert, argmax or sample (discrete) or sample or mean "

@@ -14,6 +14,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from clients.spaces import space_to_dict
+from model.augment import augment_frames
 from model.calibrate import action_noise
 from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from model.config import GMTConfig, TrainConfig
@@ -174,6 +175,9 @@ def train(
         disable=not (progress and par.is_main),
         desc="train",
     )
+    augment = bool(tc.augment_shift or tc.augment_degrees)
+    if augment and not cfg.is_image:
+        raise ValueError("augment_shift / augment_degrees apply to image observations only")
     for step in bar:
         for g in opt.param_groups:
             g["lr"] = lr_at(step, tc)
@@ -183,6 +187,8 @@ def train(
             goals_in = w.rtg
         else:
             goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
+        if augment:  # before taking this process's rows: every process augments the same global batch
+            w = replace(w, states=augment_frames(w.states, tc.augment_shift, tc.augment_degrees, gen))
         counts = loss_counts(w.actions, w.valid, cfg.discrete_actions) if par.world > 1 else None
         w, goals_in = w.select(rows).to(par.device), goals_in[rows].to(par.device)
         with torch.autocast(par.device.type, dtype=torch.bfloat16, enabled=tc.bf16):

@@ -3,13 +3,14 @@
 import json
 import pickle
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from model.checkpoint import META, WEIGHTS, CheckpointError, load_checkpoint, state_dicts_equal
 from model.config import TrainConfig
-from model.fixtures import SyntheticDataset
+from model.fixtures import SyntheticDataset, _Episode
 from model.losses import gmt_loss
 from model.train import RESUME_DIR, build_sampler, model_config_for, train
 
@@ -155,3 +156,36 @@ def test_window_model_trains_on_longer_sequences_and_records_its_span(tmp_path):
     del meta["model"]["attention"]  # a checkpoint written before the field existed reads as full
     (tmp_path / "w" / META).write_text(json.dumps(meta))
     assert load_checkpoint(tmp_path / "w").config.attention == "full"
+
+
+class _Frames:
+    """A tiny image dataset: 4 x 36 x 36 uint8 frames (the smallest the Nature CNN takes) with a dot whose column tells the action."""
+
+    def __init__(self, n_episodes: int = 6, length: int = 20) -> None:
+        self.observation_space = gym.spaces.Box(0, 255, (4, 36, 36), np.uint8)
+        self.action_space = gym.spaces.Discrete(4)
+        self.env_id, self.dataset_id, self.fingerprint, self.preprocessing = "ALE/Breakout-v5", "f", "f", None
+        rng = np.random.default_rng(0)
+        self.labels = [i % 3 for i in range(n_episodes)]
+        self.episodes = []
+        for _ in self.labels:
+            col = rng.integers(0, 36, size=length)
+            obs = np.zeros((length, 4, 36, 36), np.uint8)
+            obs[np.arange(length), :, 18, col] = 255
+            self.episodes.append(_Episode(obs, (col // 9).astype(np.int64), np.ones(length, np.float32)))
+        self.goals = SyntheticDataset().goals
+
+
+def test_frame_augmentation_trains_reproducibly_and_only_on_images(tmp_path):
+    ds = _Frames()
+    tc = _tc(steps=4, augment_shift=2.0, augment_degrees=5.0)
+    a = train(ds, ds.labels, ds.goals, tmp_path / "a", tc, SMALL, progress=False)
+    b = train(ds, ds.labels, ds.goals, tmp_path / "b", tc, SMALL, progress=False)
+    plain = train(ds, ds.labels, ds.goals, tmp_path / "p", _tc(steps=4), SMALL, progress=False)
+    assert state_dicts_equal(a.model, b.model) and not state_dicts_equal(a.model, plain.model)
+    assert a.meta["training"]["augment_shift"] == 2.0
+    vec = SyntheticDataset()
+    with pytest.raises(ValueError, match="image observations only"):
+        train(vec, vec.labels, vec.goals, tmp_path / "v", tc, SMALL, progress=False)
+    with pytest.raises(ValueError, match="augment_shift"):
+        TrainConfig(augment_shift=-1)
