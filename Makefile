@@ -49,7 +49,7 @@ data: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env Hopper-v5 --no-random  # see behaviour/hopper/TRAINED_WITH.md
 	$(BIN)/gmt data collect --env Walker2d-v5 --no-random  # see behaviour/walker2d/TRAINED_WITH.md
 	$(BIN)/gmt data collect --env Ant-v5 --no-random  # see behaviour/ant/TRAINED_WITH.md
-	$(BIN)/gmt data collect --env ALE/Breakout-v5     # scripted RAM agents, ~5 min (docs/breakout-data.md)
+	$(BIN)/gmt data collect --env ALE/Breakout-v5     # scripted RAM agents, ~3 min (docs/breakout-data.md)
 
 # The exact command behind the shipped checkpoint (35 minutes on 2 threads here; see its PROVENANCE.md).
 train: $(VENV)/.installed-train
