@@ -60,6 +60,7 @@ class ModelInfo:
     statistic: str
     goals: list[GoalInfo] = field(default_factory=list)
     preprocessing: dict | None = None  # the observation pipeline (Atari), None for raw observations
+    action_modes: list[str] = field(default_factory=list)  # accepted action modes, the default first
 
     def goal(self, id_or_name: int | str) -> GoalInfo:
         """The goal with this id or name.

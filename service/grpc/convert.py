@@ -41,6 +41,7 @@ def model_info(v: ModelView) -> pb.ModelInfo:
         statistic=v.statistic,
         goals=[pb.Goal(**asdict(g)) for g in v.goals],
         preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
+        action_modes=list(v.action_modes),
     )
 
 

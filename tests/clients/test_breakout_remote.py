@@ -78,7 +78,9 @@ def test_the_model_spec_declares_its_preprocessing(breakout_server, kind):
         RestClient(breakout_server.rest_url) if kind == "rest" else GrpcClient(breakout_server.grpc_target)
     )
     with client as c:
-        assert c.get_model("tiny-breakout").preprocessing == PREPROCESSING
+        spec = c.get_model("tiny-breakout")
+    assert spec.preprocessing == PREPROCESSING
+    assert spec.action_modes == ["expert", "argmax", "sample"]  # discrete: expert first (paper A.1.3)
 
 
 def test_every_transport_answers_the_same_actions(episodes):

@@ -37,8 +37,10 @@ def test_the_spec_declares_the_training_datas_preprocessing(server):
     with RestClient(server.url) as c:
         spec = c.get_model("breakout-gmt")
     assert spec.preprocessing == declared and declared["observation_shape"] == [4, 64, 64]
+    assert spec.action_modes[0] == "sample"  # the checkpoint's default_action_mode
     with GrpcClient(server.target) as c:
-        assert c.get_model("breakout-gmt").preprocessing == declared
+        g = c.get_model("breakout-gmt")
+    assert g.preprocessing == declared and g.action_modes == spec.action_modes
 
 
 def test_the_high_goal_outscores_the_low_goal_over_rest(server):

@@ -75,7 +75,7 @@ class Goal(_message.Message):
     def __init__(self, id: _Optional[int] = ..., name: _Optional[str] = ..., mean: _Optional[float] = ..., std: _Optional[float] = ..., min: _Optional[float] = ..., max: _Optional[float] = ..., count: _Optional[int] = ...) -> None: ...
 
 class ModelInfo(_message.Message):
-    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json")
+    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json", "action_modes")
     NAME_FIELD_NUMBER: _ClassVar[int]
     ENV_ID_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_SPACE_FIELD_NUMBER: _ClassVar[int]
@@ -84,6 +84,7 @@ class ModelInfo(_message.Message):
     STATISTIC_FIELD_NUMBER: _ClassVar[int]
     GOALS_FIELD_NUMBER: _ClassVar[int]
     PREPROCESSING_JSON_FIELD_NUMBER: _ClassVar[int]
+    ACTION_MODES_FIELD_NUMBER: _ClassVar[int]
     name: str
     env_id: str
     observation_space: Space
@@ -92,7 +93,8 @@ class ModelInfo(_message.Message):
     statistic: str
     goals: _containers.RepeatedCompositeFieldContainer[Goal]
     preprocessing_json: str
-    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ...) -> None: ...
+    action_modes: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ..., action_modes: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from")
