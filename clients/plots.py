@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from clients.segments import MOVING_AVERAGE, Segment, moving_average
+from clients.statistics import is_sum
 
 
 def plot_episode(
@@ -15,7 +16,7 @@ def plot_episode(
 ) -> Path:
     """Draw the per-step signal, its moving average, dashed lines at goal changes, and target ± tolerance bands.
 
-    A summed statistic (`return`, segments with `within` None) is drawn as its running total, each segment
+    A summed statistic (`return`) is drawn as its running total, each segment
     shaded and labelled with its sum.
     """
     import matplotlib
@@ -25,7 +26,7 @@ def plot_episode(
 
     fig, ax = plt.subplots(figsize=(10, 4), dpi=100)
     steps = np.arange(len(signal))
-    if segments and segments[0].within is None:  # a summed statistic (return): its running total
+    if is_sum(statistic):  # a summed statistic (return): its running total
         ax.plot(steps, np.nancumsum(signal), color="C0", lw=1.8, label=f"{statistic} so far")
         for s in segments:
             c = f"C{1 + s.goal % 9}"

@@ -138,11 +138,11 @@ def measure(
     """
     by_id = {g.id: g for g in table}
     segs = []
-    summed = is_sum(statistic)
+    summed = np.asarray(signal, dtype=np.float64) if is_sum(statistic) else None
     for (g, a, b), (_, m, _) in zip(runs(goals), measured_spans(goals), strict=True):
         goal = by_id[g]
-        if summed:
-            total = float(np.nansum(np.asarray(signal, dtype=np.float64)[a:b]))
+        if summed is not None:
+            total = float(np.nansum(summed[a:b]))
             segs.append(Segment(g, goal.name, a, b, a, goal.mean, None, total, None))
             continue
         value, tol = achieved(signal, m, b), tolerance(goal, table)

@@ -19,6 +19,7 @@ from model.calibrate import action_noise
 from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from model.config import GMTConfig, TrainConfig
 from model.distributed import Parallel
+from model.engine import ACTION_MODES, CONTINUOUS_MODES
 from model.gmt import GMT
 from model.losses import gmt_loss, loss_counts
 from model.masking import mask_goals
@@ -154,6 +155,14 @@ def train(
     par = Parallel.from_env(tc.device)
     torch.manual_seed(tc.seed)
     cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
+    augment = bool(tc.augment_shift or tc.augment_degrees)
+    if augment and not cfg.is_image:
+        raise ValueError("augment_shift / augment_degrees apply to image observations only")
+    modes = ACTION_MODES if cfg.discrete_actions else CONTINUOUS_MODES
+    if tc.default_action_mode is not None and tc.default_action_mode not in modes:
+        raise ValueError(
+            f"default_action_mode {tc.default_action_mode!r} is not one of {modes} for this model"
+        )
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
     model = GMT(cfg).to(par.device)
     dt = cfg.conditioning == "return"
@@ -175,9 +184,6 @@ def train(
         disable=not (progress and par.is_main),
         desc="train",
     )
-    augment = bool(tc.augment_shift or tc.augment_degrees)
-    if augment and not cfg.is_image:
-        raise ValueError("augment_shift / augment_degrees apply to image observations only")
     for step in bar:
         for g in opt.param_groups:
             g["lr"] = lr_at(step, tc)
@@ -273,7 +279,7 @@ def train(
         goals=goals,
         meta=meta,
         action_noise=noise,
-        preprocessing=getattr(dataset, "preprocessing", None),
+        preprocessing=dataset.preprocessing,
         default_action_mode=tc.default_action_mode,
     )
     save_checkpoint(ckpt, out)

@@ -12,7 +12,6 @@ Data root: `$GMT_DATA_DIR` if set, else `data/minari` in the repository. It is M
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import shutil
 import warnings
@@ -201,8 +200,7 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
     """
     from minari import MinariDataset
 
-    path = resolve(dataset, data_dir)
-    ds = MinariDataset(path)
+    ds = MinariDataset(resolve(dataset, data_dir))
     obs_space, act_space = ds.observation_space, ds.action_space
     if not isinstance(obs_space, gym.spaces.Box):
         raise ValueError(f"{dataset}: only Box observation spaces are supported, got {obs_space}")
@@ -236,7 +234,7 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
                 episode_id=int(raw.id),
             )
         )
-    prep = json.loads((Path(path) / "metadata.json").read_text()).get("preprocessing")
+    prep = ds.storage.metadata.get("preprocessing")
     return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes), prep)
 
 

@@ -189,3 +189,12 @@ def test_frame_augmentation_trains_reproducibly_and_only_on_images(tmp_path):
         train(vec, vec.labels, vec.goals, tmp_path / "v", tc, SMALL, progress=False)
     with pytest.raises(ValueError, match="augment_shift"):
         TrainConfig(augment_shift=-1)
+
+
+def test_a_default_action_mode_the_model_cannot_serve_is_refused_before_training(tmp_path):
+    ds = SyntheticDataset()  # continuous actions: sample or mean
+    with pytest.raises(ValueError, match="default_action_mode 'expert'"):
+        train(
+            ds, ds.labels, ds.goals, tmp_path / "c", _tc(default_action_mode="expert"), SMALL, progress=False
+        )
+    assert not (tmp_path / "c" / META).exists()
