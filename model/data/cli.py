@@ -93,10 +93,19 @@ def commanded(
     timesteps: int = typer.Option(2_000_000, help="PPO environment steps."),
     eval_every: int = typer.Option(50_000, help="Steps between measured snapshots."),
     switch_every: int = typer.Option(300, help="Mean steps between command changes in training episodes."),
+    track_weight: float = typer.Option(
+        1.0, help="Weight of the speed-tracking error in the training reward."
+    ),
+    cycle_every: int = typer.Option(
+        None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."
+    ),
     eval_seeds: int = typer.Option(2, help="Episodes per hold and per switch in a snapshot's measurement."),
     final_seeds: int = typer.Option(8, help="Episodes per hold and per switch when choosing among the best."),
     seed: int = typer.Option(0, help="Seed of PPO and of the measurements."),
     out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/<env>/)."),
+    work_dir: Path = typer.Option(
+        None, help="Where every snapshot is kept (default runs/behaviour/<env>/commanded)."
+    ),
     select_only: bool = typer.Option(False, help="Skip training; choose among the kept snapshots."),
 ) -> None:
     """Train one speed-commanded PPO agent that switches between levels; export each level (`train` extra)."""
@@ -120,10 +129,13 @@ def commanded(
         total_timesteps=timesteps,
         eval_every=eval_every,
         switch_every=switch_every,
+        track_weight=track_weight,
+        cycle_every=cycle_every,
         eval_seeds=eval_seeds,
         final_seeds=final_seeds,
         seed=seed,
         out_dir=out_dir,
+        work_dir=work_dir,
     )
     if select_only:
         best = select_commanded(cfg, json.loads((cfg.work_dir / "records.json").read_text()))

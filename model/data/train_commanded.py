@@ -32,11 +32,13 @@ class SpeedCommand(gym.Wrapper):
     """Training-only: a commanded speed appended to the observation, changed at random steps, and tracked.
 
     The reward is `SpeedTent`'s for the command in force: the environment's reward with its forward term
-    replaced by `command - |x_velocity - command|`.
+    replaced by `command - track_weight * |x_velocity - command|`. A weight above 1 makes a slow change of speed
+    cost more against the risk of falling while changing.
     """
 
-    def __init__(self, env, commands: list[float], switch_prob: float, seed: int):
+    def __init__(self, env, commands: list[float], switch_prob: float, seed: int, track_weight: float = 1.0):
         super().__init__(env)
+        self.track_weight = float(track_weight)
         self.commands = np.asarray(commands, dtype=np.float64)
         self.switch_prob = float(switch_prob)
         self.rng = np.random.default_rng(seed)
@@ -60,7 +62,12 @@ class SpeedCommand(gym.Wrapper):
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         v = float(info["x_velocity"])
-        reward = float(reward) - float(info["reward_forward"]) + self.command - abs(v - self.command)
+        reward = (
+            float(reward)
+            - float(info["reward_forward"])
+            + self.command
+            - self.track_weight * abs(v - self.command)
+        )
         if len(self.commands) > 1 and self.rng.random() < self.switch_prob:  # from the next step on
             self.command = float(self.rng.choice(self.commands[self.commands != self.command]))
         return self._obs(obs), reward, terminated, truncated, {**info, "command": self.command}
@@ -76,6 +83,9 @@ class CommandedConfig:
         total_timesteps: PPO environment steps.
         eval_every: Steps between snapshots (each is measured by `command_score`).
         switch_every: Mean steps between command changes in training episodes.
+        track_weight: Weight of the speed-tracking error in the training reward (`SpeedCommand`).
+        cycle_every: Snapshots are also measured cycling through the levels every this many steps (the GMT
+            protocol's multi-switch), so fast changes of speed are chosen; None to measure holds and switches only.
         switch_at: Step of the command change in the measurement episodes.
         eval_seeds: Episodes per hold and per ordered switch in a coarse measurement.
         final_seeds: Episodes per hold and per switch when the best coarse snapshots are measured again.
@@ -91,6 +101,8 @@ class CommandedConfig:
     total_timesteps: int = 2_000_000
     eval_every: int = 50_000
     switch_every: int = 300
+    track_weight: float = 1.0
+    cycle_every: int | None = None
     switch_at: int = 500
     eval_seeds: int = 2
     final_seeds: int = 8
@@ -108,6 +120,10 @@ class CommandedConfig:
             raise ValueError(f"commanded levels need numeric speeds, got {self.targets}")
         if self.switch_every < 1 or not 0 < self.switch_at < 1000:
             raise ValueError("switch_every must be >= 1 and switch_at within an episode (0, 1000)")
+        if self.track_weight <= 0:
+            raise ValueError(f"track_weight must be > 0, got {self.track_weight}")
+        if self.cycle_every is not None and not 4 <= self.cycle_every < 1000:
+            raise ValueError(f"cycle_every must be within [4, 1000), got {self.cycle_every}")
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
         self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug / "commanded")
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
@@ -119,27 +135,54 @@ def play(env, policy: BehaviourPolicy, commands: list[float], switch_at: int, se
     Returns:
         Whether it fell, and the mean x-velocity of the last command's segment after a 100-step transient.
     """
-    obs, _ = env.reset(seed=seed)
+    schedule = [(0, commands[0])] + ([(switch_at, commands[-1])] if len(commands) > 1 else [])
+    out = play_schedule(env, policy, schedule, seed, rng)
+    return {"fell": out["fell"], "speed": out["speeds"][-1]}
+
+
+def play_schedule(env, policy: BehaviourPolicy, schedule: list[tuple[int, float]], seed: int, rng) -> dict:
+    """One stochastic episode following `schedule` ([(step, command), ...], the first at step 0).
+
+    Returns:
+        Whether it fell, and per segment the mean x-velocity after its settle-in of min(100, length // 4) steps
+        (the GMT protocol's), NaN for a segment the episode did not reach.
+    """
+    steps = env.spec.max_episode_steps or 1000
+    bounds = [s for s, _ in schedule] + [steps]
     speeds, fell = [], False
-    start = switch_at if len(commands) > 1 else 0
-    for t in range(env.spec.max_episode_steps or 1000):
-        policy.command = float(commands[-1] if t >= start else commands[0])  # a commanded actor
+    obs, _ = env.reset(seed=seed)
+    for t in range(steps):
+        policy.command = float([c for s, c in schedule if s <= t][-1])  # a commanded actor
         obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
         speeds.append(float(info["x_velocity"]))
         if terminated or truncated:
             fell = bool(terminated)
             break
-    tail = speeds[start + 100 :]
-    return {"fell": fell, "speed": float(np.mean(tail)) if tail else float("nan")}
+    means = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        seg = speeds[a + min(100, (b - a) // 4) : b]
+        means.append(float(np.mean(seg)) if seg else float("nan"))
+    return {"fell": fell, "speeds": means}
+
+
+def cycle_schedule(commands: list[float], every: int, steps: int = 1000) -> list[tuple[int, float]]:
+    """Cycle through `commands` every `every` steps, as the GMT protocol's multi-switch does."""
+    return [(s, commands[(s // every) % len(commands)]) for s in range(0, steps, every)]
 
 
 def command_score(
-    env, policy: BehaviourPolicy, targets: dict[str, float], switch_at: int, seeds: int
+    env,
+    policy: BehaviourPolicy,
+    targets: dict[str, float],
+    switch_at: int,
+    seeds: int,
+    cycle_every: int | None = None,
 ) -> dict:
-    """Holds of every level and every ordered switch, `seeds` stochastic episodes each.
+    """Holds of every level, every ordered switch and (with `cycle_every`) a multi-switch cycle, `seeds` each.
 
-    The score (lower is better) adds, over every episode, the distance of the measured speed from its command,
-    plus 10 per episode that fell.
+    The score (lower is better) adds, over every episode, the mean distance of its segments' measured speeds
+    from their commands (the last segment only for a switch, as there the first is a hold), plus 10 per episode
+    that fell.
     """
     rng = np.random.default_rng(30_000)
     speeds = list(targets.values())
@@ -148,9 +191,15 @@ def command_score(
     for case in cases:
         for s in range(seeds):
             r = play(env, policy, case, switch_at, 30_000 + s, rng)
-            records.append({"commands": case, **r})
+            records.append({"commands": case, **r, "error": abs(r["speed"] - case[-1])})
+    if cycle_every is not None:
+        schedule = cycle_schedule(speeds, cycle_every)
+        for s in range(seeds):
+            r = play_schedule(env, policy, schedule, 30_000 + s, rng)
+            err = float(np.mean([abs(v - c) for v, (_, c) in zip(r["speeds"], schedule, strict=True)]))
+            records.append({"commands": [f"every {cycle_every}"], "fell": r["fell"], "error": err})
     falls = sum(r["fell"] for r in records)
-    err = [abs(r["speed"] - r["commands"][-1]) for r in records if not r["fell"]]
+    err = [r["error"] for r in records if not r["fell"]]
     return {
         "score": float(sum(err) + 10.0 * falls),
         "falls": int(falls),
@@ -175,7 +224,11 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     commands = list(cfg.targets.values())
     switch_prob = 1.0 / cfg.switch_every
     model, venv = make_ppo(
-        lambda: Monitor(SpeedCommand(gym.make(cfg.env_id), commands, switch_prob, cfg.seed)), p, cfg.seed
+        lambda: Monitor(
+            SpeedCommand(gym.make(cfg.env_id), commands, switch_prob, cfg.seed, cfg.track_weight)
+        ),
+        p,
+        cfg.seed,
     )
     eval_env = gym.make(cfg.env_id)
     records: list[dict] = []
@@ -189,7 +242,7 @@ def train_commanded(cfg: CommandedConfig) -> dict:
                 meta.extra = {"command": commands[0]}
                 save_behaviour(path, state, meta)
                 m = command_score(eval_env, load_behaviour(path, eval_env.action_space), cfg.targets,
-                                  cfg.switch_at, cfg.eval_seeds)  # fmt: skip
+                                  cfg.switch_at, cfg.eval_seeds, cfg.cycle_every)  # fmt: skip
                 records.append(
                     {"step": self.num_timesteps, **{k: v for k, v in m.items() if k != "episodes_detail"}}
                 )
@@ -214,7 +267,7 @@ def select_commanded(cfg: CommandedConfig, records: list[dict]) -> dict:
         policy = load_behaviour(cfg.work_dir / f"step_{rec['step']:08d}", env.action_space)
         fine = {
             "step": rec["step"],
-            **command_score(env, policy, cfg.targets, cfg.switch_at, cfg.final_seeds),
+            **command_score(env, policy, cfg.targets, cfg.switch_at, cfg.final_seeds, cfg.cycle_every),
         }
         print(
             f"step {rec['step']:>8d}: fine score {fine['score']:.2f}, falls {fine['falls']}/{fine['episodes']}"
@@ -251,22 +304,21 @@ def write_commanded_provenance(cfg: CommandedConfig, best: dict, command: str) -
     pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
     rows = {}
     for r in best["episodes_detail"]:
-        key = " -> ".join(f"{c:g}" for c in r["commands"])
+        key = " -> ".join(c if isinstance(c, str) else f"{c:g}" for c in r["commands"])
         rows.setdefault(key, []).append(r)
+
+    def measured(v: list[dict]) -> str:
+        kept = [r for r in v if not r["fell"]]
+        if "speed" in v[0]:
+            return "speed {:.3f} +- {:.3f}".format(*_mean_std([r["speed"] for r in kept]))
+        return "segment error {:.3f} +- {:.3f}".format(*_mean_std([r["error"] for r in kept]))
+
     table = markdown_table(
-        ("commanded (m/s)", "episodes", "fell", "speed of the last command (mean +- std)"),
-        [
-            (
-                k,
-                len(v),
-                sum(r["fell"] for r in v),
-                "{:.3f} +- {:.3f}".format(
-                    np.mean([r["speed"] for r in v if not r["fell"]] or [np.nan]),
-                    np.std([r["speed"] for r in v if not r["fell"]] or [np.nan]),
-                ),
-            )
-            for k, v in rows.items()
-        ],
+        ("commanded (m/s)", "episodes", "fell", "last command's speed, or a cycle's mean error per segment"),
+        [(k, len(v), sum(r["fell"] for r in v), measured(v)) for k, v in rows.items()],
+    )
+    cycle = (
+        "" if cfg.cycle_every is None else f" and cycling through the levels every {cfg.cycle_every} steps"
     )
     text = f"""# Behaviour agent for {cfg.env_id}: one speed-commanded actor
 
@@ -279,16 +331,21 @@ Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
 Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
 
 One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
-(on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force
-(`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
-{cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}),
+(on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force with
+weight {cfg.track_weight:g} (`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
+{cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}){cycle},
 {cfg.eval_seeds} stochastic episodes each; the {cfg.candidates} best were measured again on {cfg.final_seeds}
 episodes each, and step {best["step"]} was kept:
 
 {table}
 
-Speeds: mean x-velocity over the last command's steps after a 100-step transient.
+Speeds: mean x-velocity over the last command's steps after a 100-step transient; a cycle's segments are
+measured after min(100, length // 4) steps, as the GMT protocol does.
 """
     path = cfg.out_dir / "TRAINED_WITH.md"
     path.write_text(text)
     return path
+
+
+def _mean_std(x: list[float]) -> tuple[float, float]:
+    return (float(np.mean(x)), float(np.std(x))) if x else (float("nan"), float("nan"))
