@@ -1,0 +1,72 @@
+"""Play a speed-commanded behaviour agent through the GMT evaluation protocol: the ceiling of a GMT imitating it.
+
+A GMT learns its transitions from the behaviour data, so if the commanded agent itself cannot change speed
+within a multi-switch segment's settle-in, no GMT trained on its episodes will. This drives the agent with its
+own commands on the DESIGN.md protocol (15 seeds, holds, switches at 500, cycles every 300 / 200 / 100) and
+judges it against the goal means of its collected data, with the GMT protocol's tolerance and settle-in.
+
+Usage:
+    python tools/behaviour_protocol.py --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clients.segments import achieved, measured_spans, tolerance, within  # noqa: E402
+from model.data.behaviour import load_behaviour  # noqa: E402
+from model.evaluate import protocol  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", required=True, help="Gymnasium id, e.g. Hopper-v5.")
+    ap.add_argument("--levels", nargs="+", required=True, help="Commanded snapshots, slowest first (no suffix).")
+    ap.add_argument("--goals", nargs="+", type=float, required=True, help="The data's goal means, same order.")
+    ap.add_argument("--seeds", type=int, default=15, help="Episodes per condition.")
+    ap.add_argument("--noise-scale", type=float, default=1.0, help="Action-noise multiplier (collection's).")
+    args = ap.parse_args()
+    if len(args.levels) != len(args.goals):
+        ap.error("one goal mean per level")
+    torch.set_num_threads(1)
+    env = gym.make(args.env)
+    levels = [load_behaviour(p, env.action_space) for p in args.levels]
+    if any(p.command is None for p in levels):
+        ap.error("every level must be a commanded snapshot (metadata extra.command)")
+    policy, commands = levels[0], [p.command for p in levels]  # one actor; the levels differ in the command
+    policy.noise_scale = args.noise_scale
+    goals = [SimpleNamespace(id=i, name=str(i), mean=m) for i, m in enumerate(args.goals)]
+    for cond in protocol(len(goals)):
+        per_step = np.zeros(1000, dtype=int)
+        for step, g in cond.schedule:
+            per_step[step:] = g
+        ok = falls = 0
+        for seed in range(args.seeds):
+            obs, _ = env.reset(seed=seed)
+            rng = np.random.default_rng(seed)
+            v = np.full(1000, np.nan)
+            for t in range(1000):
+                policy.command = commands[per_step[t]]
+                obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
+                v[t] = info["x_velocity"]
+                if terminated or truncated:
+                    break
+            falls += bool(terminated)
+            ok += not terminated and all(
+                within(achieved(v, a, b), goals[g].mean, tolerance(goals[g], goals))
+                for g, a, b in measured_spans(per_step)
+            )
+        print(f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
