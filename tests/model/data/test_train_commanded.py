@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from model.data.train_commanded import CommandedConfig, SpeedCommand, play
+from model.data.train_commanded import CommandedConfig, SpeedCommand, cycle_schedule, play, play_schedule
 
 ENV = "Hopper-v5"
 
@@ -29,6 +29,12 @@ def test_the_command_is_appended_tracked_and_changed():
         if terminated:
             break
     assert set(seen) == {1.0, 2.2}
+    weighted = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0, track_weight=3.0)
+    weighted.reset(seed=0)
+    command = weighted.command
+    _, reward, _, _, info = weighted.step(np.zeros(3, np.float32))
+    base = info["reward_survive"] + info["reward_ctrl"]
+    assert reward == pytest.approx(base + command - 3.0 * abs(info["x_velocity"] - command))
     held = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0)
     held.reset(seed=0)
     first = held.command
@@ -82,8 +88,28 @@ def test_play_switches_the_command_at_the_given_step():
     assert out["fell"] == (len(rec.seen) < 1000)  # a Hopper that does nothing falls over
 
 
+def test_a_cycle_follows_the_protocol_and_is_measured_after_each_settle_in():
+    assert cycle_schedule([1.0, 2.2], 300) == [(0, 1.0), (300, 2.2), (600, 1.0), (900, 2.2)]
+    env = gym.make(ENV)
+    rec = _Recorder()
+    out = play_schedule(env, rec, [(0, 1.0), (3, 2.2), (6, 1.0)], seed=0, rng=None)
+    assert rec.seen[:6] == [1.0, 1.0, 1.0, 2.2, 2.2, 2.2] and set(rec.seen[6:]) <= {1.0}
+    assert len(out["speeds"]) == 3 and out["fell"] == (len(rec.seen) < 1000)
+    env.reset(seed=0)  # the same episode again, its speeds recorded by hand
+    speeds = []
+    for _ in range(len(rec.seen)):
+        _, _, terminated, _, info = env.step(np.zeros(3, np.float32))
+        speeds.append(info["x_velocity"])
+    assert out["speeds"][0] == pytest.approx(np.mean(speeds[0:3]))  # settle-in min(100, 3 // 4) = 0
+    assert out["speeds"][1] == pytest.approx(np.mean(speeds[3:6]))
+
+
 def test_commanded_levels_need_two_numeric_speeds():
     with pytest.raises(ValueError, match="at least two"):
         CommandedConfig(ENV, {"slow": 1.0})
     with pytest.raises(ValueError, match="numeric"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": "max"})
+    with pytest.raises(ValueError, match="track_weight"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, track_weight=0.0)
+    with pytest.raises(ValueError, match="cycle_every"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, cycle_every=1000)
