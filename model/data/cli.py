@@ -94,7 +94,8 @@ def commanded(
     eval_every: int = typer.Option(50_000, help="Steps between measured snapshots."),
     switch_every: int = typer.Option(300, help="Mean steps between command changes in training episodes."),
     track_weight: float = typer.Option(
-        1.0, help="Weight of the speed-tracking error in the training reward."
+        1.0,
+        help="Weight of the speed-tracking error in the reward (above 1 a standing agent can prefer falling).",
     ),
     cycle_every: int = typer.Option(
         None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."

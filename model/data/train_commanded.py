@@ -32,8 +32,9 @@ class SpeedCommand(gym.Wrapper):
     """Training-only: a commanded speed appended to the observation, changed at random steps, and tracked.
 
     The reward is `SpeedTent`'s for the command in force: the environment's reward with its forward term
-    replaced by `command - track_weight * |x_velocity - command|`. A weight above 1 makes a slow change of speed
-    cost more against the risk of falling while changing.
+    replaced by `command - track_weight * |x_velocity - command|`. Keep the weight at 1 unless the task's healthy
+    reward is large: above 1 a standing agent's reward turns negative and PPO learns to fall on purpose (Hopper,
+    weight 3: every measurement episode fell through 800k steps).
     """
 
     def __init__(self, env, commands: list[float], switch_prob: float, seed: int, track_weight: float = 1.0):
