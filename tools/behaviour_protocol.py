@@ -7,6 +7,7 @@ judges it against the goal means of its collected data, with the GMT protocol's 
 
 Usage:
     python tools/behaviour_protocol.py --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
+    python tools/behaviour_protocol.py --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2 --goals ...
 """
 
 from __future__ import annotations
@@ -30,19 +31,26 @@ from model.evaluate import protocol  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--env", required=True, help="Gymnasium id, e.g. Hopper-v5.")
-    ap.add_argument("--levels", nargs="+", required=True, help="Commanded snapshots, slowest first (no suffix).")
-    ap.add_argument("--goals", nargs="+", type=float, required=True, help="The data's goal means, same order.")
+    ap.add_argument(
+        "--levels", nargs="+", required=True, help="Commanded snapshots, slowest first (no suffix)."
+    )
+    ap.add_argument(
+        "--commands", nargs="+", type=float, help="Speeds to command one snapshot with, slowest first."
+    )
+    ap.add_argument(
+        "--goals", nargs="+", type=float, required=True, help="The data's goal means, same order."
+    )
     ap.add_argument("--seeds", type=int, default=15, help="Episodes per condition.")
     ap.add_argument("--noise-scale", type=float, default=1.0, help="Action-noise multiplier (collection's).")
     args = ap.parse_args()
-    if len(args.levels) != len(args.goals):
-        ap.error("one goal mean per level")
+    if len(args.commands or args.levels) != len(args.goals):
+        ap.error("one goal mean per level (or per command)")
     torch.set_num_threads(1)
     env = gym.make(args.env)
     levels = [load_behaviour(p, env.action_space) for p in args.levels]
     if any(p.command is None for p in levels):
         ap.error("every level must be a commanded snapshot (metadata extra.command)")
-    policy, commands = levels[0], [p.command for p in levels]  # one actor; the levels differ in the command
+    policy, commands = levels[0], args.commands or [p.command for p in levels]  # levels differ in the command
     policy.noise_scale = args.noise_scale
     goals = [SimpleNamespace(id=i, name=str(i), mean=m) for i, m in enumerate(args.goals)]
     for cond in protocol(len(goals)):
