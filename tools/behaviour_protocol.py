@@ -58,6 +58,7 @@ def main() -> None:
         for step, g in cond.schedule:
             per_step[step:] = g
         ok = falls = 0
+        means = []
         for seed in range(args.seeds):
             obs, _ = env.reset(seed=seed)
             rng = np.random.default_rng(seed)
@@ -69,11 +70,13 @@ def main() -> None:
                 if terminated or truncated:
                     break
             falls += bool(terminated)
+            means.append([achieved(v, a, b) for _, a, b in measured_spans(per_step)])
             ok += not terminated and all(
                 within(achieved(v, a, b), goals[g].mean, tolerance(goals[g], goals))
                 for g, a, b in measured_spans(per_step)
             )
-        print(f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}", flush=True)
+        seg = " ".join(f"{m:.2f}" for m in np.nanmean(np.asarray(means), axis=0))
+        print(f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}  segment means {seg}", flush=True)
 
 
 if __name__ == "__main__":
