@@ -97,6 +97,9 @@ def commanded(
         1.0,
         help="Weight of the speed-tracking error in the reward (above 1 a standing agent can prefer falling).",
     ),
+    overspeed_weight: float = typer.Option(
+        0.0, help="Extra reward weight of speed above the command (urges braking; standing is not penalised)."
+    ),
     cycle_every: int = typer.Option(
         None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."
     ),
@@ -131,6 +134,7 @@ def commanded(
         eval_every=eval_every,
         switch_every=switch_every,
         track_weight=track_weight,
+        overspeed_weight=overspeed_weight,
         cycle_every=cycle_every,
         eval_seeds=eval_seeds,
         final_seeds=final_seeds,

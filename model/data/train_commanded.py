@@ -34,12 +34,23 @@ class SpeedCommand(gym.Wrapper):
     The reward is `SpeedTent`'s for the command in force: the environment's reward with its forward term
     replaced by `command - track_weight * |x_velocity - command|`. Keep the weight at 1 unless the task's healthy
     reward is large: above 1 a standing agent's reward turns negative and PPO learns to fall on purpose (Hopper,
-    weight 3: every measurement episode fell through 800k steps).
+    weight 3: every measurement episode fell through 800k steps). `overspeed_weight` adds
+    `- overspeed_weight * max(0, x_velocity - command)`: it makes braking after a switch to a slower command
+    urgent without touching a standing agent's reward.
     """
 
-    def __init__(self, env, commands: list[float], switch_prob: float, seed: int, track_weight: float = 1.0):
+    def __init__(
+        self,
+        env,
+        commands: list[float],
+        switch_prob: float,
+        seed: int,
+        track_weight: float = 1.0,
+        overspeed_weight: float = 0.0,
+    ):
         super().__init__(env)
         self.track_weight = float(track_weight)
+        self.overspeed_weight = float(overspeed_weight)
         self.commands = np.asarray(commands, dtype=np.float64)
         self.switch_prob = float(switch_prob)
         self.rng = np.random.default_rng(seed)
@@ -68,6 +79,7 @@ class SpeedCommand(gym.Wrapper):
             - float(info["reward_forward"])
             + self.command
             - self.track_weight * abs(v - self.command)
+            - self.overspeed_weight * max(0.0, v - self.command)
         )
         if len(self.commands) > 1 and self.rng.random() < self.switch_prob:  # from the next step on
             self.command = float(self.rng.choice(self.commands[self.commands != self.command]))
@@ -85,6 +97,7 @@ class CommandedConfig:
         eval_every: Steps between snapshots (each is measured by `command_score`).
         switch_every: Mean steps between command changes in training episodes.
         track_weight: Weight of the speed-tracking error in the training reward (`SpeedCommand`).
+        overspeed_weight: Extra weight of the speed above the command in the training reward (`SpeedCommand`).
         cycle_every: Snapshots are also measured cycling through the levels every this many steps (the GMT
             protocol's multi-switch), so fast changes of speed are chosen; None to measure holds and switches only.
         switch_at: Step of the command change in the measurement episodes.
@@ -103,6 +116,7 @@ class CommandedConfig:
     eval_every: int = 50_000
     switch_every: int = 300
     track_weight: float = 1.0
+    overspeed_weight: float = 0.0
     cycle_every: int | None = None
     switch_at: int = 500
     eval_seeds: int = 2
@@ -123,6 +137,8 @@ class CommandedConfig:
             raise ValueError("switch_every must be >= 1 and switch_at within an episode (0, 1000)")
         if self.track_weight <= 0:
             raise ValueError(f"track_weight must be > 0, got {self.track_weight}")
+        if self.overspeed_weight < 0:
+            raise ValueError(f"overspeed_weight must be >= 0, got {self.overspeed_weight}")
         if self.cycle_every is not None and not 4 <= self.cycle_every < 1000:
             raise ValueError(f"cycle_every must be within [4, 1000), got {self.cycle_every}")
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
@@ -226,7 +242,9 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     switch_prob = 1.0 / cfg.switch_every
     model, venv = make_ppo(
         lambda: Monitor(
-            SpeedCommand(gym.make(cfg.env_id), commands, switch_prob, cfg.seed, cfg.track_weight)
+            SpeedCommand(
+                gym.make(cfg.env_id), commands, switch_prob, cfg.seed, cfg.track_weight, cfg.overspeed_weight
+            )
         ),
         p,
         cfg.seed,
@@ -333,7 +351,8 @@ Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
 
 One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
 (on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force with
-weight {cfg.track_weight:g} (`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
+weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}
+(`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
 {cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}){cycle},
 {cfg.eval_seeds} stochastic episodes each; the {cfg.candidates} best were measured again on {cfg.final_seeds}
 episodes each, and step {best["step"]} was kept:

@@ -35,6 +35,18 @@ def test_the_command_is_appended_tracked_and_changed():
     _, reward, _, _, info = weighted.step(np.zeros(3, np.float32))
     base = info["reward_survive"] + info["reward_ctrl"]
     assert reward == pytest.approx(base + command - 3.0 * abs(info["x_velocity"] - command))
+    braking = SpeedCommand(gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, overspeed_weight=2.0)
+    obs, _ = braking.reset(seed=0)
+    over = 0
+    for _ in range(20):
+        command = braking.command
+        _, reward, terminated, _, info = braking.step(np.ones(3, np.float32))
+        v, base = info["x_velocity"], info["reward_survive"] + info["reward_ctrl"]
+        assert reward == pytest.approx(base + command - abs(v - command) - 2.0 * max(0.0, v - command))
+        over += v > command
+        if terminated:
+            break
+    assert over > 0  # the overspeed term was exercised
     held = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0)
     held.reset(seed=0)
     first = held.command
@@ -111,5 +123,7 @@ def test_commanded_levels_need_two_numeric_speeds():
         CommandedConfig(ENV, {"slow": 1.0, "fast": "max"})
     with pytest.raises(ValueError, match="track_weight"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, track_weight=0.0)
+    with pytest.raises(ValueError, match="overspeed_weight"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, overspeed_weight=-1.0)
     with pytest.raises(ValueError, match="cycle_every"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, cycle_every=1000)
