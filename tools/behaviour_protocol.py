@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -75,7 +76,9 @@ def main() -> None:
                 within(achieved(v, a, b), goals[g].mean, tolerance(goals[g], goals))
                 for g, a, b in measured_spans(per_step)
             )
-        seg = " ".join(f"{m:.2f}" for m in np.nanmean(np.asarray(means), axis=0))
+        with warnings.catch_warnings():  # a segment no episode reached (all fell) is NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            seg = " ".join(f"{m:.2f}" for m in np.nanmean(np.asarray(means), axis=0))
         print(f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}  segment means {seg}", flush=True)
 
 
