@@ -68,7 +68,9 @@ def test_two_processes_follow_one_process_with_the_same_global_batch(tmp_path):
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
     env.pop("WORLD_SIZE", None)
     one, two = tmp_path / "one", tmp_path / "two"
-    res = subprocess.run([str(BIN / "gmt"), *args, "--out", str(one)], env=env, capture_output=True, text=True)
+    res = subprocess.run(
+        [str(BIN / "gmt"), *args, "--out", str(one)], env=env, capture_output=True, text=True
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     torchrun = [str(BIN / "torchrun"), "--standalone", "--nproc-per-node", "2", str(BIN / "gmt")]
     res = subprocess.run([*torchrun, *args, "--out", str(two)], env=env, capture_output=True, text=True)
