@@ -24,7 +24,8 @@ class GMTConfig:
         n_layer: Number of transformer blocks.
         n_head: Attention heads per block.
         n_embd: Width of every token embedding.
-        max_timestep: Size of the timestep embedding table; later timesteps are clamped to the last row.
+        max_timestep: Size of the timestep embedding table; later timesteps are clamped to the last row (1: the
+            model is blind to the episode's clock, as a locomotion policy may be).
         dropout: Dropout probability (0 by default: it costs a third of a CPU step for little gain here).
         attention: `full`: every token sees its whole K-step window (the paper's setting; serving recomputes
             the window every step). `window`: banded causal attention, each token sees the tokens of its own
@@ -53,8 +54,8 @@ class GMTConfig:
         object.__setattr__(self, "obs_shape", tuple(int(s) for s in self.obs_shape))
         if len(self.obs_shape) not in (1, 3):
             raise ValueError(f"obs_shape must be (D,) or (C, H, W), got {self.obs_shape}")
-        if self.act_dim < 1 or self.n_goals < 1 or self.context_length < 1:
-            raise ValueError("act_dim, n_goals and context_length must be positive")
+        if self.act_dim < 1 or self.n_goals < 1 or self.context_length < 1 or self.max_timestep < 1:
+            raise ValueError("act_dim, n_goals, context_length and max_timestep must be positive")
         if self.n_embd % self.n_head != 0:
             raise ValueError(f"n_embd={self.n_embd} is not divisible by n_head={self.n_head}")
         if not 0.0 <= self.dropout < 1.0:

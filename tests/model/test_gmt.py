@@ -1,5 +1,6 @@
 """The network is causal and goal-conditioned; masking masks what it claims at the rate it claims."""
 
+import pytest
 import torch
 
 from model.config import GMTConfig
@@ -136,3 +137,18 @@ def test_window_attention_sees_exactly_the_last_K_timesteps():
     assert not torch.allclose(a0[:, -1], a_near[:, -1])
     assert model.cfg.history_steps == K  # one layer: receptive field n_layer * (K - 1) + 1
     assert GMTConfig(**window, n_layer=3, attention="window").history_steps == 3 * (K - 1) + 1
+
+
+def test_a_one_row_timestep_table_makes_the_model_blind_to_the_clock():
+    torch.manual_seed(0)
+    goals, states, actions, ts, valid = _batch()
+    blind, timed = GMT(_cfg(max_timestep=1)).eval(), GMT(_cfg()).eval()
+    later = ts + 400  # the same window, 400 steps later in its episode
+    assert torch.equal(
+        blind(goals, states, actions, ts, valid)[0], blind(goals, states, actions, later, valid)[0]
+    )
+    assert not torch.allclose(
+        timed(goals, states, actions, ts, valid)[0], timed(goals, states, actions, later, valid)[0]
+    )
+    with pytest.raises(ValueError, match="max_timestep"):
+        _cfg(max_timestep=0)

@@ -1,0 +1,102 @@
+"""How often a dataset's own episodes would pass the GMT protocol's segments: the ceiling its transitions set.
+
+A GMT learns its transitions (braking from a sprint, speeding up from a walk) from the data's episodes that start
+in another level's states (`gmt data collect --pool-start`). This measures those episodes, and the ones started
+at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `clients.segments`),
+against the tolerance of the goal their episode is labelled with, and multiplies the shares along each
+multi-switch schedule (the first segment from rest, every later one from another level's states). A schedule the
+data itself passes in a few episodes of 15 asks a GMT for transitions faster than any it was shown.
+
+Usage:
+    python tools/data_transients.py gmt/hopper/mixed-v0 [--k 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clients.segments import achieved, settle_in, tolerance, within  # noqa: E402
+from clients.statistics import get_statistic  # noqa: E402
+from clients.tables import markdown_table  # noqa: E402
+from model.data.minari_io import load_dataset, resolve  # noqa: E402
+from model.data.relabel import relabel  # noqa: E402
+from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
+
+
+def start_kinds(dataset: str, n: int) -> list[str]:
+    """'pool' or 'rest' per episode, from the episode metadata `gmt data collect` writes (all 'rest' without)."""
+    from minari import MinariDataset
+
+    meta = MinariDataset(resolve(dataset)).storage.get_episode_metadata(range(n))
+    return ["pool" if "start_from" in m else "rest" for m in meta]
+
+
+def spans(steps: int) -> dict[str, tuple[int, int]]:
+    """Name -> measured [start, end) of a segment that begins at step 0: a hold, a switch's first half, a cycle."""
+    out = {"hold": (settle_in(steps), steps), "switch": (settle_in(steps // 2), steps // 2)}
+    for n in MULTI_SWITCH_EVERY:
+        out[f"cycle {n}"] = (settle_in(n), n)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", help="Minari dataset id or folder.")
+    ap.add_argument("--statistic", default="mean_x_velocity", help="Per-trajectory statistic of the goals.")
+    ap.add_argument("--k", type=int, default=None, help="Number of goals (None: picked by silhouette).")
+    ap.add_argument("--seed", type=int, default=0, help="Seed of the relabelling.")
+    args = ap.parse_args()
+    ds = load_dataset(args.dataset)
+    stat = get_statistic(args.statistic)
+    episodes = [e for e in ds.episodes if len(e) >= 1000]  # the protocol's episodes are 1000 steps
+    if len(episodes) < len(ds.episodes):
+        print(f"{len(ds.episodes) - len(episodes)} episodes shorter than 1000 steps left out")
+    table = relabel([stat.of_episode(e) for e in episodes], args.statistic, k=args.k, seed=args.seed)
+    kinds = start_kinds(args.dataset, len(ds.episodes))
+    kinds = [kinds[e.episode_id] for e in episodes]
+    signal = [stat.per_step(e)[:1000] for e in episodes]
+    rate: dict[tuple[int, str, str], float] = {}
+    rows = []
+    for goal in table.goals:
+        tol = tolerance(goal, table.goals)
+        for kind in ("rest", "pool"):
+            idx = [
+                i
+                for i, (lab, k) in enumerate(zip(table.labels, kinds, strict=True))
+                if lab == goal.id and k == kind
+            ]
+            if not idx:
+                continue
+            v = np.stack([signal[i] for i in idx])  # [E, 1000]
+            cells = []
+            for name, (a, b) in spans(1000).items():
+                m = achieved(v, a, b)  # [E]
+                rate[goal.id, kind, name] = float(np.mean(within(m, goal.mean, tol)))
+                cells.append(f"{rate[goal.id, kind, name]:.2f} ({np.mean(m):.3f})")
+            rows.append((f"{goal.id} {goal.name} ({goal.mean:.3f} ± {tol:.3f})", kind, len(idx), *cells))
+    head = ("goal", "start", "episodes", *(f"{n} [{a},{b})" for n, (a, b) in spans(1000).items()))
+    print(f"Share of episodes within tolerance over each span (mean statistic), {ds.dataset_id}:\n")
+    print(markdown_table(head, rows))
+    print("\nMulti-switch schedules, if every segment were an independent draw of these episodes:\n")
+    est = []
+    for cond in protocol(len(table.goals)):
+        if cond.kind != "multi_switch":
+            continue
+        n = int(cond.name.split()[-1])
+        p = 1.0
+        for i, (g, a, b) in enumerate(cond.segments):
+            if b - a < n - settle_in(n):  # a shorter last segment (every 300) is left out
+                continue
+            p *= rate.get((g, "rest" if i == 0 else "pool", f"cycle {n}"), float("nan"))
+        est.append((cond.name, f"{p:.3f}", f"{15 * p:.1f}/15"))
+    print(markdown_table(("schedule", "all segments within", "of 15 episodes"), est))
+
+
+if __name__ == "__main__":
+    main()
