@@ -28,6 +28,8 @@ from model.data.minari_io import load_dataset, resolve  # noqa: E402
 from model.data.relabel import relabel  # noqa: E402
 from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
+STEPS = 1000  # the protocol's episode length
+
 
 def start_kinds(dataset: str, n: int) -> list[str]:
     """'pool' or 'rest' per episode, from the episode metadata `gmt data collect` writes (all 'rest' without)."""
@@ -54,41 +56,37 @@ def main() -> None:
     args = ap.parse_args()
     ds = load_dataset(args.dataset)
     stat = get_statistic(args.statistic)
-    episodes = [e for e in ds.episodes if len(e) >= 1000]  # the protocol's episodes are 1000 steps
-    if len(episodes) < len(ds.episodes):
-        print(f"{len(ds.episodes) - len(episodes)} episodes shorter than 1000 steps left out")
-    table = relabel([stat.of_episode(e) for e in episodes], args.statistic, k=args.k, seed=args.seed)
+    # Goals as `gmt train` labels them (every episode); only full-length episodes are measured.
+    table = relabel([stat.of_episode(e) for e in ds.episodes], args.statistic, k=args.k, seed=args.seed)
     kinds = start_kinds(args.dataset, len(ds.episodes))
-    kinds = [kinds[e.episode_id] for e in episodes]
-    signal = [stat.per_step(e)[:1000] for e in episodes]
+    full = [i for i, e in enumerate(ds.episodes) if len(e) >= STEPS]
+    if len(full) < len(ds.episodes):
+        print(f"{len(ds.episodes) - len(full)} episodes shorter than {STEPS} steps are not measured")
+    signal = {i: stat.per_step(ds.episodes[i])[:STEPS] for i in full}
     rate: dict[tuple[int, str, str], float] = {}
     rows = []
     for goal in table.goals:
         tol = tolerance(goal, table.goals)
         for kind in ("rest", "pool"):
-            idx = [
-                i
-                for i, (lab, k) in enumerate(zip(table.labels, kinds, strict=True))
-                if lab == goal.id and k == kind
-            ]
+            idx = [i for i in full if table.labels[i] == goal.id and kinds[i] == kind]
             if not idx:
                 continue
-            v = np.stack([signal[i] for i in idx])  # [E, 1000]
+            v = np.stack([signal[i] for i in idx])  # [E, STEPS]
             cells = []
-            for name, (a, b) in spans(1000).items():
+            for name, (a, b) in spans(STEPS).items():
                 m = achieved(v, a, b)  # [E]
                 rate[goal.id, kind, name] = float(np.mean(within(m, goal.mean, tol)))
                 cells.append(f"{rate[goal.id, kind, name]:.2f} ({np.mean(m):.3f})")
             rows.append((f"{goal.id} {goal.name} ({goal.mean:.3f} ± {tol:.3f})", kind, len(idx), *cells))
-    head = ("goal", "start", "episodes", *(f"{n} [{a},{b})" for n, (a, b) in spans(1000).items()))
+    head = ("goal", "start", "episodes", *(f"{n} [{a},{b})" for n, (a, b) in spans(STEPS).items()))
     print(f"Share of episodes within tolerance over each span (mean statistic), {ds.dataset_id}:\n")
     print(markdown_table(head, rows))
     print("\nMulti-switch schedules, if every segment were an independent draw of these episodes:\n")
     est = []
-    for cond in protocol(len(table.goals)):
+    for cond in protocol(len(table.goals), STEPS):
         if cond.kind != "multi_switch":
             continue
-        n = int(cond.name.split()[-1])
+        n = cond.schedule[1][0]  # the cycle's length: the step of its first switch
         p = 1.0
         for i, (g, a, b) in enumerate(cond.segments):
             if b - a < n - settle_in(n):  # a shorter last segment (every 300) is left out
