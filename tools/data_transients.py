@@ -24,19 +24,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from clients.segments import achieved, settle_in, tolerance, within  # noqa: E402
 from clients.statistics import get_statistic  # noqa: E402
 from clients.tables import markdown_table  # noqa: E402
-from model.data.minari_io import load_dataset, resolve  # noqa: E402
+from model.data.minari_io import load_dataset  # noqa: E402
 from model.data.relabel import relabel  # noqa: E402
+from model.data.settle import episode_metadata, pool_started  # noqa: E402
 from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
 STEPS = 1000  # the protocol's episode length
-
-
-def start_kinds(dataset: str, n: int) -> list[str]:
-    """'pool' or 'rest' per episode, from the episode metadata `gmt data collect` writes (all 'rest' without)."""
-    from minari import MinariDataset
-
-    meta = MinariDataset(resolve(dataset)).storage.get_episode_metadata(range(n))
-    return ["pool" if "start_from" in m else "rest" for m in meta]
 
 
 def spans(steps: int) -> dict[str, tuple[int, int]]:
@@ -58,7 +51,7 @@ def main() -> None:
     stat = get_statistic(args.statistic)
     # Goals as `gmt train` labels them (every episode); only full-length episodes are measured.
     table = relabel([stat.of_episode(e) for e in ds.episodes], args.statistic, k=args.k, seed=args.seed)
-    kinds = start_kinds(args.dataset, len(ds.episodes))
+    kinds = ["pool" if p else "rest" for p in pool_started(episode_metadata(args.dataset, len(ds.episodes)))]
     full = [i for i, e in enumerate(ds.episodes) if len(e) >= STEPS]
     if len(full) < len(ds.episodes):
         print(f"{len(ds.episodes) - len(full)} episodes shorter than {STEPS} steps are not measured")

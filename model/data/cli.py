@@ -278,6 +278,65 @@ def collect(
         )
 
 
+@app.command()
+@needs("data", "gmt data settle")
+def settle(
+    dataset: str = typer.Argument(..., help="Dataset id or path to filter."),
+    out_id: str = typer.Option(..., help="Minari id of the filtered dataset to write."),
+    span: str = typer.Option("50:200", help="START:END steps after an episode's start that are measured."),
+    tolerance_scale: float = typer.Option(1.0, help="Multiplier of each goal's tolerance."),
+    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic of the goals."),
+    k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
+    seed: int = typer.Option(0, help="Seed of the relabelling."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Keep every rest-started episode and the pool-started ones inside their goal's tolerance over SPAN.
+
+    Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
+    reach their goal too slowly for a multi-switch segment (`model.data.settle`).
+    """
+    from clients.tables import text_table
+    from model.data.settle import SettleConfig, settle_filter
+
+    start, _, end = span.partition(":")
+    try:
+        bounds = (int(start), int(end))
+        cfg = SettleConfig(dataset, out_id, bounds, tolerance_scale, statistic, k, seed, data_dir)
+    except ValueError as e:
+        raise typer.BadParameter(f"--span {span!r}: {e}") from None
+    res = settle_filter(cfg)
+
+    def fmt(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    rows = [
+        (
+            r["goal"],
+            r["name"],
+            f"{r['mean']:.3f} +- {r['tolerance']:.3f}",
+            r["rest"],
+            f"{r['pool_kept']}/{r['pool']}",
+            fmt(r["pool_span_mean"]),
+            fmt(r["kept_span_mean"]),
+        )
+        for r in res.rows
+    ]
+    head = (
+        "id",
+        "name",
+        "goal band",
+        "rest",
+        "pool kept",
+        f"pool mean [{bounds[0]},{bounds[1]})",
+        "kept mean",
+    )
+    typer.echo(text_table(head, rows, align="<<>>>>>", rule=False))
+    typer.echo(
+        f"\nwrote {res.out_id} to {res.path}: {res.kept} of {res.total} episodes "
+        f"(source fingerprint {res.source_fingerprint[:8]}, new {res.fingerprint[:8]})"
+    )
+
+
 def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):
     from model.data.minari_io import load_dataset
     from model.data.relabel import relabel
