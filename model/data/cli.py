@@ -303,7 +303,7 @@ def settle(
         bounds = (int(start), int(end))
         cfg = SettleConfig(dataset, out_id, bounds, tolerance_scale, statistic, k, seed, data_dir)
     except ValueError as e:
-        raise typer.BadParameter(f"--span {span!r}: {e}") from None
+        raise typer.BadParameter(f"{e} (--span {span!r}, --out-id {out_id!r})") from None
     res = settle_filter(cfg)
 
     def fmt(x):

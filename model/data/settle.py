@@ -56,6 +56,9 @@ class SettleConfig:
         a, b = self.span
         if not 0 <= a < b:
             raise ValueError(f"span must be [start, end) with 0 <= start < end, got {self.span}")
+        from minari.dataset.minari_dataset import parse_dataset_id
+
+        parse_dataset_id(self.out_id)  # ValueError naming the expected form, before any work
         if not self.tolerance_scale > 0:
             raise ValueError(f"tolerance_scale must be > 0, got {self.tolerance_scale}")
 

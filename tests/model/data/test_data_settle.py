@@ -99,10 +99,18 @@ def test_a_tighter_tolerance_or_a_later_span_changes_what_is_kept(source):
     assert res.kept == sum(p[1] is None for p in plan)
 
 
-@pytest.mark.parametrize("span, scale", [((200, 50), 1.0), ((-1, 5), 1.0), ((50, 200), 0.0)])
-def test_the_config_refuses_bad_spans_and_scales(span, scale):
+@pytest.mark.parametrize(
+    "out_id, span, scale",
+    [
+        ("t/b-v0", (200, 50), 1.0),
+        ("t/b-v0", (-1, 5), 1.0),
+        ("t/b-v0", (50, 200), 0.0),
+        ("t/b-0.5-v0", (50, 200), 1.0),
+    ],
+)
+def test_the_config_refuses_bad_spans_scales_and_ids(out_id, span, scale):
     with pytest.raises(ValueError):
-        SettleConfig("a", "b", span=span, tolerance_scale=scale)
+        SettleConfig("a", out_id, span=span, tolerance_scale=scale)
 
 
 def test_the_cli_prints_what_it_kept_and_refuses_a_bad_span(source):
@@ -113,3 +121,5 @@ def test_the_cli_prints_what_it_kept_and_refuses_a_bad_span(source):
     assert "3/6" in r.output and "23 of 26 episodes" in r.output
     r = CliRunner().invoke(app, [*args[:4], "--span", "200:50", *args[4:]])
     assert r.exit_code != 0 and "span" in r.output
+    r = CliRunner().invoke(app, [*args[:2], "--out-id", "t/hopper/x-0.5-v0", *args[4:]])
+    assert r.exit_code != 0 and "Malformed dataset ID" in r.output
