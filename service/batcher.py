@@ -152,6 +152,11 @@ class MicroBatcher:
         self._wake.set()
         return await asyncio.gather(*(it.future for it in items), return_exceptions=True)
 
+    @property
+    def queued(self) -> int:
+        """Requests waiting for a forward pass (not yet running, not cancelled)."""
+        return sum(1 for it in self._pending if not it.future.done())
+
     def _live(self) -> int:
         while self._pending and self._pending[0].future.done():
             self._pending.popleft()

@@ -162,6 +162,7 @@ class Core:
                 inline_alone=m.engine.describe().kernel == "native",
             )
             b.start()
+            self.metrics.track_queue(name, lambda b=b: b.queued)
             self._batchers[name] = b
         self.metrics.models_loaded.set(len(self.registry.models))
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever(), name="session-sweeper")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
     CollectorRegistry,
@@ -68,6 +70,12 @@ class Metrics:
         )
         self.live_sessions = Gauge("gmt_live_sessions", "Live sessions in the session store.", registry=r)
         self.models_loaded = Gauge("gmt_models_loaded", "Models this server answers for.", registry=r)
+        self.batch_queued = Gauge(
+            "gmt_batch_queued",
+            "Act requests waiting in a model's micro-batcher for their forward pass, by model.",
+            ["model"],
+            registry=r,
+        )
         self.sessions_created = Counter("gmt_sessions_created", "Sessions created.", ["model"], registry=r)
         self.sessions_expired = Counter(
             "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r
@@ -81,6 +89,10 @@ class Metrics:
         """Record one forward pass."""
         self._child(self.batch_size, model).observe(size)
         self._child(self.forward_latency, model).observe(seconds)
+
+    def track_queue(self, model: str, queued: Callable[[], int]) -> None:
+        """Report `queued()` as the model's `gmt_batch_queued`, read at each scrape."""
+        self.batch_queued.labels(model).set_function(queued)
 
     def _child(self, metric, *labels: str):
         """`metric.labels(*labels)`, looked up once (prometheus_client's lookup costs more than the observation)."""

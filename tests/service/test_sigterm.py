@@ -43,6 +43,17 @@ def in_flight(http: httpx.Client) -> dict[str, float]:
     }
 
 
+def queued(http: httpx.Client) -> float:
+    """Acts waiting in the micro-batchers (past every check, held only by the batch wait)."""
+    text = http.get("/metrics").text
+    return sum(
+        s.value
+        for family in text_string_to_metric_families(text)
+        if family.name == "gmt_batch_queued"
+        for s in family.samples
+    )
+
+
 def wait_until(condition, timeout_s: float, what: str):
     """Poll `condition()` (each call is a round trip to the server) until it returns a truthy value."""
     deadline = time.monotonic() + timeout_s
@@ -135,9 +146,12 @@ def test_sigterm_answers_requests_in_flight_and_exits_0(ckpt_root):
                     act=pb.ActRequest(session_id=busy_sid, values=pb.FloatVector(values=obs[N_REST + 1]))
                 )
             )
-            # Every act is in the server, unanswered: N_REST over REST, the unary act and the stream's command.
+            # Every act is in the server, unanswered: N_REST over REST, the unary act and the stream's command,
+            # all past the server's checks and waiting in the batcher (in flight alone could be before them).
             wait_until(
-                lambda: in_flight(http) == {"rest": N_REST, "grpc": 2}, BATCH_WAIT_MS / 1000, "acts in flight"
+                lambda: in_flight(http) == {"rest": N_REST, "grpc": 2} and queued(http) == N_REST + 2,
+                BATCH_WAIT_MS / 1000,
+                "acts queued",
             )
             signalled = time.monotonic()
             proc.proc.send_signal(signal.SIGTERM)
@@ -227,7 +241,7 @@ def test_calls_still_running_when_the_grace_period_ends_answer_unavailable(ckpt_
             threads = [threading.Thread(target=rest_act), threading.Thread(target=grpc_act)]
             for t in threads:
                 t.start()
-            wait_until(lambda: in_flight(http) == {"rest": 1, "grpc": 1}, 20, "acts in flight")
+            wait_until(lambda: queued(http) == 2, 20, "acts queued in the batcher")
             proc.proc.send_signal(signal.SIGTERM)
             for t in threads:
                 t.join(60)
