@@ -160,7 +160,7 @@ class MicroBatcher:
     def _live(self) -> int:
         while self._pending and self._pending[0].future.done():
             self._pending.popleft()
-        return sum(1 for it in self._pending if not it.future.done())
+        return self.queued
 
     async def _gather(self) -> None:
         loop = asyncio.get_running_loop()

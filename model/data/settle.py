@@ -122,14 +122,13 @@ def settle_filter(cfg: SettleConfig) -> SettleResult:
     """Write `cfg.out_id`: the source's rest-started episodes and its pool-started ones that settle in `cfg.span`."""
     ds = load_dataset(cfg.source, cfg.data_dir)
     stat = check_dataset(cfg.statistic, ds)
-    table = relabel([stat.of_episode(e) for e in ds.episodes], cfg.statistic, k=cfg.k, seed=cfg.seed)
+    signals = [stat.per_step(e) for e in ds.episodes]  # [T_i] each, read once for the goals and the span
+    table = relabel([float(stat.aggregate(v)) for v in signals], cfg.statistic, k=cfg.k, seed=cfg.seed)
     labels = np.asarray(table.labels)
     meta = episode_metadata(cfg.source, len(ds.episodes), cfg.data_dir)
     pooled = pool_started(meta)
     a, b = cfg.span
-    span_means = np.asarray(
-        [achieved(stat.per_step(e), a, b) if len(e) >= b else np.nan for e in ds.episodes], dtype=np.float64
-    )
+    span_means = np.asarray([achieved(v, a, b) if len(v) >= b else np.nan for v in signals], dtype=np.float64)
     keep = keep_mask(span_means, labels, table, pooled, cfg.tolerance_scale)
     rows = []
     for g in table.goals:
