@@ -5,7 +5,10 @@ in another level's states (`gmt data collect --pool-start`). This measures those
 at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `clients.segments`),
 against the tolerance of the goal their episode is labelled with, and multiplies the shares along each
 multi-switch schedule (the first segment from rest, every later one from another level's states). A schedule the
-data itself passes in a few episodes of 15 asks a GMT for transitions faster than any it was shown.
+data itself passes in a few episodes of 15 asks a GMT for transitions faster than any it was shown. The last
+column measures a held gait instead of a transition: every 150-step window from step 200 on (a 200-step cycle's
+measured span, wherever in the episode it falls), so a level whose speed wanders over a few hundred steps shows
+there even when it settles quickly.
 
 Usage:
     python tools/data_transients.py gmt/hopper/mixed-v0 [--k 2]
@@ -30,6 +33,7 @@ from model.data.settle import episode_metadata, pool_started  # noqa: E402
 from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
 STEPS = 1000  # the protocol's episode length
+STEADY = (200, 150, 50)  # held-gait windows: from this step, of this length, every this many steps
 
 
 def spans(steps: int) -> dict[str, tuple[int, int]]:
@@ -70,8 +74,17 @@ def main() -> None:
                 m = achieved(v, a, b)  # [E]
                 rate[goal.id, kind, name] = float(np.mean(within(m, goal.mean, tol)))
                 cells.append(f"{rate[goal.id, kind, name]:.2f} ({np.mean(m):.3f})")
+            first, length, every = STEADY
+            m = np.stack([achieved(v, a, a + length) for a in range(first, STEPS - length + 1, every)])
+            cells.append(f"{np.mean(within(m, goal.mean, tol)):.2f} ({np.mean(m):.3f})")  # [windows, E]
             rows.append((f"{goal.id} {goal.name} ({goal.mean:.3f} ± {tol:.3f})", kind, len(idx), *cells))
-    head = ("goal", "start", "episodes", *(f"{n} [{a},{b})" for n, (a, b) in spans(STEPS).items()))
+    head = (
+        "goal",
+        "start",
+        "episodes",
+        *(f"{n} [{a},{b})" for n, (a, b) in spans(STEPS).items()),
+        f"held: {STEADY[1]}-step windows from {STEADY[0]}",
+    )
     print(f"Share of episodes within tolerance over each span (mean statistic), {ds.dataset_id}:\n")
     print(markdown_table(head, rows))
     print("\nMulti-switch schedules, if every segment were an independent draw of these episodes:\n")

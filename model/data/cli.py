@@ -100,6 +100,10 @@ def commanded(
     overspeed_weight: float = typer.Option(
         0.0, help="Extra reward weight of speed above the command (urges braking; standing is not penalised)."
     ),
+    track_window: int = typer.Option(
+        1,
+        help="Steps of x-velocity averaged before the tracking terms compare it with the command (1: each step).",
+    ),
     cycle_every: int = typer.Option(
         None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."
     ),
@@ -135,6 +139,7 @@ def commanded(
         switch_every=switch_every,
         track_weight=track_weight,
         overspeed_weight=overspeed_weight,
+        track_window=track_window,
         cycle_every=cycle_every,
         eval_seeds=eval_seeds,
         final_seeds=final_seeds,

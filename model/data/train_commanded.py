@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -36,7 +37,10 @@ class SpeedCommand(gym.Wrapper):
     reward is large: above 1 a standing agent's reward turns negative and PPO learns to fall on purpose (Hopper,
     weight 3: every measurement episode fell through 800k steps). `overspeed_weight` adds
     `- overspeed_weight * max(0, x_velocity - command)`: it makes braking after a switch to a slower command
-    urgent without touching a standing agent's reward.
+    urgent without touching a standing agent's reward. With `track_window` N > 1 the tracking (and overspeed)
+    terms read the mean x-velocity of the last N steps instead of the step's own: a hop's speed swings around its
+    mean within a stride, and what a goal is judged on is the mean over many strides, so the agent is then paid
+    for a steady mean speed rather than for flattening every stride.
     """
 
     def __init__(
@@ -47,8 +51,13 @@ class SpeedCommand(gym.Wrapper):
         seed: int,
         track_weight: float = 1.0,
         overspeed_weight: float = 0.0,
+        track_window: int = 1,
     ):
         super().__init__(env)
+        if track_window < 1:
+            raise ValueError(f"track_window must be >= 1, got {track_window}")
+        self.track_window = int(track_window)
+        self.recent: deque[float] = deque(maxlen=self.track_window)
         self.track_weight = float(track_weight)
         self.overspeed_weight = float(overspeed_weight)
         self.commands = np.asarray(commands, dtype=np.float64)
@@ -69,11 +78,13 @@ class SpeedCommand(gym.Wrapper):
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.command = float(self.rng.choice(self.commands))
+        self.recent.clear()
         return self._obs(obs), info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        v = float(info["x_velocity"])
+        self.recent.append(float(info["x_velocity"]))
+        v = float(np.mean(self.recent))  # the step's own x-velocity when track_window is 1
         reward = (
             float(reward)
             - float(info["reward_forward"])
@@ -98,6 +109,8 @@ class CommandedConfig:
         switch_every: Mean steps between command changes in training episodes.
         track_weight: Weight of the speed-tracking error in the training reward (`SpeedCommand`).
         overspeed_weight: Extra weight of the speed above the command in the training reward (`SpeedCommand`).
+        track_window: Steps of x-velocity averaged before the tracking terms compare it with the command
+            (`SpeedCommand`; 1: each step's own).
         cycle_every: Snapshots are also measured cycling through the levels every this many steps (the GMT
             protocol's multi-switch), so fast changes of speed are chosen; None to measure holds and switches only.
         switch_at: Step of the command change in the measurement episodes.
@@ -117,6 +130,7 @@ class CommandedConfig:
     switch_every: int = 300
     track_weight: float = 1.0
     overspeed_weight: float = 0.0
+    track_window: int = 1
     cycle_every: int | None = None
     switch_at: int = 500
     eval_seeds: int = 2
@@ -139,6 +153,8 @@ class CommandedConfig:
             raise ValueError(f"track_weight must be > 0, got {self.track_weight}")
         if self.overspeed_weight < 0:
             raise ValueError(f"overspeed_weight must be >= 0, got {self.overspeed_weight}")
+        if self.track_window < 1:
+            raise ValueError(f"track_window must be >= 1, got {self.track_window}")
         if self.cycle_every is not None and not 4 <= self.cycle_every < 1000:
             raise ValueError(f"cycle_every must be within [4, 1000), got {self.cycle_every}")
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
@@ -243,7 +259,13 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     model, venv = make_ppo(
         lambda: Monitor(
             SpeedCommand(
-                gym.make(cfg.env_id), commands, switch_prob, cfg.seed, cfg.track_weight, cfg.overspeed_weight
+                gym.make(cfg.env_id),
+                commands,
+                switch_prob,
+                cfg.seed,
+                cfg.track_weight,
+                cfg.overspeed_weight,
+                cfg.track_window,
             )
         ),
         p,
@@ -351,8 +373,8 @@ Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
 
 One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
 (on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force with
-weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}
-(`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
+weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}, both on the mean
+x-velocity of the last {cfg.track_window} step(s) (`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
 {cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}){cycle},
 {cfg.eval_seeds} stochastic episodes each; the {cfg.candidates} best were measured again on {cfg.final_seeds}
 episodes each, and step {best["step"]} was kept:

@@ -55,6 +55,34 @@ def test_the_command_is_appended_tracked_and_changed():
     assert held.command == first
 
 
+def test_a_track_window_tracks_the_mean_speed_of_the_last_steps():
+    env = SpeedCommand(
+        gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, overspeed_weight=2.0, track_window=3
+    )
+    env.reset(seed=0)
+    speeds, differs = [], 0
+    for _ in range(12):
+        command = env.command
+        _, reward, terminated, _, info = env.step(np.ones(3, np.float32))
+        speeds.append(info["x_velocity"])
+        v = float(np.mean(speeds[-3:]))  # the mean of the last 3 steps, fewer right after the reset
+        base = info["reward_survive"] + info["reward_ctrl"]
+        assert reward == pytest.approx(base + command - abs(v - command) - 2.0 * max(0.0, v - command))
+        own = base + command - abs(speeds[-1] - command) - 2.0 * max(0.0, speeds[-1] - command)
+        differs += reward != pytest.approx(own)
+        if terminated:
+            break
+    assert differs > 0  # the window, not the step's own speed, was read
+    env.reset(seed=1)
+    _, reward, _, _, info = env.step(np.zeros(3, np.float32))  # a reset forgets the previous episode's speeds
+    v, base = info["x_velocity"], info["reward_survive"] + info["reward_ctrl"]
+    assert reward == pytest.approx(
+        base + env.command - abs(v - env.command) - 2.0 * max(0.0, v - env.command)
+    )
+    with pytest.raises(ValueError, match="track_window"):
+        SpeedCommand(gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, track_window=0)
+
+
 def test_a_commanded_snapshot_reads_its_command(tmp_path):
     env = gym.make(ENV)
     torch.manual_seed(0)
@@ -127,3 +155,5 @@ def test_commanded_levels_need_two_numeric_speeds():
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, overspeed_weight=-1.0)
     with pytest.raises(ValueError, match="cycle_every"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, cycle_every=1000)
+    with pytest.raises(ValueError, match="track_window"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, track_window=0)
