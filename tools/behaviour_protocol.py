@@ -7,7 +7,7 @@ judges it against the goal means of its collected data, with the GMT protocol's 
 
 Usage:
     python tools/behaviour_protocol.py --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
-    python tools/behaviour_protocol.py --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2 --goals ...
+    python tools/behaviour_protocol.py --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2  # goals: own holds
 """
 
 from __future__ import annotations
@@ -39,12 +39,16 @@ def main() -> None:
         "--commands", nargs="+", type=float, help="Speeds to command one snapshot with, slowest first."
     )
     ap.add_argument(
-        "--goals", nargs="+", type=float, required=True, help="The data's goal means, same order."
+        "--goals",
+        nargs="+",
+        type=float,
+        help="The data's goal means, same order (default: each level's own mean speed held, measured first here, "
+        "which is what its collected episodes' goal mean will be near).",
     )
     ap.add_argument("--seeds", type=int, default=15, help="Episodes per condition.")
     ap.add_argument("--noise-scale", type=float, default=1.0, help="Action-noise multiplier (collection's).")
     args = ap.parse_args()
-    if len(args.commands or args.levels) != len(args.goals):
+    if args.goals is not None and len(args.commands or args.levels) != len(args.goals):
         ap.error("one goal mean per level (or per command)")
     torch.set_num_threads(1)
     env = gym.make(args.env)
@@ -53,13 +57,20 @@ def main() -> None:
         ap.error("every level must be a commanded snapshot (metadata extra.command)")
     policy, commands = levels[0], args.commands or [p.command for p in levels]  # levels differ in the command
     policy.noise_scale = args.noise_scale
-    goals = [SimpleNamespace(id=i, name=str(i), mean=m) for i, m in enumerate(args.goals)]
-    for cond in protocol(len(goals)):
+    goals = [
+        SimpleNamespace(id=i, name=str(i), mean=m)
+        for i, m in enumerate(args.goals or [np.nan] * len(commands))
+    ]
+    for cond in protocol(len(goals)):  # the holds come first
+        if cond.kind == "hold" and args.goals is None:
+            goals[cond.schedule[0][1]].mean = hold_mean(
+                env, policy, commands[cond.schedule[0][1]], args.seeds
+            )
         per_step = np.zeros(1000, dtype=int)
         for step, g in cond.schedule:
             per_step[step:] = g
         ok = falls = 0
-        means = []
+        means, runs = [], []
         for seed in range(args.seeds):
             obs, _ = env.reset(seed=seed)
             rng = np.random.default_rng(seed)
@@ -71,6 +82,7 @@ def main() -> None:
                 if terminated or truncated:
                     break
             falls += bool(terminated)
+            runs.append(v)
             means.append([achieved(v, a, b) for _, a, b in measured_spans(per_step)])
             ok += not terminated and all(
                 within(achieved(v, a, b), goals[g].mean, tolerance(goals[g], goals))
@@ -79,7 +91,33 @@ def main() -> None:
         with warnings.catch_warnings():  # a segment no episode reached (all fell) is NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             seg = " ".join(f"{m:.2f}" for m in np.nanmean(np.asarray(means), axis=0))
-        print(f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}  segment means {seg}", flush=True)
+        held = ""
+        if cond.kind == "hold":
+            g = goals[cond.schedule[0][1]]
+            w = [achieved(v, a, a + 150) for v in runs for a in range(200, 851, 50)]  # NaN after a fall fails
+            held = f"  held 150-step windows within {np.mean(within(np.asarray(w), g.mean, tolerance(g, goals))):.2f}"
+        print(
+            f"{cond.name:12s} {ok:2d}/{args.seeds}  fell {falls}  segment means {seg}  (goal {[f'{g.mean:.3f}' for g in goals]}){held}",
+            flush=True,
+        )
+
+
+def hold_mean(env, policy, command: float, seeds: int) -> float:
+    """Mean x-velocity over the hold span [100, 1000) of `seeds` episodes commanded `command` (falls left out)."""
+    speeds = []
+    for seed in range(seeds):
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        v = []
+        for _ in range(1000):
+            policy.command = command
+            obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
+            v.append(info["x_velocity"])
+            if terminated or truncated:
+                break
+        if not terminated:
+            speeds.append(np.mean(v[100:]))
+    return float(np.mean(speeds)) if speeds else float("nan")
 
 
 if __name__ == "__main__":
