@@ -81,6 +81,23 @@ def within(value: np.ndarray | float, target: float, tol: float) -> np.ndarray |
     return bool(ok) if np.ndim(ok) == 0 else ok
 
 
+def held_windows(
+    signal: np.ndarray | Sequence[float], first: int = 200, length: int = 150, every: int = 50
+) -> np.ndarray:
+    """Means of a held goal's signal over windows [a, a + length) for a = first, first + every, ...
+
+    How steady a held gait is where a multi-switch cycle would measure a segment (a 200-step cycle measures 150
+    steps after its settle-in), wherever in the episode that segment falls. A window that holds any NaN (steps
+    after an early end) is NaN, so `within` fails it.
+
+    Returns:
+        [windows, *signal.shape[:-1]] window means.
+    """
+    x = np.asarray(signal, dtype=np.float64)
+    starts = range(first, x.shape[-1] - length + 1, every)
+    return np.stack([x[..., a : a + length].mean(axis=-1) for a in starts])  # NaN anywhere -> NaN
+
+
 def moving_average(x: np.ndarray | Sequence[float], window: int = MOVING_AVERAGE) -> np.ndarray:
     """Trailing mean over the last `window` values along the last axis (fewer at the start; NaN ignored)."""
     a = np.asarray(x, dtype=np.float64)

@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clients.segments import achieved, settle_in, tolerance, within  # noqa: E402
+from clients.segments import achieved, held_windows, settle_in, tolerance, within  # noqa: E402
 from clients.statistics import get_statistic  # noqa: E402
 from clients.tables import markdown_table  # noqa: E402
 from model.data.minari_io import load_dataset  # noqa: E402
@@ -33,7 +33,6 @@ from model.data.settle import episode_metadata, pool_started  # noqa: E402
 from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
 STEPS = 1000  # the protocol's episode length
-STEADY = (200, 150, 50)  # held-gait windows: from this step, of this length, every this many steps
 
 
 def spans(steps: int) -> dict[str, tuple[int, int]]:
@@ -74,16 +73,15 @@ def main() -> None:
                 m = achieved(v, a, b)  # [E]
                 rate[goal.id, kind, name] = float(np.mean(within(m, goal.mean, tol)))
                 cells.append(f"{rate[goal.id, kind, name]:.2f} ({np.mean(m):.3f})")
-            first, length, every = STEADY
-            m = np.stack([achieved(v, a, a + length) for a in range(first, STEPS - length + 1, every)])
-            cells.append(f"{np.mean(within(m, goal.mean, tol)):.2f} ({np.mean(m):.3f})")  # [windows, E]
+            m = held_windows(v)  # [windows, E]
+            cells.append(f"{np.mean(within(m, goal.mean, tol)):.2f} ({np.nanmean(m):.3f})")
             rows.append((f"{goal.id} {goal.name} ({goal.mean:.3f} ± {tol:.3f})", kind, len(idx), *cells))
     head = (
         "goal",
         "start",
         "episodes",
         *(f"{n} [{a},{b})" for n, (a, b) in spans(STEPS).items()),
-        f"held: {STEADY[1]}-step windows from {STEADY[0]}",
+        "held: 150-step windows from 200",
     )
     print(f"Share of episodes within tolerance over each span (mean statistic), {ds.dataset_id}:\n")
     print(markdown_table(head, rows))

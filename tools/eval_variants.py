@@ -6,6 +6,8 @@ need the same protocol with one thing changed:
 - `--restart`: at every goal switch the session's context is cleared (as `POST /sessions/{id}/reset` with the new
   goal would), so the model meets the switch exactly as it met a pool-started training episode: an empty
   context at a state another level visited. If the model failed because of its old-goal context, this passes.
+  Like the server's reset it also restarts the session's step, so the sampled action noise after a switch
+  repeats the episode's first steps' draws.
 - `--cap X`: the largest action-noise standard deviation `sample` adds (`model.engine.SAMPLE_STD_CAP`, 0.1),
   to see whether the capped noise, not the model, sets a goal's speed.
 
@@ -33,14 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import model.engine as engine_module  # noqa: E402
 import model.evaluate as evaluate_module  # noqa: E402
-from clients.segments import achieved, tolerance, within  # noqa: E402
+from clients.segments import held_windows, tolerance, within  # noqa: E402
 from model.checkpoint import load_checkpoint  # noqa: E402
-
-STEADY = (
-    200,
-    150,
-    50,
-)  # held-gait windows: from this step, of this length, every this many steps (as data_transients)
 
 
 class RestartAtSwitch(engine_module.PolicyEngine):
@@ -76,17 +72,14 @@ def main() -> None:
     seeds = list(range(args.first_seed, args.first_seed + 15))
     res = evaluate_module.evaluate(ckpt, seeds=seeds, progress=False)
     out = res.to_dict()
-    first, length, every = STEADY
     steady = {}
     for ci, c in enumerate(out["conditions"]):
         if c["kind"] != "hold":
             continue
         goal = ckpt.goals[c["schedule"][0][1]]
         v = seen["signal"][ci * len(seeds) : (ci + 1) * len(seeds)]  # [seeds, steps]
-        m = np.stack([achieved(v, a, a + length) for a in range(first, v.shape[1] - length + 1, every)])
-        steady[c["name"]] = float(
-            np.mean(within(m, goal.mean, tolerance(goal, ckpt.goals)))
-        )  # NaN (a fall) fails
+        m = held_windows(v)  # [windows, seeds]; a window reaching past a fall is NaN and fails
+        steady[c["name"]] = float(np.mean(within(m, goal.mean, tolerance(goal, ckpt.goals))))
     out["held_windows_within"] = steady
     out["variant"] = {
         "restart_at_switch": args.restart,

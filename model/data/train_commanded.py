@@ -40,7 +40,9 @@ class SpeedCommand(gym.Wrapper):
     urgent without touching a standing agent's reward. With `track_window` N > 1 the tracking (and overspeed)
     terms read the mean x-velocity of the last N steps instead of the step's own: a hop's speed swings around its
     mean within a stride, and what a goal is judged on is the mean over many strides, so the agent is then paid
-    for a steady mean speed rather than for flattening every stride.
+    for a steady mean speed rather than for flattening every stride. The window is not cleared when the command
+    changes (the first N - 1 steps after a change still weigh the old speed: braking late costs more), and it is
+    not in the observation, so for N > 1 the reward depends on history the policy does not see.
     """
 
     def __init__(

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 from clients.base import GoalInfo
-from clients.segments import achieved, measure, measured_spans, moving_average, settle_in, tolerance, within
+from clients.segments import (
+    achieved,
+    held_windows,
+    measure,
+    measured_spans,
+    moving_average,
+    settle_in,
+    tolerance,
+    within,
+)
 from clients.tables import markdown_table, text_table
 
 
@@ -80,3 +89,17 @@ def test_tables():
     assert markdown_table(("a", "b"), [(1, 2)]) == "| a | b |\n| --- | --- |\n| 1 | 2 |"
     with pytest.raises(ValueError):
         text_table(("a",), [(1, 2)])
+
+
+def test_held_windows_cover_the_episode_and_fail_a_window_with_a_fall():
+    signal = np.tile(np.arange(1000, dtype=float), (2, 1))  # [2 episodes, 1000 steps]
+    signal[1, 700:] = np.nan  # episode 1 ended at step 700
+    w = held_windows(signal)
+    assert w.shape == (14, 2)  # starts 200, 250, ..., 850
+    assert w[0, 0] == np.mean(np.arange(200, 350)) and w[-1, 0] == np.mean(np.arange(850, 1000))
+    assert not np.isnan(w[:, 0]).any()
+    assert (
+        np.isnan(w[:, 1]).sum() == 6
+    )  # windows from 600 on reach past step 700, though most steps are before
+    assert not within(w[-5, 1], 650.0, 1000.0)  # a partly measured window is not within
+    assert held_windows(signal[0], first=0, length=500, every=500).tolist() == [249.5, 749.5]
