@@ -8,6 +8,8 @@ judges it against the goal means of its collected data, with the GMT protocol's 
 Usage:
     python tools/behaviour_protocol.py --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
     python tools/behaviour_protocol.py --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2  # goals: own holds
+
+Governed levels (`gmt data govern`) are played with their governor, the commands being its targets.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def main() -> None:
     levels = [load_behaviour(p, env.action_space) for p in args.levels]
     if any(p.command is None for p in levels):
         ap.error("every level must be a commanded snapshot (metadata extra.command)")
-    policy, commands = levels[0], args.commands or [p.command for p in levels]  # levels differ in the command
+    policy, commands = levels[0], args.commands or [p.target for p in levels]  # levels differ in the command
     policy.noise_scale = args.noise_scale
     means = args.goals or [hold_mean(env, policy, c, range(args.seeds, 2 * args.seeds)) for c in commands]
     goals = [SimpleNamespace(id=i, name=str(i), mean=m) for i, m in enumerate(means)]
@@ -72,9 +74,10 @@ def main() -> None:
         for seed in range(args.seeds):
             obs, _ = env.reset(seed=seed)
             rng = np.random.default_rng(seed)
+            policy.start_episode()
             v = np.full(1000, np.nan)
             for t in range(1000):
-                policy.command = commands[per_step[t]]
+                policy.target = commands[per_step[t]]
                 obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
                 v[t] = info["x_velocity"]
                 if terminated or truncated:
@@ -103,9 +106,10 @@ def hold_mean(env, policy, command: float, seeds: range) -> float:
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
         rng = np.random.default_rng(seed)
+        policy.start_episode()
         v = []
         for _ in range(1000):
-            policy.command = command
+            policy.target = command
             obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
             v.append(info["x_velocity"])
             if terminated or truncated:

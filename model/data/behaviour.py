@@ -5,7 +5,9 @@ the observation normalisation it was trained with. Loading needs only torch and 
 
 A commanded snapshot (`model.data.train_commanded`) is one speed-conditioned actor with a fixed command: its
 network reads the observation with the commanded speed appended (`extra["command"]`), so several levels can
-share one actor, and each level's episodes still have one goal.
+share one actor, and each level's episodes still have one goal. A governed snapshot (`extra["governor"]`, a
+`model.data.governor.GovernorConfig`) also steers that command every step so the mean speed holds the level's
+target; it keeps per-episode state, so whoever rolls it out calls `start_episode()` at every reset.
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ class BehaviourMeta:
         std_speed: Standard deviation of the per-episode mean x-velocity.
         train_step: Environment steps of training when the snapshot was taken.
         extra: Free-form measurements (episodes used, mean return, mean length); `command` (m/s), when present,
-            is appended to every observation before the network reads it.
+            is appended to every observation before the network reads it; `governor`, when present, is a
+            `GovernorConfig` whose loop sets that command each step to hold `command` as the target speed.
     """
 
     env_id: str
@@ -83,6 +86,30 @@ class BehaviourPolicy(nn.Module):
         self.noise_scale = 1.0  # multiplies the Gaussian noise std of `act`
         command = meta.extra.get("command")
         self.command = None if command is None else float(command)
+        self.governor = None
+        if meta.extra.get("governor") is not None:
+            from model.data.governor import GovernorConfig, SpeedGovernor
+
+            if self.command is None:
+                raise ValueError("a governed snapshot needs extra.command (its target speed)")
+            self.governor = SpeedGovernor(GovernorConfig(**meta.extra["governor"]), self.command)
+
+    @property
+    def target(self) -> float | None:
+        """The speed the level is asked for: the governor's target, else the command itself."""
+        return self.governor.target if self.governor is not None else self.command
+
+    @target.setter
+    def target(self, value: float) -> None:
+        if self.governor is not None:
+            self.governor.target = float(value)
+        else:
+            self.command = float(value)
+
+    def start_episode(self) -> None:
+        """Forget per-episode state (the governor's speeds and integral) before an episode's first action."""
+        if self.governor is not None:
+            self.governor.reset()
 
     def normalise(self, obs: np.ndarray) -> torch.Tensor:
         """VecNormalize's observation transform (after appending the command, if any), float64 then float32."""
@@ -104,6 +131,8 @@ class BehaviourPolicy(nn.Module):
         Returns:
             float32 action(s) clipped to the action-space bounds.
         """
+        if self.governor is not None:
+            self.command = self.governor.command(obs)
         mean = self.mean_net(self.normalise(obs)).numpy()
         if rng is not None:
             std = self.log_std.exp().numpy() * self.noise_scale

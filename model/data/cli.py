@@ -27,6 +27,18 @@ def _parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
     return out
 
 
+def _parse_range(text: str | None) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    lo, sep, hi = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return float(lo), float(hi)
+    except ValueError:
+        raise typer.BadParameter(f"expected LO:HI in m/s, e.g. 0.5:2.6, got {text!r}") from None
+
+
 @app.command()
 @needs("train", "gmt data behaviour")
 def behaviour(
@@ -104,6 +116,10 @@ def commanded(
         1,
         help="Steps of x-velocity averaged before the tracking terms compare it with the command (1: each step).",
     ),
+    command_range: str = typer.Option(
+        None,
+        help="LO:HI (m/s): train on commands drawn uniformly from this range, not only the levels' speeds.",
+    ),
     cycle_every: int = typer.Option(
         None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."
     ),
@@ -140,6 +156,7 @@ def commanded(
         track_weight=track_weight,
         overspeed_weight=overspeed_weight,
         track_window=track_window,
+        command_range=_parse_range(command_range),
         cycle_every=cycle_every,
         eval_seeds=eval_seeds,
         final_seeds=final_seeds,
@@ -153,6 +170,47 @@ def commanded(
         best = train_commanded(cfg)
     command = "gmt data commanded " + " ".join(shlex.quote(a) for a in sys.argv[3:])
     typer.echo(f"wrote {write_commanded_provenance(cfg, best, command)}")
+
+
+@app.command()
+@needs("data", "gmt data govern")
+def govern(
+    source: Path = typer.Argument(
+        ..., help="A commanded snapshot (.safetensors), e.g. WORK_DIR/step_01000000."
+    ),
+    env: str = typer.Option(
+        ..., help="Gymnasium id, e.g. Hopper-v5 (where the x-velocity sits in its observation)."
+    ),
+    target: list[str] = typer.Option(..., help="LEVEL=SPEED (m/s), slowest first; repeat."),
+    command_range: str = typer.Option(..., help="LO:HI (m/s): the commands the actor was trained on."),
+    window: int = typer.Option(20, help="Steps of speed averaged by the proportional term."),
+    kp: float = typer.Option(1.0, help="Proportional gain on (target - mean speed of the window)."),
+    ki: float = typer.Option(0.002, help="Per-step gain of the integral of (target - speed)."),
+    integral_limit: float = typer.Option(0.5, help="Bound on the integral term (m/s of command)."),
+    out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/<env>/)."),
+) -> None:
+    """Wrap a commanded actor in a speed governor: one level per target, collected like any snapshot."""
+    import shlex
+    import sys
+
+    from model.data.behaviour import BEHAVIOUR_DIR, env_slug
+    from model.data.governor import GovernorConfig, write_governed
+    from model.data.minari_io import x_velocity_obs_index
+
+    vx = x_velocity_obs_index(env)
+    if vx is None:
+        raise typer.BadParameter(f"no known x-velocity entry in {env}'s observation", param_hint="--env")
+    targets = _parse_targets(target) or {}
+    if any(v == "max" for v in targets.values()):
+        raise typer.BadParameter("governed levels need speeds in m/s, not max", param_hint="--target")
+    try:
+        cfg = GovernorConfig(vx, _parse_range(command_range), window, kp, ki, integral_limit)
+        out = out_dir or BEHAVIOUR_DIR / env_slug(env)
+        command = "gmt data govern " + " ".join(shlex.quote(a) for a in sys.argv[3:])
+        written = write_governed(source, targets, cfg, out, command)
+    except (ValueError, FileNotFoundError) as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(f"wrote {', '.join(str(p) for p in written)}")
 
 
 @app.command()

@@ -12,7 +12,8 @@ from model.data.start_states import start_from
 
 
 class Policy(Protocol):
-    """Anything with `act(obs, rng) -> action` (rng None means deterministic)."""
+    """Anything with `act(obs, rng) -> action` (rng None means deterministic); a policy with per-episode state
+    also has `start_episode()`, called before each episode's first action."""
 
     def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray: ...
 
@@ -77,6 +78,8 @@ def rollout(
     obs, reset_info = env.reset(seed=seed)
     if start_state is not None:
         obs = start_from(env, *start_state)
+    if hasattr(policy, "start_episode"):
+        policy.start_episode()
     observations, actions, rewards, infos = [obs], [], [], []
     terminated = truncated = False
     while not (terminated or truncated):

@@ -61,6 +61,8 @@ def build_pool(
     for name, policy in policies.items():
         for ep in range(episodes):
             obs, _ = env.reset(seed=seed + ep)
+            if hasattr(policy, "start_episode"):
+                policy.start_episode()
             for t in range(max_steps):
                 obs, _, terminated, truncated, _ = env.step(policy.act(obs, rng))
                 if terminated:

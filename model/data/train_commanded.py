@@ -43,6 +43,10 @@ class SpeedCommand(gym.Wrapper):
     for a steady mean speed rather than for flattening every stride. The window is not cleared when the command
     changes (the first N - 1 steps after a change still weigh the old speed: braking late costs more), and it is
     not in the observation, so for N > 1 the reward depends on history the policy does not see.
+
+    With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
+    instead of from `commands`: the agent then tracks any speed in between, which a governor
+    (`model.data.governor`) needs to steer it by a command other than the levels'.
     """
 
     def __init__(
@@ -54,8 +58,14 @@ class SpeedCommand(gym.Wrapper):
         track_weight: float = 1.0,
         overspeed_weight: float = 0.0,
         track_window: int = 1,
+        command_range: tuple[float, float] | None = None,
     ):
         super().__init__(env)
+        if command_range is not None and not 0 <= command_range[0] < command_range[1]:
+            raise ValueError(f"command_range must be (lo, hi) with 0 <= lo < hi, got {command_range}")
+        self.command_range = (
+            None if command_range is None else (float(command_range[0]), float(command_range[1]))
+        )
         if track_window < 1:
             raise ValueError(f"track_window must be >= 1, got {track_window}")
         self.track_window = int(track_window)
@@ -66,7 +76,7 @@ class SpeedCommand(gym.Wrapper):
         self.switch_prob = float(switch_prob)
         self.rng = np.random.default_rng(seed)
         box = env.observation_space
-        lo, hi = float(self.commands.min()), float(self.commands.max())
+        lo, hi = self.command_range or (float(self.commands.min()), float(self.commands.max()))
         self.observation_space = gym.spaces.Box(
             np.append(box.low, lo).astype(box.dtype),
             np.append(box.high, hi).astype(box.dtype),
@@ -77,9 +87,15 @@ class SpeedCommand(gym.Wrapper):
     def _obs(self, obs: np.ndarray) -> np.ndarray:
         return np.append(obs, self.command).astype(obs.dtype)
 
+    def _draw(self) -> float:
+        """A new command: uniform over `command_range`, else another of `commands` (any one at a reset)."""
+        if self.command_range is not None:
+            return float(self.rng.uniform(*self.command_range))
+        return float(self.rng.choice(self.commands[self.commands != self.command]))
+
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
-        self.command = float(self.rng.choice(self.commands))
+        self.command = float(self.rng.choice(self.commands)) if self.command_range is None else self._draw()
         self.recent.clear()
         return self._obs(obs), info
 
@@ -94,8 +110,8 @@ class SpeedCommand(gym.Wrapper):
             - self.track_weight * abs(v - self.command)
             - self.overspeed_weight * max(0.0, v - self.command)
         )
-        if len(self.commands) > 1 and self.rng.random() < self.switch_prob:  # from the next step on
-            self.command = float(self.rng.choice(self.commands[self.commands != self.command]))
+        if (len(self.commands) > 1 or self.command_range) and self.rng.random() < self.switch_prob:
+            self.command = self._draw()  # from the next step on
         return self._obs(obs), reward, terminated, truncated, {**info, "command": self.command}
 
 
@@ -113,6 +129,8 @@ class CommandedConfig:
         overspeed_weight: Extra weight of the speed above the command in the training reward (`SpeedCommand`).
         track_window: Steps of x-velocity averaged before the tracking terms compare it with the command
             (`SpeedCommand`; 1: each step's own).
+        command_range: Training commands drawn uniformly from (lo, hi) m/s instead of from the levels' speeds
+            (`SpeedCommand`); None: the levels' speeds only.
         cycle_every: Snapshots are also measured cycling through the levels every this many steps (the GMT
             protocol's multi-switch), so fast changes of speed are chosen; None to measure holds and switches only.
         switch_at: Step of the command change in the measurement episodes.
@@ -133,6 +151,7 @@ class CommandedConfig:
     track_weight: float = 1.0
     overspeed_weight: float = 0.0
     track_window: int = 1
+    command_range: tuple[float, float] | None = None
     cycle_every: int | None = None
     switch_at: int = 500
     eval_seeds: int = 2
@@ -157,6 +176,14 @@ class CommandedConfig:
             raise ValueError(f"overspeed_weight must be >= 0, got {self.overspeed_weight}")
         if self.track_window < 1:
             raise ValueError(f"track_window must be >= 1, got {self.track_window}")
+        if self.command_range is not None:
+            lo, hi = self.command_range
+            if not 0 <= lo < hi:
+                raise ValueError(
+                    f"command_range must be (lo, hi) with 0 <= lo < hi, got {self.command_range}"
+                )
+            if not all(lo <= v <= hi for v in self.targets.values()):
+                raise ValueError(f"every level's speed must lie in command_range {self.command_range}")
         if self.cycle_every is not None and not 4 <= self.cycle_every < 1000:
             raise ValueError(f"cycle_every must be within [4, 1000), got {self.cycle_every}")
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
@@ -186,8 +213,10 @@ def play_schedule(env, policy: BehaviourPolicy, schedule: list[tuple[int, float]
     bounds = [s for s, _ in schedule] + [steps]
     speeds, fell = [], False
     obs, _ = env.reset(seed=seed)
+    if hasattr(policy, "start_episode"):
+        policy.start_episode()
     for t in range(steps):
-        policy.command = float([c for s, c in schedule if s <= t][-1])  # a commanded actor
+        policy.target = float([c for s, c in schedule if s <= t][-1])  # a commanded (or governed) actor
         obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
         speeds.append(float(info["x_velocity"]))
         if terminated or truncated:
@@ -268,6 +297,7 @@ def train_commanded(cfg: CommandedConfig) -> dict:
                 cfg.track_weight,
                 cfg.overspeed_weight,
                 cfg.track_window,
+                cfg.command_range,
             )
         ),
         p,

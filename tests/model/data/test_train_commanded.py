@@ -110,13 +110,13 @@ def test_a_commanded_snapshot_reads_its_command(tmp_path):
 
 
 class _Recorder:
-    """A stand-in actor that stands still and records the command it was given at each step."""
+    """A stand-in actor that stands still and records the target it was given at each step."""
 
     def __init__(self):
-        self.command, self.seen = None, []
+        self.target, self.seen = None, []
 
     def act(self, obs, rng=None):
-        self.seen.append(self.command)
+        self.seen.append(self.target)
         return np.zeros(3, np.float32)
 
 

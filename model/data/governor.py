@@ -1,0 +1,148 @@
+"""A speed governor: an outer loop that steers a commanded actor's command so its mean speed holds a target.
+
+A speed-commanded actor (`model.data.train_commanded`) holds its command only on average: measured on Hopper, its
+slow gait's speed over 150-step windows wanders by ~0.1 m/s, about the protocol's whole tolerance, and after a
+sprint it brakes over ~100 steps. A GMT imitates both. The governor closes the loop that PPO left open: every
+step it reads the x-velocity from the observation and sets the actor's command to
+
+    clip(target + kp * (target - mean of the last `window` speeds) + integral, command_range)
+
+where `integral` sums `ki * (target - speed)` each step (held within +-`integral_limit`, and frozen while the
+command is clipped, so it does not wind up). The proportional term brakes or pushes harder right after a change
+(and depends only on the last `window` observations, which a GMT with a context of at least `window` steps
+sees); the integral removes the actor's own bias and slow drift. The actor must have been trained on commands
+over the whole `command_range` (`gmt data commanded --command-range`), or a corrected command is one it never
+saw.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from safetensors.torch import load_file
+
+
+@dataclass(frozen=True)
+class GovernorConfig:
+    """Gains and limits of a `SpeedGovernor`.
+
+    Attributes:
+        vx_index: Index of the x-velocity in the environment's observation vector
+            (`model.data.minari_io.x_velocity_obs_index`).
+        command_range: (lo, hi): the commands the actor was trained on; every command is clipped into it.
+        window: Steps of speed averaged by the proportional term.
+        kp: Proportional gain on (target - window mean speed).
+        ki: Per-step gain of the integral of (target - speed).
+        integral_limit: Bound on the integral term's magnitude (m/s of command).
+    """
+
+    vx_index: int
+    command_range: tuple[float, float]
+    window: int = 20
+    kp: float = 1.0
+    ki: float = 0.002
+    integral_limit: float = 0.5
+
+    def __post_init__(self) -> None:
+        lo, hi = self.command_range
+        if not lo < hi:
+            raise ValueError(f"command_range must be (lo, hi) with lo < hi, got {self.command_range}")
+        if self.vx_index < 0:
+            raise ValueError(f"vx_index must be >= 0, got {self.vx_index}")
+        if self.window < 1:
+            raise ValueError(f"window must be >= 1, got {self.window}")
+        if self.kp < 0 or self.ki < 0 or self.integral_limit < 0:
+            raise ValueError("kp, ki and integral_limit must be >= 0")
+        object.__setattr__(self, "command_range", (float(lo), float(hi)))
+
+    def to_json(self) -> dict:
+        """The config as JSON-ready values (stored in a behaviour snapshot's `extra["governor"]`)."""
+        return {**asdict(self), "command_range": list(self.command_range)}
+
+
+class SpeedGovernor:
+    """The per-episode state of the outer speed loop (`GovernorConfig`); call `reset` at every episode start."""
+
+    def __init__(self, cfg: GovernorConfig, target: float):
+        self.cfg = cfg
+        self.target = float(target)
+        self.speeds: deque[float] = deque(maxlen=cfg.window)
+        self.integral = 0.0
+
+    def reset(self) -> None:
+        """Forget the speeds and the integral (a new episode)."""
+        self.speeds.clear()
+        self.integral = 0.0
+
+    def command(self, obs: np.ndarray) -> float:
+        """The command for the step about to be taken at observation `obs` (one observation, not a batch)."""
+        obs = np.asarray(obs)
+        if obs.ndim != 1:
+            raise ValueError(f"a governed policy acts on one observation at a time, got shape {obs.shape}")
+        c = self.cfg
+        speed = float(obs[c.vx_index])
+        self.speeds.append(speed)
+        lo, hi = c.command_range
+        raw = self.target + c.kp * (self.target - float(np.mean(self.speeds))) + self.integral
+        command = min(max(raw, lo), hi)
+        if command == raw:  # conditional integration: no wind-up while the command is clipped
+            self.integral = min(
+                max(self.integral + c.ki * (self.target - speed), -c.integral_limit), c.integral_limit
+            )
+        return command
+
+
+def write_governed(
+    source: str | Path, targets: dict[str, float], cfg: GovernorConfig, out_dir: str | Path, command: str
+) -> list[Path]:
+    """Write one governed level per target: the commanded actor `source` with `cfg`, targeting that speed.
+
+    Args:
+        source: A commanded snapshot (its `.safetensors` path, or the path without suffix).
+        targets: Level name -> target speed (m/s); each must lie inside `cfg.command_range`.
+        cfg: The governor every level uses.
+        out_dir: Where `<level>.safetensors` / `.json` and `GOVERNED_WITH.md` go; other levels there are removed
+            (a level no longer wanted must not be collected).
+        command: The command line that asked for this, recorded in `GOVERNED_WITH.md`.
+
+    Returns:
+        The written level paths (without suffix).
+    """
+    from model.data.behaviour import BehaviourMeta, save_behaviour
+
+    source = Path(source).with_suffix("")
+    meta = json.loads(Path(f"{source}.json").read_text())
+    if meta.get("extra", {}).get("command") is None:
+        raise ValueError(f"{source}: not a commanded snapshot (no extra.command)")
+    lo, hi = cfg.command_range
+    for level, speed in targets.items():
+        if not lo <= speed <= hi:
+            raise ValueError(f"level {level!r}: target {speed} outside the command range {cfg.command_range}")
+    state = load_file(f"{source}.safetensors")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for old in [*out_dir.glob("*.safetensors"), *out_dir.glob("*.json")]:
+        old.unlink()
+    written = []
+    for level, speed in targets.items():
+        m = BehaviourMeta(**meta)
+        m.level, m.mean_speed, m.std_speed = level, None, None
+        m.extra = {
+            "command": float(speed),
+            "target_speed": float(speed),
+            "commanded": True,
+            "governor": cfg.to_json(),
+            "source": str(source),
+        }
+        save_behaviour(out_dir / level, state, m)
+        written.append(out_dir / level)
+    (out_dir / "GOVERNED_WITH.md").write_text(
+        f"# Governed levels\n\nWritten by:\n\n```bash\n{command}\n```\n\nActor: `{source}` (train step "
+        f"{meta.get('train_step')}). Levels: {targets}. Governor (`model.data.governor.GovernorConfig`): "
+        f"`{cfg.to_json()}`.\n"
+    )
+    return written

@@ -1,0 +1,127 @@
+"""The speed governor around a commanded actor, governed snapshots, and commands drawn from a range in training."""
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from model.data.governor import GovernorConfig, SpeedGovernor, write_governed
+from model.data.rollout import rollout
+from model.data.train_commanded import CommandedConfig, SpeedCommand
+
+ENV = "Hopper-v5"
+VX = 5  # Hopper's x-velocity entry
+
+
+def _obs(speed: float) -> np.ndarray:
+    obs = np.zeros(11)
+    obs[VX] = speed
+    return obs
+
+
+def test_the_governor_commands_against_the_speed_error_within_the_range():
+    cfg = GovernorConfig(VX, (0.5, 2.5), window=2, kp=1.0, ki=0.0)
+    gov = SpeedGovernor(cfg, target=1.0)
+    assert gov.command(_obs(1.0)) == pytest.approx(1.0)  # on target: the target itself
+    assert gov.command(_obs(1.4)) == pytest.approx(1.0 + (1.0 - 1.2))  # mean of the last 2 speeds is 1.2
+    assert gov.command(_obs(3.0)) == 0.5  # far too fast: clipped to the range's floor
+    gov.target = 2.4
+    assert gov.command(_obs(0.0)) == 2.5  # far too slow: the ceiling
+    gov.reset()
+    assert gov.command(_obs(2.5)) == pytest.approx(2.4 - 0.1)  # the window forgot the old speeds
+    with pytest.raises(ValueError, match="one observation"):
+        gov.command(np.zeros((2, 11)))
+
+
+def test_the_integral_removes_a_steady_bias_and_does_not_wind_up_while_clipped():
+    cfg = GovernorConfig(VX, (0.5, 2.5), window=10, kp=0.5, ki=0.02, integral_limit=0.5)
+
+    def run(gov: SpeedGovernor, steps: int, bias: float, speed: float = 1.0) -> float:
+        for _ in range(steps):  # a plant that runs `bias` slower than its command, with some lag
+            speed = 0.8 * speed + 0.2 * (gov.command(_obs(speed)) - bias)
+        return speed
+
+    gov = SpeedGovernor(cfg, target=1.0)
+    assert run(gov, 2000, bias=0.3) == pytest.approx(1.0, abs=1e-3)  # the integral closes the gap
+    assert gov.integral == pytest.approx(0.3, abs=1e-3)
+    p_only = SpeedGovernor(GovernorConfig(VX, (0.5, 2.5), window=10, kp=0.5, ki=0.0), target=1.0)
+    assert run(p_only, 2000, bias=0.3) < 0.85  # without it a bias stays
+    saturated = SpeedGovernor(cfg, target=1.0)
+    for _ in range(200):
+        assert saturated.command(_obs(5.0)) == 0.5  # clipped every step ...
+    assert saturated.integral == 0.0  # ... so nothing was integrated
+    with pytest.raises(ValueError, match="command_range"):
+        GovernorConfig(VX, (2.0, 1.0))
+    with pytest.raises(ValueError, match="window"):
+        GovernorConfig(VX, (0.5, 2.5), window=0)
+    with pytest.raises(ValueError, match=">= 0"):
+        GovernorConfig(VX, (0.5, 2.5), ki=-1.0)
+
+
+def _commanded_actor(path, obs_dim=11, hidden=8):
+    torch.manual_seed(0)
+    state = {
+        "mean_net.0.weight": 0.3 * torch.randn(hidden, obs_dim + 1),
+        "mean_net.0.bias": torch.zeros(hidden),
+        "mean_net.2.weight": 0.3 * torch.randn(3, hidden),
+        "mean_net.2.bias": torch.zeros(3),
+        "log_std": torch.zeros(3),
+    }
+    meta = BehaviourMeta(ENV, "slow", [hidden], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
+    save_behaviour(path, state, meta)
+    return path
+
+
+def test_governed_levels_steer_the_actor_by_their_target(tmp_path):
+    env = gym.make(ENV)
+    source = _commanded_actor(tmp_path / "actor")
+    cfg = GovernorConfig(VX, (0.5, 2.5), window=5, kp=1.0, ki=0.01)
+    written = write_governed(source, {"slow": 1.0, "fast": 2.0}, cfg, tmp_path / "levels", "gmt data govern ...")
+    assert [p.name for p in written] == ["slow", "fast"]
+    meta = json.loads((tmp_path / "levels" / "fast.json").read_text())
+    assert meta["extra"]["command"] == 2.0 and meta["extra"]["governor"] == cfg.to_json()
+    assert "gmt data govern ..." in (tmp_path / "levels" / "GOVERNED_WITH.md").read_text()
+    slow = load_behaviour(tmp_path / "levels" / "slow", env.action_space)
+    plain = load_behaviour(source, env.action_space)
+    assert slow.target == 1.0 and plain.target == 1.0 and plain.governor is None
+    fast_obs = _obs(2.0)
+    plain.command = 0.5  # the governor's first command at 2 m/s: 1.0 + (1.0 - 2.0), clipped to the floor
+    np.testing.assert_allclose(slow.act(fast_obs), plain.act(fast_obs), rtol=1e-6)
+    assert slow.command == 0.5
+    slow.target = 2.0
+    assert slow.governor.target == 2.0
+    with pytest.raises(ValueError, match="one observation"):
+        slow.act(np.stack([fast_obs, fast_obs]))
+    # Each episode starts afresh: the same seed gives the same actions twice in a row.
+    a = rollout(env, slow, seed=3, rng=np.random.default_rng(0), max_steps=40)
+    b = rollout(env, slow, seed=3, rng=np.random.default_rng(0), max_steps=40)
+    np.testing.assert_array_equal(a.actions, b.actions)
+    with pytest.raises(ValueError, match="outside the command range"):
+        write_governed(source, {"slow": 0.2, "fast": 2.0}, cfg, tmp_path / "bad", "")
+    with pytest.raises(ValueError, match="not a commanded snapshot"):
+        meta = BehaviourMeta(ENV, "x", [8], "tanh", [0.0] * 11, [1.0] * 11)
+        save_behaviour(tmp_path / "uncommanded", {"log_std": torch.zeros(3)}, meta)
+        write_governed(tmp_path / "uncommanded", {"slow": 1.0}, cfg, tmp_path / "bad", "")
+
+
+def test_training_commands_can_be_drawn_from_a_range():
+    env = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(0.5, 2.5))
+    assert env.observation_space.low[-1] == 0.5 and env.observation_space.high[-1] == 2.5
+    obs, _ = env.reset(seed=0)
+    seen = [env.command]
+    for _ in range(30):
+        obs, _, terminated, _, _ = env.step(np.zeros(3, np.float32))
+        assert obs[-1] == env.command
+        seen.append(env.command)
+        if terminated:
+            obs, _ = env.reset(seed=1)
+            seen.append(env.command)
+    assert all(0.5 <= c <= 2.5 for c in seen)
+    assert len(set(seen)) > 10 and not set(seen) <= {1.0, 2.2}  # anywhere in the range, not only the levels
+    with pytest.raises(ValueError, match="command_range"):
+        SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(2.0, 1.0))
+    with pytest.raises(ValueError, match="command_range"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, command_range=(1.2, 2.5))
