@@ -79,7 +79,9 @@ def test_governed_levels_steer_the_actor_by_their_target(tmp_path):
     env = gym.make(ENV)
     source = _commanded_actor(tmp_path / "actor")
     cfg = GovernorConfig(VX, (0.5, 2.5), window=5, kp=1.0, ki=0.01)
-    written = write_governed(source, {"slow": 1.0, "fast": 2.0}, cfg, tmp_path / "levels", "gmt data govern ...")
+    written = write_governed(
+        source, {"slow": 1.0, "fast": 2.0}, cfg, tmp_path / "levels", "gmt data govern ..."
+    )
     assert [p.name for p in written] == ["slow", "fast"]
     meta = json.loads((tmp_path / "levels" / "fast.json").read_text())
     assert meta["extra"]["command"] == 2.0 and meta["extra"]["governor"] == cfg.to_json()
