@@ -169,12 +169,14 @@ def load_behaviour(path: str | Path, action_space) -> BehaviourPolicy:
 
 
 def list_snapshots(env_id: str, behaviour_dir: str | Path | None = None) -> list[Path]:
-    """The snapshot files of one environment, slowest measured speed first."""
+    """The snapshot files of one environment, slowest measured (else target) speed first."""
     folder = Path(behaviour_dir or BEHAVIOUR_DIR) / env_slug(env_id)
     files = sorted(folder.glob("*.safetensors"))
     if not files:
         raise FileNotFoundError(f"no behaviour snapshots in {folder}; train them with `gmt data behaviour`")
-    speeds = [json.loads(f.with_suffix(".json").read_text()).get("mean_speed") or 0.0 for f in files]
+    metas = [json.loads(f.with_suffix(".json").read_text()) for f in files]
+    # A governed level has no measured speed yet; its target orders it.
+    speeds = [m.get("mean_speed") or m.get("extra", {}).get("target_speed") or 0.0 for m in metas]
     return [f for _, f in sorted(zip(speeds, files, strict=True))]
 
 

@@ -127,3 +127,12 @@ def test_training_commands_can_be_drawn_from_a_range():
         SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(2.0, 1.0))
     with pytest.raises(ValueError, match="command_range"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, command_range=(1.2, 2.5))
+
+
+def test_governed_levels_are_listed_slowest_target_first(tmp_path):
+    from model.data.behaviour import list_snapshots
+
+    source = _commanded_actor(tmp_path / "actor")
+    cfg = GovernorConfig(VX, (0.5, 2.5))
+    write_governed(source, {"walk": 1.0, "amble": 1.5, "run": 2.0}, cfg, tmp_path / "hopper", "")
+    assert [p.stem for p in list_snapshots(ENV, tmp_path)] == ["walk", "amble", "run"]
