@@ -131,6 +131,11 @@ def commanded(
         None, help="Where every snapshot is kept (default runs/behaviour/<env>/commanded)."
     ),
     select_only: bool = typer.Option(False, help="Skip training; choose among the kept snapshots."),
+    snapshot: int = typer.Option(
+        None,
+        help="With --select-only: export this kept snapshot (its training step) instead of the best-scored one, "
+        "e.g. one chosen with tools/behaviour_protocol.py.",
+    ),
 ) -> None:
     """Train one speed-commanded PPO agent that switches between levels; export each level (`train` extra)."""
     import json
@@ -164,12 +169,23 @@ def commanded(
         out_dir=out_dir,
         work_dir=work_dir,
     )
+    if snapshot is not None and not select_only:
+        raise typer.BadParameter(
+            "--snapshot chooses among kept snapshots: add --select-only", param_hint="--snapshot"
+        )
     if select_only:
-        best = select_commanded(cfg, json.loads((cfg.work_dir / "records.json").read_text()))
+        records = json.loads((cfg.work_dir / "records.json").read_text())
+        if snapshot is not None:
+            records = [r for r in records if r["step"] == snapshot]
+            if not records:
+                raise typer.BadParameter(
+                    f"no snapshot at step {snapshot} in {cfg.work_dir}", param_hint="--snapshot"
+                )
+        best = select_commanded(cfg, records)
     else:
         best = train_commanded(cfg)
     command = "gmt data commanded " + " ".join(shlex.quote(a) for a in sys.argv[3:])
-    typer.echo(f"wrote {write_commanded_provenance(cfg, best, command)}")
+    typer.echo(f"wrote {write_commanded_provenance(cfg, best, command, snapshot is not None)}")
 
 
 @app.command()

@@ -370,8 +370,17 @@ def select_commanded(cfg: CommandedConfig, records: list[dict]) -> dict:
     return best
 
 
-def write_commanded_provenance(cfg: CommandedConfig, best: dict, command: str) -> Path:
-    """`<out_dir>/TRAINED_WITH.md`: the command, packages, hyperparameters and the chosen snapshot's cases."""
+def write_commanded_provenance(
+    cfg: CommandedConfig, best: dict, command: str, chosen_by_hand: bool = False
+) -> Path:
+    """`<out_dir>/TRAINED_WITH.md`: the command, packages, hyperparameters and the chosen snapshot's cases.
+
+    Args:
+        cfg: The run's configuration.
+        best: The kept snapshot's fine measurement (`select_commanded`).
+        command: The command line that wrote the levels.
+        chosen_by_hand: The snapshot was named (`--snapshot`), not picked by score.
+    """
     from importlib.metadata import version
 
     pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
@@ -393,6 +402,12 @@ def write_commanded_provenance(cfg: CommandedConfig, best: dict, command: str) -
     cycle = (
         "" if cfg.cycle_every is None else f" and cycling through the levels every {cfg.cycle_every} steps"
     )
+    choice = (
+        f"step {best['step']} was named by hand (`--snapshot`) and measured again on {cfg.final_seeds} episodes each"
+        if chosen_by_hand
+        else f"the {cfg.candidates} best were measured again on {cfg.final_seeds}\nepisodes each, and step "
+        f"{best['step']} was kept"
+    )
     text = f"""# Behaviour agent for {cfg.env_id}: one speed-commanded actor
 
 Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
@@ -408,8 +423,7 @@ One PPO actor reads the observation with a commanded speed appended; in training
 weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}, both on the mean
 x-velocity of the last {cfg.track_window} step(s) (`model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
 {cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}){cycle},
-{cfg.eval_seeds} stochastic episodes each; the {cfg.candidates} best were measured again on {cfg.final_seeds}
-episodes each, and step {best["step"]} was kept:
+{cfg.eval_seeds} stochastic episodes each; {choice}:
 
 {table}
 

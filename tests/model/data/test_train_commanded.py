@@ -157,3 +157,50 @@ def test_commanded_levels_need_two_numeric_speeds():
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, cycle_every=1000)
     with pytest.raises(ValueError, match="track_window"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, track_window=0)
+
+
+def _snapshot(path, seed: int) -> None:
+    torch.manual_seed(seed)
+    state = {
+        "mean_net.0.weight": 0.1 * torch.randn(8, 12),
+        "mean_net.0.bias": torch.zeros(8),
+        "mean_net.2.weight": 0.1 * torch.randn(3, 8),
+        "mean_net.2.bias": torch.zeros(3),
+        "log_std": torch.zeros(3),
+    }
+    meta = BehaviourMeta(ENV, "commanded", [8], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
+    save_behaviour(path, state, meta)
+
+
+def test_a_named_snapshot_is_exported_instead_of_the_best_scored(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from model.data.cli import app
+
+    work, out = tmp_path / "work", tmp_path / "out"
+    work.mkdir()
+    for step in (100, 200):
+        _snapshot(work / f"step_{step:08d}", step)
+    records = [{"step": 100, "score": 9.0}, {"step": 200, "score": 1.0}]  # 200 scored best
+    (work / "records.json").write_text(json.dumps(records))
+    base = ["commanded", "--env", ENV, "--target", "slow=1.0", "--target", "fast=2.2", "--final-seeds", "1"]
+    base += ["--work-dir", str(work), "--out-dir", str(out)]
+    runner = CliRunner()
+
+    res = runner.invoke(app, [*base, "--snapshot", "100"])  # training would overwrite the kept snapshots
+    assert res.exit_code != 0 and "--select-only" in res.output
+    res = runner.invoke(app, [*base, "--select-only", "--snapshot", "300"])
+    assert res.exit_code != 0 and "no snapshot at step 300" in res.output
+
+    res = runner.invoke(app, [*base, "--select-only", "--snapshot", "100"])
+    assert res.exit_code == 0, res.output
+    for level, command in (("slow", 1.0), ("fast", 2.2)):
+        meta = json.loads((out / f"{level}.json").read_text())
+        assert meta["train_step"] == 100 and meta["extra"]["command"] == command
+    assert "step 100 was named by hand" in (out / "TRAINED_WITH.md").read_text()
+
+    res = runner.invoke(app, [*base, "--select-only"])  # without a name, the best score wins
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "slow.json").read_text())["train_step"] == 200
