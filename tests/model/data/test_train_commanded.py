@@ -83,9 +83,9 @@ def test_a_track_window_tracks_the_mean_speed_of_the_last_steps():
         SpeedCommand(gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, track_window=0)
 
 
-def test_a_commanded_snapshot_reads_its_command(tmp_path):
-    env = gym.make(ENV)
-    torch.manual_seed(0)
+def _snapshot(path, seed: int) -> dict[str, torch.Tensor]:
+    """A tiny commanded Hopper actor (11 observations + the command -> 8 -> 3), saved at `path`; its weights."""
+    torch.manual_seed(seed)
     state = {
         "mean_net.0.weight": 0.1 * torch.randn(8, 12),
         "mean_net.0.bias": torch.zeros(8),
@@ -93,8 +93,14 @@ def test_a_commanded_snapshot_reads_its_command(tmp_path):
         "mean_net.2.bias": torch.zeros(3),
         "log_std": torch.zeros(3),
     }
-    meta = BehaviourMeta(ENV, "slow", [8], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
-    save_behaviour(tmp_path / "slow", state, meta)
+    meta = BehaviourMeta(ENV, path.name, [8], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
+    save_behaviour(path, state, meta)
+    return state
+
+
+def test_a_commanded_snapshot_reads_its_command(tmp_path):
+    env = gym.make(ENV)
+    state = _snapshot(tmp_path / "slow", 0)
     policy = load_behaviour(tmp_path / "slow", env.action_space)
     obs = np.linspace(-0.5, 0.5, 11)
     expected = torch.tanh(
@@ -157,19 +163,6 @@ def test_commanded_levels_need_two_numeric_speeds():
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, cycle_every=1000)
     with pytest.raises(ValueError, match="track_window"):
         CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, track_window=0)
-
-
-def _snapshot(path, seed: int) -> None:
-    torch.manual_seed(seed)
-    state = {
-        "mean_net.0.weight": 0.1 * torch.randn(8, 12),
-        "mean_net.0.bias": torch.zeros(8),
-        "mean_net.2.weight": 0.1 * torch.randn(3, 8),
-        "mean_net.2.bias": torch.zeros(3),
-        "log_std": torch.zeros(3),
-    }
-    meta = BehaviourMeta(ENV, "commanded", [8], "tanh", [0.0] * 12, [1.0] * 12, extra={"command": 1.0})
-    save_behaviour(path, state, meta)
 
 
 def test_a_named_snapshot_is_exported_instead_of_the_best_scored(tmp_path):
