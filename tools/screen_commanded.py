@@ -44,6 +44,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=8, help="Cycle episodes per snapshot.")
     ap.add_argument("--hold-seeds", type=int, default=4, help="Hold episodes per command (seeds from 100).")
     ap.add_argument("--from-step", type=int, default=0, help="Skip snapshots before this training step.")
+    ap.add_argument("--steps", nargs="+", type=int, help="Screen only these training steps (default: all).")
     args = ap.parse_args()
     torch.set_num_threads(1)
     env = gym.make(args.env)
@@ -60,7 +61,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     for path in snaps:
         train_step = int(path.stem.removeprefix("step_"))
-        if train_step < args.from_step:
+        if train_step < args.from_step or (args.steps and train_step not in args.steps):
             continue
         policy = load_behaviour(path.with_suffix(""), env.action_space)
         held = [hold_mean(env, policy, c, range(100, 100 + args.hold_seeds)) for c in args.commands]
