@@ -4,7 +4,7 @@
 speeds. A GMT trained on a snapshot's data is judged against the data's goal means instead (what the snapshot
 actually holds), on a cycle that starts from rest. This plays each snapshot's holds (`--hold-seeds` episodes per
 command, steps [100, 1000)) and its every-N cycle from rest (`--seeds` episodes), judges the cycle's segments
-against those held speeds with the GMT protocol's tolerance and settle-in, and flags snapshots whose two extreme
+against those held speeds with the GMT protocol's tolerance and settle-in (`play_schedule`), and flags snapshots whose two extreme
 goals' bands overlap (one speed would then pass both). Export the one you choose with
 `gmt data commanded ... --select-only --snapshot STEP`, then play it fully with `tools/behaviour_protocol.py`.
 
@@ -28,9 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from behaviour_protocol import hold_mean  # noqa: E402
 
-from clients.segments import achieved, measured_spans, tolerance, within  # noqa: E402
+from clients.segments import tolerance, within  # noqa: E402
 from model.data.behaviour import load_behaviour  # noqa: E402
-from model.evaluate import protocol  # noqa: E402
+from model.data.train_commanded import cycle_schedule, play_schedule  # noqa: E402
 
 
 def main() -> None:
@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument(
         "--commands", nargs="+", type=float, required=True, help="The levels' commands, slowest first."
     )
-    ap.add_argument("--every", type=int, default=200, help="Cycle length in steps (a protocol schedule).")
+    ap.add_argument("--every", type=int, default=200, help="Cycle length in steps.")
     ap.add_argument("--seeds", type=int, default=8, help="Cycle episodes per snapshot.")
     ap.add_argument("--hold-seeds", type=int, default=4, help="Hold episodes per command (seeds from 100).")
     ap.add_argument("--from-step", type=int, default=0, help="Skip snapshots before this training step.")
@@ -48,14 +48,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     env = gym.make(args.env)
+    schedule = cycle_schedule(args.commands, args.every)
+    segment_goals = [args.commands.index(c) for _, c in schedule]
     name = f"every {args.every}"
-    cond = next((c for c in protocol(len(args.commands)) if c.name == name), None)
-    if cond is None:
-        ap.error(f"no protocol schedule named {name!r}")
-    per_step = np.zeros(1000, dtype=int)
-    for step, g in cond.schedule:
-        per_step[step:] = g
-    spans = measured_spans(per_step)
     snaps = sorted(args.work_dir.glob("step_*.safetensors"))
     print("| snapshot | held speeds (m/s) | bands | " + name + " | falls | segments within | first segment |")
     print("|---|---|---|---|---|---|---|")
@@ -72,27 +67,17 @@ def main() -> None:
         lo, hi = goals[0], goals[-1]
         overlap = lo.mean + tolerance(lo, goals) >= hi.mean - tolerance(hi, goals)
         ok = falls = 0
-        seg_ok, first = np.zeros(len(spans), dtype=int), []
+        seg_ok, first = np.zeros(len(schedule), dtype=int), []
         for seed in range(args.seeds):
-            obs, _ = env.reset(seed=seed)
-            rng = np.random.default_rng(seed)
-            policy.start_episode()
-            v = np.full(1000, np.nan)
-            terminated = False
-            for t in range(1000):
-                policy.target = args.commands[per_step[t]]
-                obs, _, terminated, truncated, info = env.step(policy.act(obs, rng))
-                v[t] = info["x_velocity"]
-                if terminated or truncated:
-                    break
-            falls += bool(terminated)
+            out = play_schedule(env, policy, schedule, seed, np.random.default_rng(seed))
+            falls += out["fell"]
             hits = [
-                not terminated and bool(within(achieved(v, a, b), goals[g].mean, tolerance(goals[g], goals)))
-                for g, a, b in spans
+                not out["fell"] and bool(within(m, goals[g].mean, tolerance(goals[g], goals)))
+                for m, g in zip(out["speeds"], segment_goals, strict=True)
             ]
             seg_ok += hits
             ok += all(hits)
-            first.append(achieved(v, spans[0][1], spans[0][2]))
+            first.append(out["speeds"][0])
         print(
             f"| {train_step:,} | {' / '.join(f'{m:.3f}' for m in held)} | {'overlap' if overlap else 'apart'} "
             f"| {ok}/{args.seeds} | {falls} | {', '.join(map(str, seg_ok))} | {np.nanmean(first):.2f} |",

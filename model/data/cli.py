@@ -134,7 +134,7 @@ def commanded(
     snapshot: int = typer.Option(
         None,
         help="With --select-only: export this kept snapshot (its training step) instead of the best-scored one, "
-        "e.g. one chosen with tools/behaviour_protocol.py.",
+        "e.g. one chosen with tools/screen_commanded.py.",
     ),
 ) -> None:
     """Train one speed-commanded PPO agent that switches between levels; export each level (`train` extra)."""
