@@ -299,6 +299,17 @@ def collect(
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "
         "repeat. Default per env (HalfCheetah: slow=0.5). LEVEL=0 turns it off.",
     ),
+    plan: list[str] = typer.Option(
+        None,
+        help="LEVEL=C1,C2,...: plan the start of LEVEL's pool-started episodes in the simulator, choosing among "
+        "continuations of the commanded level at these commands (model/data/plan.py); repeat per level.",
+    ),
+    plan_candidates: int = typer.Option(12, help="Continuations simulated per planning decision."),
+    plan_every: int = typer.Option(
+        20, help="Steps played from a chosen continuation before the next decision."
+    ),
+    plan_horizon: int = typer.Option(80, help="Steps simulated per continuation."),
+    plan_steps: int = typer.Option(200, help="Leading steps of a pool-started episode that are planned."),
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
 
@@ -317,7 +328,15 @@ def collect(
             argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in DEFAULT_EPISODES)]
         raise typer.Exit(collect_breakout(argv))
     from model.data.collect import CollectConfig, collect
+    from model.data.plan import PlanConfig, parse_plan
 
+    plans = {}
+    for item in plan or []:
+        try:
+            name, commands = parse_plan(item)
+            plans[name] = PlanConfig(commands, plan_candidates, plan_every, plan_horizon, plan_steps)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--plan") from None
     shares = None
     if pool_start:
         shares = {}
@@ -328,20 +347,24 @@ def collect(
             except ValueError:
                 raise typer.BadParameter(f"expected LEVEL=SHARE, got {item!r}") from None
 
-    cfg = CollectConfig(
-        env_id=env,
-        episodes_per_level=episodes_per_level,
-        seed=seed,
-        dataset_id=out_id,
-        data_dir=data_dir,
-        behaviour_dir=behaviour_dir,
-        max_steps=max_steps,
-        noise_scale=noise_scale,
-        include_random=not no_random,
-        drop_stuck=not keep_stuck,
-        drop_falls=not keep_falls,
-        pool_start=shares,
-    )
+    try:
+        cfg = CollectConfig(
+            env_id=env,
+            episodes_per_level=episodes_per_level,
+            seed=seed,
+            dataset_id=out_id,
+            data_dir=data_dir,
+            behaviour_dir=behaviour_dir,
+            max_steps=max_steps,
+            noise_scale=noise_scale,
+            include_random=not no_random,
+            drop_stuck=not keep_stuck,
+            drop_falls=not keep_falls,
+            pool_start=shares,
+            plan=plans,
+        )
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
     res = collect(cfg)
     typer.echo(f"wrote {res.dataset_id} to {res.path}")
     typer.echo(f"{res.episodes} episodes, {res.transitions} transitions in {res.seconds:.1f} s")
@@ -352,8 +375,8 @@ def collect(
             else f"  mean x-velocity {lv['mean_speed']:.3f} +- {lv['std_speed']:.3f}"
         )
         typer.echo(
-            f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states, "
-            f"{lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
+            f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states"
+            f"{' and planned' * bool(lv['planned'])}, {lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
         )
 
 

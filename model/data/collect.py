@@ -16,6 +16,7 @@ import torch
 
 from model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
 from model.data.minari_io import Episode, write_dataset
+from model.data.plan import PlanConfig, PlannedPolicy
 from model.data.rollout import rollout, stuck_step
 from model.data.start_states import StatePool, build_pool
 
@@ -71,6 +72,9 @@ class CollectConfig:
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         pool_start: Level -> share of its episodes that start from a state visited by the other policies
             (None: per-env default; {} for none).
+        plan: Level -> how that level plans the start of its pool-started episodes (`plan.PlannedPolicy`: the
+            commanded level picks, in the simulator, the continuation that reaches its speed soonest); None or
+            {} for no planning.
         overwrite: Replace an existing dataset with the same id.
     """
 
@@ -88,6 +92,7 @@ class CollectConfig:
     drop_falls: bool = True
     max_attempts: int = 3
     pool_start: dict[str, float] | None = None
+    plan: dict[str, PlanConfig] | None = None
     overwrite: bool = True
 
     def __post_init__(self) -> None:
@@ -103,6 +108,12 @@ class CollectConfig:
         for level, share in self.pool_start.items():
             if not 0.0 <= share <= 1.0:
                 raise ValueError(f"pool_start[{level!r}] must be in [0, 1], got {share}")
+        self.plan = dict(self.plan or {})
+        unplanned = sorted(level for level in self.plan if not self.pool_start.get(level, 0.0) > 0)
+        if unplanned:
+            raise ValueError(
+                f"plan names levels without pool starts {unplanned}: only pool-started episodes are planned"
+            )
 
 
 @dataclass
@@ -131,7 +142,8 @@ def collect_level(
     """`cfg.episodes_per_level` episodes of one policy, replacing stuck ones (never for the random policy).
 
     With a `pool`, episode i starts from a pool state when i is below `pool_start[name]` x the episode count
-    (the first share of episodes), else at the reset pose.
+    (the first share of episodes), else at the reset pose. With a plan for the level, a pool-started episode's
+    first steps are planned (`plan.PlannedPolicy`).
 
     Returns:
         The episodes, their Minari episode metadata, and a summary (counts, speed mean and std).
@@ -141,6 +153,7 @@ def collect_level(
     rng = np.random.default_rng(seeds)
     filtered = cfg.drop_stuck and name != RANDOM
     n_pool = round(cfg.pool_start.get(name, 0.0) * n) if pool is not None else 0
+    planned = PlannedPolicy(policy, env, cfg.plan[name]) if name in cfg.plan and n_pool else None
     episodes, metadata, dropped, fell = [], [], 0, 0
     while len(episodes) < n:
         reset_seed = next(reset_seeds, None)
@@ -154,7 +167,10 @@ def collect_level(
             i = pool.sample(rng)
             start = (pool.qpos[i], pool.qvel[i])
             meta = {"start_from": str(pool.source[i]), "start_step": int(pool.step[i])}
-        ep = rollout(env, policy, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
+            if planned is not None:
+                meta["planned_steps"] = planned.cfg.steps
+        actor = planned if start is not None and planned is not None else policy
+        ep = rollout(env, actor, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
         v = ep.infos.get("x_velocity")
         # A pooled start may be a pose the level cannot get out of (on its back): standing still at the end.
         if (
@@ -179,6 +195,7 @@ def collect_level(
     summary = {
         "episodes": n,
         "pool_starts": n_pool,
+        "planned": n_pool if planned is not None else 0,
         "stuck_dropped": dropped,
         "falls_dropped": fell,
         "mean_speed": float(np.mean(speeds)) if speeds else None,
@@ -203,9 +220,11 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         policies[path.stem] = load_behaviour(path, env.action_space)
         policies[path.stem].noise_scale = cfg.noise_scale
     children = np.random.SeedSequence(cfg.seed).spawn(len(policies))
-    unknown = sorted(set(cfg.pool_start) - set(policies))
+    unknown = sorted((set(cfg.pool_start) | set(cfg.plan)) - set(policies))
     if unknown:
-        raise ValueError(f"pool_start names unknown levels {unknown}; the levels are {list(policies)}")
+        raise ValueError(
+            f"pool_start or plan names unknown levels {unknown}; the levels are {list(policies)}"
+        )
     steps = cfg.max_steps or env.spec.max_episode_steps or 1000
     pools = {
         name: build_pool(
@@ -242,6 +261,13 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             f"{round(share * cfg.episodes_per_level)} {name} episodes start from states the other policies "
             "visited (episode metadata start_from / start_step). "
             for name, share in cfg.pool_start.items()
+            if name in pools
+        )
+        + "".join(
+            f"The first {p.steps} steps of {name}'s pool-started episodes are planned: every {p.every} steps the "
+            f"best of {p.candidates} simulated {p.horizon}-step continuations (commands {', '.join(f'{c:g}' for c in p.commands)}) "
+            "by closeness of its mean x-velocity to the level's speed (episode metadata planned_steps). "
+            for name, p in cfg.plan.items()
             if name in pools
         )
         + "Written by `gmt data collect`."
