@@ -299,6 +299,11 @@ def collect(
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "
         "repeat. Default per env (HalfCheetah: slow=0.5). LEVEL=0 turns it off.",
     ),
+    pool_checkpoint: Path = typer.Option(
+        None,
+        help="A GMT checkpoint whose own rollouts (holding the goal nearest each other level's speed) give the "
+        "pool-started episodes their start states, instead of the other levels' policies.",
+    ),
     plan: list[str] = typer.Option(
         None,
         help="LEVEL=C1,C2,...: plan the start of LEVEL's pool-started episodes in the simulator, choosing among "
@@ -361,6 +366,7 @@ def collect(
             drop_stuck=not keep_stuck,
             drop_falls=not keep_falls,
             pool_start=shares,
+            pool_checkpoint=pool_checkpoint,
             plan=plans,
         )
     except ValueError as e:

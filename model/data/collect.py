@@ -18,7 +18,7 @@ from model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_be
 from model.data.minari_io import Episode, write_dataset
 from model.data.plan import PlanConfig, PlannedPolicy
 from model.data.rollout import rollout, stuck_step
-from model.data.start_states import StatePool, build_pool
+from model.data.start_states import CheckpointPolicy, StatePool, build_pool
 
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
@@ -72,6 +72,9 @@ class CollectConfig:
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         pool_start: Level -> share of its episodes that start from a state visited by the other policies
             (None: per-env default; {} for none).
+        pool_checkpoint: A GMT checkpoint whose own rollouts give the start-state pools instead of the other
+            levels' policies: for each pool-started level, the model holds the goal nearest each other level's
+            measured speed (`start_states.CheckpointPolicy`). None: the other levels' policies.
         plan: Level -> how that level plans the start of its pool-started episodes (`plan.PlannedPolicy`: the
             commanded level picks, in the simulator, the continuation that reaches its speed soonest); None or
             {} for no planning.
@@ -92,6 +95,7 @@ class CollectConfig:
     drop_falls: bool = True
     max_attempts: int = 3
     pool_start: dict[str, float] | None = None
+    pool_checkpoint: Path | None = None
     plan: dict[str, PlanConfig] | None = None
     overwrite: bool = True
 
@@ -204,6 +208,25 @@ def collect_level(
     return episodes, metadata, summary
 
 
+def checkpoint_sources(path: Path, policies: dict) -> dict[str, dict[str, CheckpointPolicy]]:
+    """Level -> {"gmt:<goal>": the checkpoint holding the goal nearest the level's measured speed}."""
+    from model.checkpoint import load_checkpoint
+    from model.engine import PolicyEngine
+
+    ckpt = load_checkpoint(path)
+    if ckpt.statistic != "mean_x_velocity":
+        raise ValueError(f"{path}: a pool checkpoint must have x-velocity goals, not {ckpt.statistic!r}")
+    engine = PolicyEngine(ckpt)
+    out = {}
+    for name, policy in policies.items():
+        speed = getattr(getattr(policy, "meta", None), "mean_speed", None)
+        if speed is None:
+            raise ValueError(f"level {name!r} has no measured speed to match with a goal of {path}")
+        goal = min(ckpt.goals, key=lambda g: abs(g.mean - speed))
+        out[name] = {f"gmt:{goal.name}": CheckpointPolicy(engine, goal.id)}
+    return out
+
+
 def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     """Roll out every level's policy `episodes_per_level` times and write one Minari dataset.
 
@@ -226,10 +249,15 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             f"pool_start or plan names unknown levels {unknown}; the levels are {list(policies)}"
         )
     steps = cfg.max_steps or env.spec.max_episode_steps or 1000
+    sources = (
+        {name: {name: p} for name, p in policies.items()}
+        if cfg.pool_checkpoint is None
+        else checkpoint_sources(cfg.pool_checkpoint, policies)
+    )
     pools = {
         name: build_pool(
             env,
-            {k: p for k, p in policies.items() if k != name},
+            {k: p for other, src in sources.items() if other != name for k, p in src.items()},
             POOL_EPISODES,
             cfg.seed + 50_000,
             skip=min(20, steps // 2),
@@ -258,8 +286,13 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         * cfg.drop_stuck
         + f"Snapshot episodes that ended in a fall were replaced ({fell}). " * cfg.drop_falls
         + "".join(
-            f"{round(share * cfg.episodes_per_level)} {name} episodes start from states the other policies "
-            "visited (episode metadata start_from / start_step). "
+            f"{round(share * cfg.episodes_per_level)} {name} episodes start from states "
+            + (
+                "the other policies"
+                if cfg.pool_checkpoint is None
+                else f"the GMT {cfg.pool_checkpoint} holding the other goals"
+            )
+            + " visited (episode metadata start_from / start_step). "
             for name, share in cfg.pool_start.items()
             if name in pools
         )

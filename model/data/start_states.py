@@ -99,3 +99,38 @@ class PoolStart(gym.Wrapper):
             i = self.pool.sample(self.rng)
             obs = start_from(self.env, self.pool.qpos[i], self.pool.qvel[i])
         return obs, info
+
+
+class CheckpointPolicy:
+    """A trained GMT holding one goal, as a rollout policy: its visited states can be a start-state pool.
+
+    A GMT imitates its data's transitions from the states its data visited; where its own gait visits other
+    states (a little faster, another point of the stride at the moment its goal changes), it has no example of
+    the change from there. Starting the behaviour's episodes from the model's own states shows it one, as
+    DAgger does for imitation.
+
+    Args:
+        engine: A `model.engine.PolicyEngine` over the checkpoint.
+        goal: The goal id held for every episode.
+        seed: First seed of the sampled action noise (one more per episode).
+    """
+
+    def __init__(self, engine, goal: int, seed: int = 0):
+        engine.check_goal(goal)
+        self.engine, self.goal, self.seed, self.ctx = engine, goal, seed, None
+
+    def start_episode(self) -> None:
+        """A fresh context (empty history) for the next episode."""
+        if self.ctx is not None:
+            self.engine.release(self.ctx)
+        self.ctx = self.engine.new_context(self.goal, seed=self.seed)
+        self.seed += 1
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The model's action for the goal (its own sampling, seeded per episode; `rng` is not used)."""
+        if self.ctx is None:
+            self.start_episode()
+        (action,) = self.engine.act([self.ctx], [obs])
+        if isinstance(action, Exception):
+            raise action
+        return action

@@ -187,3 +187,37 @@ def test_snapshot_episodes_that_fall_are_replaced(tmp_path):
     assert res.levels["slow"]["falls_dropped"] == 0
     ds = load_dataset(res.dataset_id, tmp_path / "d")
     assert all(ep.terminated for ep in ds.episodes)  # kept: both end in a fall
+
+
+def test_pool_starts_can_come_from_a_trained_models_own_states(tmp_path):
+    from model.data.collect import checkpoint_sources
+    from model.data.start_states import CheckpointPolicy, build_pool, start_from
+    from model.engine import PolicyEngine
+    from model.fixtures import tiny_checkpoint
+
+    beh, root = tmp_path / "behaviour", tmp_path / "d"
+    fake_snapshot(beh, "fast", 1.8, 0)  # nearest the tiny model's goal 2 (means 0, 1, 2)
+    fake_snapshot(beh, "slow", 0.9, 1)  # nearest goal 1
+    ckpt = tiny_checkpoint(tmp_path / "ckpt", ENV, n_goals=3, calibrated=True)
+    cfg = CollectConfig(
+        ENV, 4, 3, data_dir=root, behaviour_dir=beh, max_steps=40, include_random=False, drop_stuck=False,
+        pool_start={"slow": 0.5}, pool_checkpoint=tmp_path / "ckpt",
+    )  # fmt: skip
+    res = collect(cfg, progress=False)
+    assert res.levels["slow"]["pool_starts"] == 2
+    ds = load_dataset(res.dataset_id, root)
+    # The slow level started from the model holding the goal of the fast level's speed, and from nowhere else.
+    env = gym.make(ENV)
+    engine = PolicyEngine(ckpt)
+    pool = build_pool(
+        env, {"gmt:" + ckpt.goals[2].name: CheckpointPolicy(engine, 2)}, 10, 3 + 50_000, 20, 4, 40
+    )
+    for i in (0, 1):
+        meta = _episode_attrs(root, i)
+        assert meta["start_from"] == "gmt:" + ckpt.goals[2].name
+        first = ds.episodes[i].observations[0]
+        env.reset(seed=0)
+        visited = [start_from(env, q, v) for q, v in zip(pool.qpos, pool.qvel, strict=True)]
+        assert any(np.array_equal(first, o) for o in visited)
+    with pytest.raises(ValueError, match="no measured speed"):
+        checkpoint_sources(tmp_path / "ckpt", {"random": object()})
