@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--from-goal", type=int, default=0, help="Goal of the first and third segments.")
     ap.add_argument("--to-goal", type=int, help="Goal of the second segment (default: the highest).")
     ap.add_argument("--seeds", type=int, default=15, help="Episodes per offset (seeds 0..n-1).")
+    ap.add_argument("--action-mode", help="The engine's action mode (default: the model's default).")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     torch.set_num_threads(1)
@@ -48,7 +49,14 @@ def main() -> None:
         Condition(f"{d:+d}", "multi_switch", [(0, a), (n, b), (2 * n + d, a)], 3 * n + d)
         for d in args.offsets
     ]
-    res = evaluate(ckpt, seeds=args.seeds, steps=3 * n + max(args.offsets), conditions=conds, progress=False)
+    res = evaluate(
+        ckpt,
+        seeds=args.seeds,
+        steps=3 * n + max(args.offsets),
+        conditions=conds,
+        progress=False,
+        action_mode=args.action_mode,
+    )
     rows = []
     for c in res.to_dict()["conditions"]:
         third = c["segments"][2]
@@ -64,7 +72,10 @@ def main() -> None:
                 else c["terminated_early"],
             )
         )
-    print(f"{args.checkpoint}: goal {a} -> {b} -> {a}, every {n}, third switch moved by each offset\n")
+    mode = args.action_mode or "the model's default"
+    print(
+        f"{args.checkpoint}: goal {a} -> {b} -> {a}, every {n}, third switch moved by each offset, {mode} actions\n"
+    )
     print(markdown_table(("offset", "switch at", "third segment within", "mean (std)", "goal", "fell"), rows))
 
 
