@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout bench constraints clean
+.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -69,6 +69,22 @@ train-breakout: $(VENV)/.installed-train
 eval-breakout: $(VENV)/.installed-eval $(VENV)/.installed-atari
 	$(BIN)/gmt eval checkpoints/breakout-gmt --seeds 15 --threads 2 --json checkpoints/breakout-gmt/eval.json \
 		--markdown checkpoints/breakout-gmt/eval.md --plot checkpoints/breakout-gmt/eval.png
+
+# The data and training behind checkpoints/hopper-gmt (its PROVENANCE.md): ~20 min collection and ~31 min
+# training on one core each. The pool-started episodes start from states of behaviour/hopper-gmt/pool-gmt, a GMT
+# trained on the same collection without that flag (PROVENANCE.md, step 3).
+data-hopper: $(VENV)/.installed-data
+	$(BIN)/gmt data collect --env Hopper-v5 --no-random --behaviour-dir behaviour/hopper-gmt --episodes-per-level 300 \
+		--plan slow=1.6,1.2,0.8 --pool-checkpoint behaviour/hopper-gmt/pool-gmt --out-id gmt/hopper/dagger-x2-v0
+
+train-hopper: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/hopper/dagger-x2-v0 --out checkpoints/hopper-gmt --attention window \
+		--batch-size 32 --lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 0 --steps 5000 --masking token \
+		--max-timestep 1 --default-action-mode mean
+
+eval-hopper: $(VENV)/.installed-eval
+	$(BIN)/gmt eval checkpoints/hopper-gmt --seeds 15 --threads 1 --json checkpoints/hopper-gmt/eval.json \
+		--markdown checkpoints/hopper-gmt/eval.md --plot checkpoints/hopper-gmt/eval.png
 
 # Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
 # transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
