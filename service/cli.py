@@ -7,6 +7,7 @@ point imports only typer and the light option definitions, never torch. Heavy im
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -211,8 +212,19 @@ def bench_command(
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point.
+
+    A checkpoint that cannot be loaded (missing files, bad metadata, a pickle) is the user's input, not a bug:
+    it ends the command with `error: ...` and status 1 instead of a traceback.
+    """
+    try:
+        app()
+    except Exception as e:
+        checkpoint = sys.modules.get("model.checkpoint")  # loaded only by commands that read checkpoints
+        if checkpoint is not None and isinstance(e, checkpoint.CheckpointError):
+            typer.echo(f"error: {e}", err=True)
+            raise SystemExit(1) from None
+        raise
 
 
 if __name__ == "__main__":
