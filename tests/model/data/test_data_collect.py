@@ -7,22 +7,14 @@ from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
 from model.data.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
 from model.data.minari_io import load_dataset
 from model.data.statistics import per_trajectory
+from model.fixtures import random_behaviour
 
 ENV = "HalfCheetah-v5"
 
 
 def fake_snapshot(folder, level: str, speed: float, seed: int) -> None:
     """A random-weight snapshot in the exported format."""
-    torch.manual_seed(seed)
-    meta = BehaviourMeta(ENV, level, [8], "tanh", [0.0] * 17, [1.0] * 17, mean_speed=speed)
-    state = {
-        "mean_net.0.weight": 0.1 * torch.randn(8, 17),
-        "mean_net.0.bias": 0.1 * torch.randn(8),
-        "mean_net.2.weight": 0.1 * torch.randn(6, 8),
-        "mean_net.2.bias": 0.1 * torch.randn(6),
-        "log_std": torch.full((6,), -1.0),
-    }
-    save_behaviour(folder / "halfcheetah" / level, state, meta)
+    random_behaviour(folder, level, speed, seed)
 
 
 def test_collects_valid_reproducible_dataset(tmp_path):

@@ -1,9 +1,8 @@
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 
-from model.data.behaviour import BehaviourMeta, RandomPolicy, load_behaviour, save_behaviour
+from model.data.behaviour import RandomPolicy, load_behaviour
 from model.data.refine_behaviour import (
     FixedObsNorm,
     RefineConfig,
@@ -12,6 +11,7 @@ from model.data.refine_behaviour import (
     write_provenance,
 )
 from model.data.start_states import PoolStart, build_pool, start_from
+from model.fixtures import random_behaviour
 
 ENV = "HalfCheetah-v5"
 
@@ -54,16 +54,19 @@ def test_wrappers_reward_the_target_speed_and_start_from_the_pool():
 
 
 def _snapshot(folder, level: str, speed: float, seed: int) -> None:
-    torch.manual_seed(seed)
-    meta = BehaviourMeta(
-        ENV, level, [256, 256], "relu", [0.5] * 17, [2.0] * 17, mean_speed=speed, train_step=7
+    random_behaviour(
+        folder,
+        level,
+        speed,
+        seed,
+        hidden_sizes=(256, 256),
+        activation="relu",
+        weight_scale=0.05,
+        bias_scale=0.05,
+        obs_mean=0.5,
+        obs_var=2.0,
+        train_step=7,
     )
-    sizes = [17, 256, 256, 6]
-    state = {"log_std": torch.full((6,), -1.0)}
-    for i in range(3):
-        state[f"mean_net.{2 * i}.weight"] = 0.05 * torch.randn(sizes[i + 1], sizes[i])
-        state[f"mean_net.{2 * i}.bias"] = 0.05 * torch.randn(sizes[i + 1])
-    save_behaviour(folder / "halfcheetah" / level, state, meta)
 
 
 def test_refine_starts_from_the_level_and_writes_a_snapshot_with_provenance(tmp_path):

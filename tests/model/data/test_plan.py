@@ -5,13 +5,12 @@ from types import SimpleNamespace
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 
-from model.data.behaviour import BehaviourMeta, save_behaviour
 from model.data.collect import CollectConfig, collect
 from model.data.minari_io import load_dataset
 from model.data.plan import PlanConfig, PlannedPolicy, parse_plan
 from model.data.rollout import rollout
+from model.fixtures import random_behaviour
 
 ENV = "Hopper-v5"
 
@@ -121,25 +120,7 @@ def test_plans_and_levels_that_cannot_plan_are_refused():
 
 def _commanded_snapshot(folder, level: str, command: float, seed: int) -> None:
     """A random-weight HalfCheetah actor that reads a command appended to its observation."""
-    torch.manual_seed(seed)
-    meta = BehaviourMeta(
-        "HalfCheetah-v5",
-        level,
-        [8],
-        "tanh",
-        [0.0] * 18,
-        [1.0] * 18,
-        mean_speed=command,
-        extra={"command": command},
-    )
-    state = {
-        "mean_net.0.weight": 0.3 * torch.randn(8, 18),
-        "mean_net.0.bias": 0.1 * torch.randn(8),
-        "mean_net.2.weight": 0.3 * torch.randn(6, 8),
-        "mean_net.2.bias": 0.1 * torch.randn(6),
-        "log_std": torch.full((6,), -1.0),
-    }
-    save_behaviour(folder / "halfcheetah" / level, state, meta)
+    random_behaviour(folder, level, command, seed, weight_scale=0.3, command=command)
 
 
 def _metadata(root, dataset_id: str) -> list[dict]:
