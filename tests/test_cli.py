@@ -168,3 +168,24 @@ def test_written_command_line_parses(where, line):
     if "--" in args:  # `gmt cluster up ... -- more gmt serve flags`
         args = args[: args.index("--")]
     cmd.make_context(entry.name, args)  # raises on an unknown option or a bad value
+
+
+# A checkpoint `gmt` cannot load ends the command with a one-line error, not a traceback.
+@pytest.mark.parametrize(
+    ("files", "named"),
+    [
+        ({"gmt.json": "{}"}, "model.safetensors"),
+        ({"gmt.json": "not json", "model.safetensors": ""}, "valid JSON"),
+    ],
+)
+def test_an_unloadable_checkpoint_is_a_one_line_error(tmp_path, files, named):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    r = subprocess.run(
+        [str(Path(sys.executable).parent / "gmt"), "eval", str(tmp_path), "--seeds", "1"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: ") and named in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
