@@ -58,18 +58,16 @@ def main() -> None:
         action_mode=args.action_mode,
     )
     rows = []
-    for c in res.to_dict()["conditions"]:
+    for d, c in zip(args.offsets, res.to_dict()["conditions"], strict=True):
         third = c["segments"][2]
         rows.append(
             (
-                c["name"],
-                2 * n + int(c["name"]),
+                f"{d:+d}",
+                2 * n + d,
                 f"{third['within']}/{args.seeds}",
                 f"{third['achieved_mean']:.3f} ({third['achieved_std']:.3f})",
                 f"{third['target']:.3f} ± {third['tolerance']:.3f}",
-                int(sum(c["terminated_early"]))
-                if isinstance(c["terminated_early"], list)
-                else c["terminated_early"],
+                c["terminated_early"],
             )
         )
     mode = args.action_mode or "the model's default"
