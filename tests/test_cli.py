@@ -189,3 +189,14 @@ def test_an_unloadable_checkpoint_is_a_one_line_error(tmp_path, files, named):
     assert r.returncode == 1
     assert r.stderr.startswith("error: ") and named in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_planning_from_rest_a_level_without_a_plan_is_refused_before_collecting(tmp_path):
+    r = runner.invoke(
+        app,
+        ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
+         "--plan-from-rest", "fast"],
+    )  # fmt: skip
+    assert r.exit_code == 2
+    assert "--plan-from-rest" in r.output and "['fast'] have no --plan" in r.output, r.output
+    assert not any(tmp_path.iterdir())

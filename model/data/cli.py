@@ -315,6 +315,11 @@ def collect(
     ),
     plan_horizon: int = typer.Option(80, help="Steps simulated per continuation."),
     plan_steps: int = typer.Option(200, help="Leading steps of a pool-started episode that are planned."),
+    plan_from_rest: list[str] = typer.Option(
+        None,
+        help="LEVEL (one of the --plan levels): also plan LEVEL's episodes that start from rest (the reset "
+        "pose), so the level speeds up at the pace the plan finds; repeat per level.",
+    ),
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
 
@@ -339,9 +344,17 @@ def collect(
     for item in plan or []:
         try:
             name, commands = parse_plan(item)
-            plans[name] = PlanConfig(commands, plan_candidates, plan_every, plan_horizon, plan_steps)
+            plans[name] = PlanConfig(
+                commands, plan_candidates, plan_every, plan_horizon, plan_steps,
+                from_rest=name in (plan_from_rest or []),
+            )  # fmt: skip
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--plan") from None
+    unknown = sorted(set(plan_from_rest or []) - set(plans))
+    if unknown:
+        raise typer.BadParameter(
+            f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint="--plan-from-rest"
+        )
     shares = None
     if pool_start:
         shares = {}
@@ -381,8 +394,8 @@ def collect(
             else f"  mean x-velocity {lv['mean_speed']:.3f} +- {lv['std_speed']:.3f}"
         )
         typer.echo(
-            f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states"
-            f"{' and planned' * bool(lv['planned'])}, {lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
+            f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states, {lv['planned']} planned, "
+            f"{lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
         )
 
 

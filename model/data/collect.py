@@ -75,9 +75,9 @@ class CollectConfig:
         pool_checkpoint: A GMT checkpoint whose own rollouts give the start-state pools instead of the other
             levels' policies: for each pool-started level, the model holds the goal nearest each other level's
             measured speed (`start_states.CheckpointPolicy`). None: the other levels' policies.
-        plan: Level -> how that level plans the start of its pool-started episodes (`plan.PlannedPolicy`: the
-            commanded level picks, in the simulator, the continuation that reaches its speed soonest); None or
-            {} for no planning.
+        plan: Level -> how that level plans the start of its pool-started episodes, and of its episodes from
+            rest where the plan says `from_rest` (`plan.PlannedPolicy`: the commanded level picks, in the
+            simulator, the continuation that reaches its speed soonest); None or {} for no planning.
         overwrite: Replace an existing dataset with the same id.
     """
 
@@ -113,10 +113,15 @@ class CollectConfig:
             if not 0.0 <= share <= 1.0:
                 raise ValueError(f"pool_start[{level!r}] must be in [0, 1], got {share}")
         self.plan = dict(self.plan or {})
-        unplanned = sorted(level for level in self.plan if not self.pool_start.get(level, 0.0) > 0)
+        unplanned = sorted(
+            level
+            for level, p in self.plan.items()
+            if not p.from_rest and not self.pool_start.get(level, 0.0) > 0
+        )
         if unplanned:
             raise ValueError(
-                f"plan names levels without pool starts {unplanned}: only pool-started episodes are planned"
+                f"plan names levels without pool starts {unplanned}: without from_rest only pool-started "
+                "episodes are planned"
             )
 
 
@@ -147,7 +152,8 @@ def collect_level(
 
     With a `pool`, episode i starts from a pool state when i is below `pool_start[name]` x the episode count
     (the first share of episodes), else at the reset pose. With a plan for the level, a pool-started episode's
-    first steps are planned (`plan.PlannedPolicy`).
+    first steps are planned (`plan.PlannedPolicy`), and an episode from rest's too where the plan says
+    `from_rest`.
 
     Returns:
         The episodes, their Minari episode metadata, and a summary (counts, speed mean and std).
@@ -157,8 +163,9 @@ def collect_level(
     rng = np.random.default_rng(seeds)
     filtered = cfg.drop_stuck and name != RANDOM
     n_pool = round(cfg.pool_start.get(name, 0.0) * n) if pool is not None else 0
-    planned = PlannedPolicy(policy, env, cfg.plan[name]) if name in cfg.plan and n_pool else None
-    episodes, metadata, dropped, fell = [], [], 0, 0
+    plan = cfg.plan.get(name)
+    planned = PlannedPolicy(policy, env, plan) if plan is not None and (n_pool or plan.from_rest) else None
+    episodes, metadata, dropped, fell, n_planned = [], [], 0, 0, 0
     while len(episodes) < n:
         reset_seed = next(reset_seeds, None)
         if reset_seed is None:
@@ -171,9 +178,9 @@ def collect_level(
             i = pool.sample(rng)
             start = (pool.qpos[i], pool.qvel[i])
             meta = {"start_from": str(pool.source[i]), "start_step": int(pool.step[i])}
-            if planned is not None:
-                meta["planned_steps"] = planned.cfg.steps
-        actor = planned if start is not None and planned is not None else policy
+        actor = planned if planned is not None and (start is not None or plan.from_rest) else policy
+        if actor is planned:
+            meta["planned_steps"] = planned.cfg.steps
         ep = rollout(env, actor, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
         v = ep.infos.get("x_velocity")
         # A pooled start may be a pose the level cannot get out of (on its back): standing still at the end.
@@ -191,6 +198,7 @@ def collect_level(
             fell += 1
             continue
         episodes.append(ep.to_episode(first_id + len(episodes)))
+        n_planned += actor is planned
         metadata.append({"policy": name, "reset_seed": int(reset_seed), **meta})
         if bar is not None:
             bar.update(1)
@@ -199,7 +207,7 @@ def collect_level(
     summary = {
         "episodes": n,
         "pool_starts": n_pool,
-        "planned": n_pool if planned is not None else 0,
+        "planned": n_planned,
         "stuck_dropped": dropped,
         "falls_dropped": fell,
         "mean_speed": float(np.mean(speeds)) if speeds else None,
@@ -297,11 +305,11 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             if name in pools
         )
         + "".join(
-            f"The first {p.steps} steps of {name}'s pool-started episodes are planned: every {p.every} steps the "
+            f"The first {p.steps} steps of {name}'s pool-started{' and from-rest' * p.from_rest} episodes are planned: every {p.every} steps the "
             f"best of {p.candidates} simulated {p.horizon}-step continuations (commands {', '.join(f'{c:g}' for c in p.commands)}) "
             "by closeness of its mean x-velocity to the level's speed (episode metadata planned_steps). "
             for name, p in cfg.plan.items()
-            if name in pools
+            if name in pools or p.from_rest
         )
         + "Written by `gmt data collect`."
     )

@@ -7,7 +7,8 @@ one start over the agent's own action noise). A GMT learns its transitions from 
 switched every 200 steps inherits that spread. Filtering whole episodes (`settle`) mostly keeps the lucky
 starts and leaves the hard ones unshown.
 
-`PlannedPolicy` instead plans the first `steps` steps of an episode: every `every` steps it copies the MuJoCo
+`PlannedPolicy` instead plans the first `steps` steps of an episode (a pool-started one; with `from_rest`,
+also one that starts at the reset pose, where the agent speeds up from standing at its own pace): every `every` steps it copies the MuJoCo
 state, simulates `candidates` continuations of `horizon` steps (the same actor, its command cycled over
 `commands`, with its own action noise), keeps the one whose mean x-velocity is closest to the level's target
 (one that falls ranks last), restores the state and plays that candidate's first `every` actions. Lower
@@ -34,6 +35,8 @@ class PlanConfig:
         horizon: Steps simulated per continuation (its mean x-velocity is what is scored).
         steps: Leading steps of an episode that are planned; later steps are the plain level.
         target: Speed (m/s) the continuations are scored against; None: the snapshot's measured mean speed.
+        from_rest: Also plan the episodes that start at the reset pose (from rest), not only the pool-started
+            ones: from rest the level reaches its speed at the pace the candidates allow, not its own.
     """
 
     commands: tuple[float, ...]
@@ -42,6 +45,7 @@ class PlanConfig:
     horizon: int = 80
     steps: int = 200
     target: float | None = None
+    from_rest: bool = False
 
     def __post_init__(self) -> None:
         if not self.commands or not all(np.isfinite(c) for c in self.commands):

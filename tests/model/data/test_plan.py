@@ -116,6 +116,8 @@ def test_plans_and_levels_that_cannot_plan_are_refused():
         PlannedPolicy(ConstantTorque(0.0, mean_speed=None), env, PlanConfig((1.0,)))
     with pytest.raises(ValueError, match="without pool starts"):
         CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,))})
+    # From rest a level needs no pool starts to be planned.
+    CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,), from_rest=True)})
 
 
 def _commanded_snapshot(folder, level: str, command: float, seed: int) -> None:
@@ -162,3 +164,33 @@ def test_a_planned_collection_plans_only_that_levels_pool_starts_and_is_reproduc
                           pool_start={"slow": 0.5, "medium": 0.5}, plan={"medium": plan}),
             progress=False,
         )  # fmt: skip
+
+
+def test_a_plan_from_rest_also_plans_the_levels_episodes_that_start_at_the_reset_pose(tmp_path):
+    beh, root = tmp_path / "behaviour", tmp_path / "d"
+    _commanded_snapshot(beh, "slow", 1.0, 0)
+    _commanded_snapshot(beh, "fast", 3.0, 1)
+    base = dict(candidates=4, every=5, horizon=10, steps=10)
+
+    def run(out_id: str, plans: dict, pool_start: dict):
+        cfg = CollectConfig(
+            "HalfCheetah-v5", 4, 3, out_id, root, beh, 30, include_random=False, drop_stuck=False,
+            pool_start=pool_start, plan=plans,
+        )  # fmt: skip
+        return collect(cfg, progress=False), load_dataset(out_id, root)
+
+    pooled = {"slow": 0.5}
+    res, rest = run("gmt/rest-v0", {"slow": PlanConfig((1.0, -2.0), from_rest=True, **base)}, pooled)
+    assert res.levels["slow"]["planned"] == 4 and res.levels["fast"]["planned"] == 0
+    meta = _metadata(root, "gmt/rest-v0")
+    assert [m.get("planned_steps") for m in meta] == [10] * 4 + [None] * 4
+    assert ["start_from" in m for m in meta[:4]] == [True, True, False, False]  # two pool starts, two from rest
+    _, pool_only = run("gmt/pool-only-v0", {"slow": PlanConfig((1.0, -2.0), **base)}, pooled)
+    for i in range(2):  # the pool-started episodes are planned alike either way
+        np.testing.assert_array_equal(rest.episodes[i].actions, pool_only.episodes[i].actions)
+    for i in range(2, 4):  # the same reset poses, but now planned
+        np.testing.assert_array_equal(rest.episodes[i].observations[0], pool_only.episodes[i].observations[0])
+        assert not np.allclose(rest.episodes[i].actions[:10], pool_only.episodes[i].actions[:10])
+    # Without pool starts at all, every episode of the level is planned from rest.
+    res, _ = run("gmt/rest-only-v0", {"slow": PlanConfig((1.0, -2.0), from_rest=True, **base)}, {})
+    assert res.levels["slow"]["planned"] == 4 and res.levels["slow"]["pool_starts"] == 0
