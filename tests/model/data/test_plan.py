@@ -184,7 +184,8 @@ def test_a_plan_from_rest_also_plans_the_levels_episodes_that_start_at_the_reset
     assert res.levels["slow"]["planned"] == 4 and res.levels["fast"]["planned"] == 0
     meta = _metadata(root, "gmt/rest-v0")
     assert [m.get("planned_steps") for m in meta] == [10] * 4 + [None] * 4
-    assert ["start_from" in m for m in meta[:4]] == [True, True, False, False]  # two pool starts, two from rest
+    # Two pool starts, then two episodes from rest.
+    assert ["start_from" in m for m in meta[:4]] == [True, True, False, False]
     _, pool_only = run("gmt/pool-only-v0", {"slow": PlanConfig((1.0, -2.0), **base)}, pooled)
     for i in range(2):  # the pool-started episodes are planned alike either way
         np.testing.assert_array_equal(rest.episodes[i].actions, pool_only.episodes[i].actions)
