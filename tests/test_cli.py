@@ -200,3 +200,9 @@ def test_planning_from_rest_a_level_without_a_plan_is_refused_before_collecting(
     assert r.exit_code == 2
     assert "--plan-from-rest" in r.output and "['fast'] have no --plan" in r.output, r.output
     assert not any(tmp_path.iterdir())
+    r = runner.invoke(
+        app,
+        ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
+         "--plan-from-rest", "slow=fast"],
+    )  # fmt: skip
+    assert r.exit_code == 2 and "LEVEL=SPEED" in r.output, r.output

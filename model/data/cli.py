@@ -317,8 +317,9 @@ def collect(
     plan_steps: int = typer.Option(200, help="Leading steps of a pool-started episode that are planned."),
     plan_from_rest: list[str] = typer.Option(
         None,
-        help="LEVEL (one of the --plan levels): also plan LEVEL's episodes that start from rest (the reset "
-        "pose), so the level speeds up at the pace the plan finds; repeat per level.",
+        help="LEVEL[=SPEED] (one of the --plan levels): also plan LEVEL's episodes that start from rest (the "
+        "reset pose), so the level speeds up at the pace the plan finds; SPEED (m/s) scores those episodes' "
+        "continuations instead of the level's own speed (above it: a more urgent start); repeat per level.",
     ),
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
@@ -340,17 +341,26 @@ def collect(
     from model.data.collect import CollectConfig, collect
     from model.data.plan import PlanConfig, parse_plan
 
+    rest = {}
+    for item in plan_from_rest or []:
+        name, sep, value = item.partition("=")
+        try:
+            rest[name] = float(value) if sep else None
+        except ValueError:
+            raise typer.BadParameter(
+                f"expected LEVEL or LEVEL=SPEED, got {item!r}", param_hint="--plan-from-rest"
+            ) from None
     plans = {}
     for item in plan or []:
         try:
             name, commands = parse_plan(item)
             plans[name] = PlanConfig(
                 commands, plan_candidates, plan_every, plan_horizon, plan_steps,
-                from_rest=name in (plan_from_rest or []),
+                from_rest=name in rest, rest_target=rest.get(name),
             )  # fmt: skip
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--plan") from None
-    unknown = sorted(set(plan_from_rest or []) - set(plans))
+    unknown = sorted(set(rest) - set(plans))
     if unknown:
         raise typer.BadParameter(
             f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint="--plan-from-rest"

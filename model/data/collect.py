@@ -164,7 +164,8 @@ def collect_level(
     filtered = cfg.drop_stuck and name != RANDOM
     n_pool = round(cfg.pool_start.get(name, 0.0) * n) if pool is not None else 0
     plan = cfg.plan.get(name)
-    planned = PlannedPolicy(policy, env, plan) if plan is not None and (n_pool or plan.from_rest) else None
+    planned = PlannedPolicy(policy, env, plan) if plan is not None and n_pool else None
+    rested = PlannedPolicy(policy, env, plan.for_rest()) if plan is not None and plan.from_rest else None
     episodes, metadata, dropped, fell, n_planned = [], [], 0, 0, 0
     while len(episodes) < n:
         reset_seed = next(reset_seeds, None)
@@ -178,9 +179,9 @@ def collect_level(
             i = pool.sample(rng)
             start = (pool.qpos[i], pool.qvel[i])
             meta = {"start_from": str(pool.source[i]), "start_step": int(pool.step[i])}
-        actor = planned if planned is not None and (start is not None or plan.from_rest) else policy
-        if actor is planned:
-            meta["planned_steps"] = planned.cfg.steps
+        actor = (planned if start is not None else rested) or policy
+        if actor is not policy:
+            meta["planned_steps"] = actor.cfg.steps
         ep = rollout(env, actor, seed=int(reset_seed), rng=rng, max_steps=cfg.max_steps, start_state=start)
         v = ep.infos.get("x_velocity")
         # A pooled start may be a pose the level cannot get out of (on its back): standing still at the end.
@@ -198,7 +199,7 @@ def collect_level(
             fell += 1
             continue
         episodes.append(ep.to_episode(first_id + len(episodes)))
-        n_planned += actor is planned
+        n_planned += actor is not policy
         metadata.append({"policy": name, "reset_seed": int(reset_seed), **meta})
         if bar is not None:
             bar.update(1)
@@ -305,7 +306,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             if name in pools
         )
         + "".join(
-            f"The first {p.steps} steps of {name}'s pool-started{' and from-rest' * p.from_rest} episodes are planned: every {p.every} steps the "
+            f"The first {p.steps} steps of {name}'s pool-started{' and from-rest' * p.from_rest} episodes are planned{'' if p.rest_target is None else f' (from rest against {p.rest_target:g} m/s)'}: every {p.every} steps the "
             f"best of {p.candidates} simulated {p.horizon}-step continuations (commands {', '.join(f'{c:g}' for c in p.commands)}) "
             "by closeness of its mean x-velocity to the level's speed (episode metadata planned_steps). "
             for name, p in cfg.plan.items()

@@ -19,7 +19,7 @@ has one goal, and the dataset records which episodes were planned.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,6 +37,9 @@ class PlanConfig:
         target: Speed (m/s) the continuations are scored against; None: the snapshot's measured mean speed.
         from_rest: Also plan the episodes that start at the reset pose (from rest), not only the pool-started
             ones: from rest the level reaches its speed at the pace the candidates allow, not its own.
+        rest_target: Speed (m/s) the continuations of an episode from rest are scored against (None: as
+            `target`). Above the level's speed it makes the start from standing urgent: the plan then keeps
+            choosing the fastest continuation until the horizon's mean passes the level's speed.
     """
 
     commands: tuple[float, ...]
@@ -46,6 +49,7 @@ class PlanConfig:
     steps: int = 200
     target: float | None = None
     from_rest: bool = False
+    rest_target: float | None = None
 
     def __post_init__(self) -> None:
         if not self.commands or not all(np.isfinite(c) for c in self.commands):
@@ -55,8 +59,16 @@ class PlanConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.every > self.horizon:
             raise ValueError(f"every ({self.every}) must not exceed horizon ({self.horizon})")
-        if self.target is not None and not np.isfinite(self.target):
-            raise ValueError(f"target must be finite, got {self.target}")
+        for name in ("target", "rest_target"):
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value}")
+        if self.rest_target is not None and not self.from_rest:
+            raise ValueError("rest_target scores episodes from rest: it needs from_rest")
+
+    def for_rest(self) -> PlanConfig:
+        """The plan of an episode from rest: scored against `rest_target` where one is given."""
+        return self if self.rest_target is None else replace(self, target=self.rest_target)
 
 
 def parse_plan(item: str) -> tuple[str, tuple[float, ...]]:

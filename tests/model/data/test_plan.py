@@ -118,6 +118,13 @@ def test_plans_and_levels_that_cannot_plan_are_refused():
         CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,))})
     # From rest a level needs no pool starts to be planned.
     CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,), from_rest=True)})
+    with pytest.raises(ValueError, match="needs from_rest"):
+        PlanConfig((1.0,), rest_target=1.2)
+    with pytest.raises(ValueError, match="rest_target must be finite"):
+        PlanConfig((1.0,), from_rest=True, rest_target=float("inf"))
+    plan = PlanConfig((1.0,), from_rest=True, rest_target=1.2, target=0.9)
+    assert plan.for_rest().target == 1.2 and plan.target == 0.9
+    assert PlanConfig((1.0,), from_rest=True, target=0.9).for_rest().target == 0.9
 
 
 def _commanded_snapshot(folder, level: str, command: float, seed: int) -> None:
@@ -192,6 +199,13 @@ def test_a_plan_from_rest_also_plans_the_levels_episodes_that_start_at_the_reset
     for i in range(2, 4):  # the same reset poses, but now planned
         np.testing.assert_array_equal(rest.episodes[i].observations[0], pool_only.episodes[i].observations[0])
         assert not np.allclose(rest.episodes[i].actions[:10], pool_only.episodes[i].actions[:10])
+    # A target of its own for the episodes from rest changes only those.
+    rt = PlanConfig((1.0, -2.0), from_rest=True, rest_target=-3.0, **base)
+    _, urgent = run("gmt/rest-target-v0", {"slow": rt}, pooled)
+    for i in range(2):
+        np.testing.assert_array_equal(urgent.episodes[i].actions, rest.episodes[i].actions)
+    for i in range(2, 4):
+        assert not np.allclose(urgent.episodes[i].actions[:10], rest.episodes[i].actions[:10])
     # Without pool starts at all, every episode of the level is planned from rest.
     res, _ = run("gmt/rest-only-v0", {"slow": PlanConfig((1.0, -2.0), from_rest=True, **base)}, {})
     assert res.levels["slow"]["planned"] == 4 and res.levels["slow"]["pool_starts"] == 0
