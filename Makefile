@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper bench constraints clean
+.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -85,6 +85,22 @@ train-hopper: $(VENV)/.installed-train
 eval-hopper: $(VENV)/.installed-eval
 	$(BIN)/gmt eval checkpoints/hopper-gmt --seeds 15 --threads 1 --json checkpoints/hopper-gmt/eval.json \
 		--markdown checkpoints/hopper-gmt/eval.md --plot checkpoints/hopper-gmt/eval.png
+
+# The data and training behind checkpoints/walker2d-gmt (its PROVENANCE.md): ~31 min collection and ~31 min
+# training on one core each.
+data-walker2d: $(VENV)/.installed-data
+	$(BIN)/gmt data collect --env Walker2d-v5 --no-random --behaviour-dir behaviour/experiments/walker2d-10-16-1550k \
+		--episodes-per-level 200 --plan slow=1.0,1.6,1.3,0.7 --plan fast=1.6,2.0,1.3 --plan-from-rest slow=1.1 \
+		--out-id gmt/walker2d/c1016b-rt11-v0
+
+train-walker2d: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/walker2d/c1016b-rt11-v0 --out checkpoints/walker2d-gmt --attention window \
+		--batch-size 32 --lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 1 --steps 5000 --masking token \
+		--max-timestep 1 --k 2 --default-action-mode sample
+
+eval-walker2d: $(VENV)/.installed-eval
+	$(BIN)/gmt eval checkpoints/walker2d-gmt --seeds 15 --threads 1 --json checkpoints/walker2d-gmt/eval.json \
+		--markdown checkpoints/walker2d-gmt/eval.md --plot checkpoints/walker2d-gmt/eval.png
 
 # Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
 # transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
