@@ -314,7 +314,7 @@ def collect(
         20, help="Steps played from a chosen continuation before the next decision."
     ),
     plan_horizon: int = typer.Option(80, help="Steps simulated per continuation."),
-    plan_steps: int = typer.Option(200, help="Leading steps of a pool-started episode that are planned."),
+    plan_steps: int = typer.Option(200, help="Leading steps of a planned episode that are planned."),
     plan_from_rest: list[str] = typer.Option(
         None,
         help="LEVEL[=SPEED] (one of the --plan levels): also plan LEVEL's episodes that start from rest (the "

@@ -7,10 +7,10 @@ one start over the agent's own action noise). A GMT learns its transitions from 
 switched every 200 steps inherits that spread. Filtering whole episodes (`settle`) mostly keeps the lucky
 starts and leaves the hard ones unshown.
 
-`PlannedPolicy` instead plans the first `steps` steps of an episode (a pool-started one; with `from_rest`,
-also one that starts at the reset pose, where the agent speeds up from standing at its own pace): every `every` steps it copies the MuJoCo
-state, simulates `candidates` continuations of `horizon` steps (the same actor, its command cycled over
-`commands`, with its own action noise), keeps the one whose mean x-velocity is closest to the level's target
+`PlannedPolicy` instead plans the first `steps` steps of an episode (a pool-started one; with `from_rest`, also
+one that starts at the reset pose, where the agent speeds up from standing at its own pace): every `every` steps
+it copies the MuJoCo state, simulates `candidates` continuations of `horizon` steps (the same actor, its command
+cycled over `commands`, with its own action noise), keeps the one whose mean x-velocity is closest to the level's target
 (one that falls ranks last), restores the state and plays that candidate's first `every` actions. Lower
 commands than the level's own let it brake harder from a bad start; its own command keeps it steady once
 there. After `steps` steps it is the plain level. It is a behaviour policy like any other: each episode still
