@@ -206,3 +206,41 @@ def test_planning_from_rest_a_level_without_a_plan_is_refused_before_collecting(
          "--plan-from-rest", "slow=fast"],
     )  # fmt: skip
     assert r.exit_code == 2 and "LEVEL=SPEED" in r.output, r.output
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [("fast=1.2", "['fast'] have no --plan"), ("slow=quick", "LEVEL=SPEED"), ("slow=nan", "LEVEL=SPEED"),
+     ("slow", "LEVEL=SPEED")],
+)  # fmt: skip
+def test_a_bad_plan_target_is_refused_before_collecting(tmp_path, item, message):
+    r = runner.invoke(
+        app,
+        ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
+         "--plan-target", item],
+    )  # fmt: skip
+    assert r.exit_code == 2
+    assert "--plan-target" in r.output and message in r.output, r.output
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_plan_target_reaches_only_its_levels_plan(tmp_path, monkeypatch):
+    import model.data.collect as collect_module
+
+    seen = []
+    monkeypatch.setattr(collect_module, "collect", lambda cfg: seen.append(cfg) or _raise_exit())
+    r = runner.invoke(
+        app,
+        ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
+         "--plan", "fast=2.0", "--plan-target", "slow=0.95", "--plan-from-rest", "slow=1.1"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    (cfg,) = seen
+    assert cfg.plan["slow"].target == 0.95 and cfg.plan["slow"].for_rest().target == 1.1
+    assert cfg.plan["fast"].target is None
+
+
+def _raise_exit():
+    import typer
+
+    raise typer.Exit(0)

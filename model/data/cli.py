@@ -6,6 +6,7 @@ Heavy imports (torch, gymnasium, sklearn, matplotlib) stay inside the commands s
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -321,6 +322,12 @@ def collect(
         "reset pose), so the level speeds up at the pace the plan finds; SPEED (m/s) scores those episodes' "
         "continuations instead of the level's own speed (above it: a more urgent start); repeat per level.",
     ),
+    plan_target: list[str] = typer.Option(
+        None,
+        help="LEVEL=SPEED (one of the --plan levels): score LEVEL's planned pool-started episodes against SPEED "
+        "(m/s) instead of the level's measured speed, e.g. a little below it to brake harder after a switch down; "
+        "repeat per level.",
+    ),
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
 
@@ -350,21 +357,31 @@ def collect(
             raise typer.BadParameter(
                 f"expected LEVEL or LEVEL=SPEED, got {item!r}", param_hint="--plan-from-rest"
             ) from None
+    targets = {}
+    for item in plan_target or []:
+        name, sep, value = item.partition("=")
+        try:
+            targets[name] = float(value)
+        except ValueError:
+            targets[name] = float("nan")
+        if not sep or not name or not math.isfinite(targets[name]):
+            raise typer.BadParameter(f"expected LEVEL=SPEED, got {item!r}", param_hint="--plan-target")
     plans = {}
     for item in plan or []:
         try:
             name, commands = parse_plan(item)
             plans[name] = PlanConfig(
-                commands, plan_candidates, plan_every, plan_horizon, plan_steps,
+                commands, plan_candidates, plan_every, plan_horizon, plan_steps, target=targets.get(name),
                 from_rest=name in rest, rest_target=rest.get(name),
             )  # fmt: skip
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--plan") from None
-    unknown = sorted(set(rest) - set(plans))
-    if unknown:
-        raise typer.BadParameter(
-            f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint="--plan-from-rest"
-        )
+    for option, levels in (("--plan-from-rest", rest), ("--plan-target", targets)):
+        unknown = sorted(set(levels) - set(plans))
+        if unknown:
+            raise typer.BadParameter(
+                f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint=option
+            )
     shares = None
     if pool_start:
         shares = {}

@@ -305,13 +305,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             for name, share in cfg.pool_start.items()
             if name in pools
         )
-        + "".join(
-            f"The first {p.steps} steps of {name}'s pool-started{' and from-rest' * p.from_rest} episodes are planned{'' if p.rest_target is None else f' (from rest against {p.rest_target:g} m/s)'}: every {p.every} steps the "
-            f"best of {p.candidates} simulated {p.horizon}-step continuations (commands {', '.join(f'{c:g}' for c in p.commands)}) "
-            "by closeness of its mean x-velocity to the level's speed (episode metadata planned_steps). "
-            for name, p in cfg.plan.items()
-            if name in pools or p.from_rest
-        )
+        + "".join(_plan_sentence(name, p) for name, p in cfg.plan.items() if name in pools or p.from_rest)
         + "Written by `gmt data collect`."
     )
     path = write_dataset(
@@ -333,4 +327,17 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         episodes=len(episodes),
         transitions=sum(len(e) for e in episodes),
         seconds=time.time() - start,
+    )
+
+
+def _plan_sentence(name: str, p) -> str:
+    """The dataset description's sentence on how a level's episodes were planned."""
+    episodes = f"{name}'s pool-started{' and from-rest' * p.from_rest} episodes"
+    rest = "" if p.rest_target is None else f" (from rest against {p.rest_target:g} m/s)"
+    target = "the level's speed" if p.target is None else f"{p.target:g} m/s"
+    commands = ", ".join(f"{c:g}" for c in p.commands)
+    return (
+        f"The first {p.steps} steps of {episodes} are planned{rest}: every {p.every} steps the best of "
+        f"{p.candidates} simulated {p.horizon}-step continuations (commands {commands}) by closeness of its mean "
+        f"x-velocity to {target} (episode metadata planned_steps). "
     )
