@@ -137,6 +137,11 @@ def commanded(
         help="With --select-only: export this kept snapshot (its training step) instead of the best-scored one, "
         "e.g. one chosen with tools/screen_commanded.py.",
     ),
+    resume_from: int = typer.Option(
+        None,
+        help="Go on from this training step of --work-dir: from its learner file (kept with every snapshot), "
+        "else warm-started from its actor-only snapshot (critic fresh); --timesteps stays the run's total.",
+    ),
 ) -> None:
     """Train one speed-commanded PPO agent that switches between levels; export each level (`train` extra)."""
     import json
@@ -153,23 +158,35 @@ def commanded(
     targets = _parse_targets(target) or {}
     if any(v == "max" for v in targets.values()):
         raise typer.BadParameter("commanded levels need speeds in m/s, not max", param_hint="--target")
-    cfg = CommandedConfig(
-        env_id=env,
-        targets=targets,
-        total_timesteps=timesteps,
-        eval_every=eval_every,
-        switch_every=switch_every,
-        track_weight=track_weight,
-        overspeed_weight=overspeed_weight,
-        track_window=track_window,
-        command_range=_parse_range(command_range),
-        cycle_every=cycle_every,
-        eval_seeds=eval_seeds,
-        final_seeds=final_seeds,
-        seed=seed,
-        out_dir=out_dir,
-        work_dir=work_dir,
-    )
+    try:
+        cfg = CommandedConfig(
+            env_id=env,
+            targets=targets,
+            total_timesteps=timesteps,
+            eval_every=eval_every,
+            switch_every=switch_every,
+            track_weight=track_weight,
+            overspeed_weight=overspeed_weight,
+            track_window=track_window,
+            command_range=_parse_range(command_range),
+            cycle_every=cycle_every,
+            eval_seeds=eval_seeds,
+            final_seeds=final_seeds,
+            seed=seed,
+            out_dir=out_dir,
+            work_dir=work_dir,
+            resume_from=resume_from,
+        )
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    if resume_from is not None:
+        if select_only:
+            raise typer.BadParameter("--resume-from trains: drop --select-only", param_hint="--resume-from")
+        kept = [cfg.work_dir / f"{kind}_{resume_from:08d}.safetensors" for kind in ("learner", "step")]
+        if not any(path.exists() for path in kept):
+            raise typer.BadParameter(
+                f"no learner or snapshot at step {resume_from} in {cfg.work_dir}", param_hint="--resume-from"
+            )
     if snapshot is not None and not select_only:
         raise typer.BadParameter(
             "--snapshot chooses among kept snapshots: add --select-only", param_hint="--snapshot"

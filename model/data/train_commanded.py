@@ -26,6 +26,7 @@ import torch
 
 from clients.tables import markdown_table
 from model.data.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
+from model.data.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
 from model.data.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo
 
 
@@ -141,6 +142,8 @@ class CommandedConfig:
         out_dir: Where the chosen levels go (behaviour/<env>/).
         work_dir: Where every snapshot is kept during training.
         preset: PPO hyperparameters (default: the environment's `train_behaviour` preset).
+        resume_from: Go on from this training step of `work_dir` (`model.data.ppo_state`): from its learner
+            file where one is kept, else warm-started from its actor-only snapshot; None: start afresh.
     """
 
     env_id: str
@@ -161,6 +164,7 @@ class CommandedConfig:
     out_dir: Path | None = None
     work_dir: Path | None = None
     preset: PPOPreset | None = None
+    resume_from: int | None = None
 
     def __post_init__(self) -> None:
         slug = env_slug(self.env_id)
@@ -186,6 +190,10 @@ class CommandedConfig:
                 raise ValueError(f"every level's speed must lie in command_range {self.command_range}")
         if self.cycle_every is not None and not 4 <= self.cycle_every < 1000:
             raise ValueError(f"cycle_every must be within [4, 1000), got {self.cycle_every}")
+        if self.resume_from is not None and not 0 < self.resume_from < self.total_timesteps:
+            raise ValueError(
+                f"resume_from must lie within (0, total_timesteps={self.total_timesteps}), got {self.resume_from}"
+            )
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
         self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug / "commanded")
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
@@ -273,6 +281,26 @@ def command_score(
     }
 
 
+def resume(work_dir: Path, step: int, model, venv) -> str:
+    """Load training step `step` of `work_dir` into a fresh learner: its learner file, else its actor snapshot.
+
+    Returns:
+        What was loaded, in words.
+
+    Raises:
+        FileNotFoundError: Neither is kept for that step.
+    """
+    learner = learner_path(work_dir, step)
+    if learner.with_suffix(".safetensors").exists():
+        load_learner(learner, model, venv)
+        return f"resumed PPO at step {step:,} from {learner}"
+    snapshot = Path(work_dir) / f"step_{step:08d}"
+    if not snapshot.with_suffix(".safetensors").exists():
+        raise FileNotFoundError(f"no learner or snapshot at step {step} in {work_dir}")
+    warm_start_actor(snapshot, model, venv, step)
+    return f"warm-started PPO at step {step:,} from the actor-only {snapshot} (critic, Adam and return statistics fresh)"
+
+
 def train_commanded(cfg: CommandedConfig) -> dict:
     """Train the commanded agent, keep a measured snapshot every `eval_every` steps, export the best.
 
@@ -287,13 +315,15 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     cfg.work_dir.mkdir(parents=True, exist_ok=True)
     commands = list(cfg.targets.values())
     switch_prob = 1.0 / cfg.switch_every
+    first = cfg.resume_from or 0
+    seed = cfg.seed + first  # a resumed run does not replay the first run's noise and commands
     model, venv = make_ppo(
         lambda: Monitor(
             SpeedCommand(
                 gym.make(cfg.env_id),
                 commands,
                 switch_prob,
-                cfg.seed,
+                seed,
                 cfg.track_weight,
                 cfg.overspeed_weight,
                 cfg.track_window,
@@ -301,10 +331,14 @@ def train_commanded(cfg: CommandedConfig) -> dict:
             )
         ),
         p,
-        cfg.seed,
+        seed,
     )
-    eval_env = gym.make(cfg.env_id)
     records: list[dict] = []
+    if cfg.resume_from is not None:
+        print(resume(cfg.work_dir, cfg.resume_from, model, venv), flush=True)
+        kept = cfg.work_dir / "records.json"
+        records = [r for r in json.loads(kept.read_text()) if r["step"] <= first] if kept.exists() else []
+    eval_env = gym.make(cfg.env_id)
     start = time.time()
 
     class Snapshotter(BaseCallback):
@@ -314,13 +348,14 @@ def train_commanded(cfg: CommandedConfig) -> dict:
                 state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
                 meta.extra = {"command": commands[0]}
                 save_behaviour(path, state, meta)
+                save_learner(learner_path(cfg.work_dir, self.num_timesteps), model, venv)
                 m = command_score(eval_env, load_behaviour(path, eval_env.action_space), cfg.targets,
                                   cfg.switch_at, cfg.eval_seeds, cfg.cycle_every)  # fmt: skip
                 records.append(
                     {"step": self.num_timesteps, **{k: v for k, v in m.items() if k != "episodes_detail"}}
                 )
                 (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
-                fps = self.num_timesteps / (time.time() - start)
+                fps = (self.num_timesteps - first) / (time.time() - start)
                 print(
                     f"step {self.num_timesteps:>8d}  score {m['score']:7.2f}  falls {m['falls']}/{m['episodes']}  "
                     f"speed error {m['mean_error']:.3f}  {fps:5.0f} steps/s",
@@ -328,7 +363,9 @@ def train_commanded(cfg: CommandedConfig) -> dict:
                 )
             return True
 
-    model.learn(total_timesteps=cfg.total_timesteps, callback=Snapshotter())
+    model.learn(
+        total_timesteps=cfg.total_timesteps - first, callback=Snapshotter(), reset_num_timesteps=first == 0
+    )
     return select_commanded(cfg, records)
 
 
