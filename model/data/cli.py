@@ -121,6 +121,13 @@ def commanded(
         None,
         help="LO:HI (m/s): train on commands drawn uniformly from this range, not only the levels' speeds.",
     ),
+    ceiling: float = typer.Option(
+        None,
+        help="Torso height (m) above which training reward is docked (Ant: bounces end episodes above 1.0).",
+    ),
+    ceiling_weight: float = typer.Option(
+        0.0, help="Reward docked per metre of torso height above --ceiling."
+    ),
     cycle_every: int = typer.Option(
         None, help="Also measure snapshots cycling through the levels every N steps (choose fast changes)."
     ),
@@ -169,6 +176,8 @@ def commanded(
             overspeed_weight=overspeed_weight,
             track_window=track_window,
             command_range=_parse_range(command_range),
+            ceiling=ceiling,
+            ceiling_weight=ceiling_weight,
             cycle_every=cycle_every,
             eval_seeds=eval_seeds,
             final_seeds=final_seeds,

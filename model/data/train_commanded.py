@@ -45,6 +45,11 @@ class SpeedCommand(gym.Wrapper):
     changes (the first N - 1 steps after a change still weigh the old speed: braking late costs more), and it is
     not in the observation, so for N > 1 the reward depends on history the policy does not see.
 
+    With `ceiling` Z and `ceiling_weight` W the reward also loses `W * max(0, torso height - Z)` (the torso body's z,
+    metres): Ant-v5 ends an episode when its torso leaves the healthy z-range (0.2, 1.0), and its commanded runs'
+    falls at 1 m/s were all bounces out of the top of that range, which a soft ceiling below it makes costly
+    before they end the episode.
+
     With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
     instead of from `commands`: the agent then tracks any speed in between, which a governor
     (`model.data.governor`) needs to steer it by a command other than the levels'.
@@ -60,8 +65,15 @@ class SpeedCommand(gym.Wrapper):
         overspeed_weight: float = 0.0,
         track_window: int = 1,
         command_range: tuple[float, float] | None = None,
+        ceiling: float | None = None,
+        ceiling_weight: float = 0.0,
     ):
         super().__init__(env)
+        if ceiling_weight < 0 or (ceiling_weight > 0 and ceiling is None):
+            raise ValueError(
+                f"ceiling_weight must be >= 0 and needs a ceiling, got {ceiling_weight} / {ceiling}"
+            )
+        self.ceiling, self.ceiling_weight = ceiling, float(ceiling_weight)
         if command_range is not None and not 0 <= command_range[0] < command_range[1]:
             raise ValueError(f"command_range must be (lo, hi) with 0 <= lo < hi, got {command_range}")
         self.command_range = (
@@ -111,6 +123,9 @@ class SpeedCommand(gym.Wrapper):
             - self.track_weight * abs(v - self.command)
             - self.overspeed_weight * max(0.0, v - self.command)
         )
+        if self.ceiling_weight:
+            height = float(self.env.unwrapped.data.body("torso").xpos[2])
+            reward -= self.ceiling_weight * max(0.0, height - self.ceiling)
         if (len(self.commands) > 1 or self.command_range) and self.rng.random() < self.switch_prob:
             self.command = self._draw()  # from the next step on
         return self._obs(obs), reward, terminated, truncated, {**info, "command": self.command}
@@ -130,6 +145,8 @@ class CommandedConfig:
         overspeed_weight: Extra weight of the speed above the command in the training reward (`SpeedCommand`).
         track_window: Steps of x-velocity averaged before the tracking terms compare it with the command
             (`SpeedCommand`; 1: each step's own).
+        ceiling: Torso height (m) above which the training reward is docked (`SpeedCommand`); None: no ceiling.
+        ceiling_weight: Reward docked per metre of torso height above `ceiling` (`SpeedCommand`).
         command_range: Training commands drawn uniformly from (lo, hi) m/s instead of from the levels' speeds
             (`SpeedCommand`); None: the levels' speeds only.
         cycle_every: Snapshots are also measured cycling through the levels every this many steps (the GMT
@@ -155,6 +172,8 @@ class CommandedConfig:
     overspeed_weight: float = 0.0
     track_window: int = 1
     command_range: tuple[float, float] | None = None
+    ceiling: float | None = None
+    ceiling_weight: float = 0.0
     cycle_every: int | None = None
     switch_at: int = 500
     eval_seeds: int = 2
@@ -180,6 +199,8 @@ class CommandedConfig:
             raise ValueError(f"overspeed_weight must be >= 0, got {self.overspeed_weight}")
         if self.track_window < 1:
             raise ValueError(f"track_window must be >= 1, got {self.track_window}")
+        if self.ceiling_weight < 0 or (self.ceiling_weight > 0 and self.ceiling is None):
+            raise ValueError(f"ceiling_weight must be >= 0 and needs a ceiling, got {self.ceiling_weight}")
         if self.command_range is not None:
             lo, hi = self.command_range
             if not 0 <= lo < hi:
@@ -328,6 +349,8 @@ def train_commanded(cfg: CommandedConfig) -> dict:
                 cfg.overspeed_weight,
                 cfg.track_window,
                 cfg.command_range,
+                cfg.ceiling,
+                cfg.ceiling_weight,
             )
         ),
         p,

@@ -55,6 +55,26 @@ def test_the_command_is_appended_tracked_and_changed():
     assert held.command == first
 
 
+def test_a_ceiling_docks_the_reward_per_metre_of_torso_height_above_it():
+    with pytest.raises(ValueError, match="needs a ceiling"):
+        SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0, ceiling_weight=1.0)
+    with pytest.raises(ValueError, match="ceiling_weight"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, ceiling=1.0, ceiling_weight=-1.0)
+    plain = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0)
+    capped = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=0.0, seed=0, ceiling=1.0, ceiling_weight=4.0)
+    plain.reset(seed=0), capped.reset(seed=0)
+    docked = 0
+    for _ in range(10):  # Hopper's torso starts at ~1.25 m: above the ceiling
+        _, r_plain, done, _, _ = plain.step(np.zeros(3, np.float32))
+        _, r_capped, _, _, _ = capped.step(np.zeros(3, np.float32))
+        height = capped.unwrapped.data.body("torso").xpos[2]
+        assert r_plain - r_capped == pytest.approx(4.0 * max(0.0, height - 1.0))
+        docked += height > 1.0
+        if done:
+            break
+    assert docked > 0
+
+
 def test_a_track_window_tracks_the_mean_speed_of_the_last_steps():
     env = SpeedCommand(
         gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, overspeed_weight=2.0, track_window=3
