@@ -121,6 +121,7 @@ def commanded(
         None,
         help="LO:HI (m/s): train on commands drawn uniformly from this range, not only the levels' speeds.",
     ),
+    ent_coef: float = typer.Option(None, help="PPO entropy bonus in place of the environment preset's."),
     ceiling: float = typer.Option(
         None,
         help="Torso height (m) above which training reward is docked (Ant: bounces end episodes above 1.0).",
@@ -176,6 +177,7 @@ def commanded(
             overspeed_weight=overspeed_weight,
             track_window=track_window,
             command_range=_parse_range(command_range),
+            ent_coef=ent_coef,
             ceiling=ceiling,
             ceiling_weight=ceiling_weight,
             cycle_every=cycle_every,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -159,6 +159,8 @@ class CommandedConfig:
         out_dir: Where the chosen levels go (behaviour/<env>/).
         work_dir: Where every snapshot is kept during training.
         preset: PPO hyperparameters (default: the environment's `train_behaviour` preset).
+        ent_coef: Entropy bonus in place of the preset's (None: the preset's). Ant's preset has none, and its
+            action std shrank from 0.37 to ~0.05 by 1M steps while its speed stayed ~0.5 m/s.
         resume_from: Go on from this training step of `work_dir` (`model.data.ppo_state`): from its learner
             file where one is kept, else warm-started from its actor-only snapshot; None: start afresh.
     """
@@ -183,6 +185,7 @@ class CommandedConfig:
     out_dir: Path | None = None
     work_dir: Path | None = None
     preset: PPOPreset | None = None
+    ent_coef: float | None = None
     resume_from: int | None = None
 
     def __post_init__(self) -> None:
@@ -218,6 +221,10 @@ class CommandedConfig:
         self.out_dir = Path(self.out_dir or BEHAVIOUR_DIR / slug)
         self.work_dir = Path(self.work_dir or Path("runs") / "behaviour" / slug / "commanded")
         self.preset = self.preset or PRESETS.get(slug, PPOPreset())
+        if self.ent_coef is not None:
+            if not self.ent_coef >= 0:
+                raise ValueError(f"ent_coef must be >= 0, got {self.ent_coef}")
+            self.preset = replace(self.preset, ent_coef=float(self.ent_coef))
 
 
 def play(env, policy: BehaviourPolicy, commands: list[float], switch_at: int, seed: int, rng) -> dict:

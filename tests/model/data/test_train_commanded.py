@@ -75,6 +75,18 @@ def test_a_ceiling_docks_the_reward_per_metre_of_torso_height_above_it():
     assert docked > 0
 
 
+def test_an_entropy_bonus_overrides_only_the_presets_entropy():
+    from dataclasses import replace
+
+    from model.data.train_behaviour import PRESETS
+
+    cfg = CommandedConfig("Ant-v5", {"slow": 0.5, "fast": 1.0}, ent_coef=0.005)
+    assert cfg.preset == replace(PRESETS["ant"], ent_coef=0.005)
+    assert CommandedConfig("Ant-v5", {"slow": 0.5, "fast": 1.0}).preset == PRESETS["ant"]
+    with pytest.raises(ValueError, match="ent_coef"):
+        CommandedConfig("Ant-v5", {"slow": 0.5, "fast": 1.0}, ent_coef=-0.1)
+
+
 def test_a_track_window_tracks_the_mean_speed_of_the_last_steps():
     env = SpeedCommand(
         gym.make(ENV), [0.0, 0.5], switch_prob=0.0, seed=1, overspeed_weight=2.0, track_window=3
