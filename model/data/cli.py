@@ -158,6 +158,7 @@ def commanded(
 
     from model.data.train_commanded import (
         CommandedConfig,
+        resume_source,
         select_commanded,
         train_commanded,
         write_commanded_provenance,
@@ -193,8 +194,7 @@ def commanded(
     if resume_from is not None:
         if select_only:
             raise typer.BadParameter("--resume-from trains: drop --select-only", param_hint="--resume-from")
-        kept = [cfg.work_dir / f"{kind}_{resume_from:08d}.safetensors" for kind in ("learner", "step")]
-        if not any(path.exists() for path in kept):
+        if resume_source(cfg.work_dir, resume_from) is None:
             raise typer.BadParameter(
                 f"no learner or snapshot at step {resume_from} in {cfg.work_dir}", param_hint="--resume-from"
             )
@@ -389,11 +389,12 @@ def collect(
     for item in plan_target or []:
         name, sep, value = item.partition("=")
         try:
-            targets[name] = float(value)
+            speed = float(value)
         except ValueError:
-            targets[name] = float("nan")
-        if not sep or not name or not math.isfinite(targets[name]):
+            speed = math.nan
+        if not (sep and name and math.isfinite(speed)):
             raise typer.BadParameter(f"expected LEVEL=SPEED, got {item!r}", param_hint="--plan-target")
+        targets[name] = speed
     plans = {}
     for item in plan or []:
         try:

@@ -309,24 +309,36 @@ def command_score(
     }
 
 
+def snapshot_path(work_dir: Path, step: int) -> Path:
+    """Where the actor snapshot of training step `step` is kept (without suffix)."""
+    return Path(work_dir) / f"step_{step:08d}"
+
+
+def resume_source(work_dir: Path, step: int) -> Path | None:
+    """What resuming from `step` loads: its learner file, else its actor-only snapshot; None if neither is kept."""
+    for path in (learner_path(work_dir, step), snapshot_path(work_dir, step)):
+        if path.with_suffix(".safetensors").exists():
+            return path
+    return None
+
+
 def resume(work_dir: Path, step: int, model, venv) -> str:
-    """Load training step `step` of `work_dir` into a fresh learner: its learner file, else its actor snapshot.
+    """Load training step `step` of `work_dir` into a fresh learner (`resume_source`).
 
     Returns:
         What was loaded, in words.
 
     Raises:
-        FileNotFoundError: Neither is kept for that step.
+        FileNotFoundError: Neither a learner file nor a snapshot is kept for that step.
     """
-    learner = learner_path(work_dir, step)
-    if learner.with_suffix(".safetensors").exists():
-        load_learner(learner, model, venv)
-        return f"resumed PPO at step {step:,} from {learner}"
-    snapshot = Path(work_dir) / f"step_{step:08d}"
-    if not snapshot.with_suffix(".safetensors").exists():
+    source = resume_source(work_dir, step)
+    if source is None:
         raise FileNotFoundError(f"no learner or snapshot at step {step} in {work_dir}")
-    warm_start_actor(snapshot, model, venv, step)
-    return f"warm-started PPO at step {step:,} from the actor-only {snapshot} (critic, Adam and return statistics fresh)"
+    if source == learner_path(work_dir, step):
+        load_learner(source, model, venv)
+        return f"resumed PPO at step {step:,} from {source}"
+    warm_start_actor(source, model, venv, step)
+    return f"warm-started PPO at step {step:,} from the actor-only {source} (critic, Adam and return statistics fresh)"
 
 
 def train_commanded(cfg: CommandedConfig) -> dict:
@@ -374,7 +386,7 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     class Snapshotter(BaseCallback):
         def _on_step(self) -> bool:
             if self.num_timesteps % cfg.eval_every == 0:
-                path = cfg.work_dir / f"step_{self.num_timesteps:08d}"
+                path = snapshot_path(cfg.work_dir, self.num_timesteps)
                 state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
                 meta.extra = {"command": commands[0]}
                 save_behaviour(path, state, meta)
