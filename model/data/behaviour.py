@@ -148,8 +148,8 @@ def save_behaviour(path: str | Path, state: dict[str, torch.Tensor], meta: Behav
     Path(f"{path}.json").write_text(json.dumps(asdict(meta), indent=1) + "\n")
 
 
-def load_behaviour(path: str | Path, action_space) -> BehaviourPolicy:
-    """Load a snapshot written by `save_behaviour`.
+def load_behaviour(path: str | Path, action_space):
+    """Load a snapshot written by `save_behaviour`: a `BehaviourPolicy`, or a `gait.GaitPolicy` for a gait.
 
     Args:
         path: The `.safetensors` file (or the same path without suffix).
@@ -158,6 +158,12 @@ def load_behaviour(path: str | Path, action_space) -> BehaviourPolicy:
     path = Path(path).with_suffix("")
     meta = BehaviourMeta(**json.loads(Path(f"{path}.json").read_text()))
     state = load_file(f"{path}.safetensors")
+    if "gait" in meta.extra:  # a scripted gait (`model.data.gait`): its only tensor is the action noise
+        from model.data.gait import GaitPolicy
+
+        if set(state) != {"log_std"}:
+            raise ValueError(f"{path}.safetensors: a gait snapshot holds log_std only, got {sorted(state)}")
+        return GaitPolicy(meta, state["log_std"].numpy(), action_space.low, action_space.high)
     policy = BehaviourPolicy(
         meta, len(meta.obs_mean), action_space.shape[0], action_space.low, action_space.high
     )

@@ -259,6 +259,75 @@ def govern(
 
 
 @app.command()
+@needs("data", "gmt data gait")
+def gait(
+    params: Path = typer.Argument(
+        ..., help="A gait's parameters (JSON): `tools/search_gait.py`'s output or a bare GaitConfig."
+    ),
+    level: list[str] = typer.Option(
+        None, help="LEVEL=HZ, one stride frequency per level; repeat (default: the search's slow and fast)."
+    ),
+    target: list[str] = typer.Option(
+        None, help="LEVEL=SPEED (m/s): that level's speed loop holds SPEED by moving its frequency; repeat."
+    ),
+    noise: float = typer.Option(0.1, help="Std of the Gaussian action noise of every level."),
+    episodes: int = typer.Option(10, help="Noisy episodes measured per level."),
+    out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/ant/)."),
+) -> None:
+    """Write scripted Ant gait levels (model/data/gait.py), each measured, collected like any snapshot."""
+    import json
+    import shlex
+    import sys
+
+    from model.data.behaviour import BEHAVIOUR_DIR
+    from model.data.gait import GaitConfig, write_levels
+
+    try:
+        data = json.loads(params.read_text())
+    except (OSError, ValueError) as e:
+        raise typer.BadParameter(f"cannot read {params}: {e}", param_hint="PARAMS") from None
+    try:
+        cfg = GaitConfig(**data.get("gait", data))
+    except (TypeError, ValueError) as e:
+        raise typer.BadParameter(f"{params} is not a gait: {e}", param_hint="PARAMS") from None
+    if level:
+        freqs = {}
+        for item in level:
+            name, _, value = item.partition("=")
+            try:
+                freqs[name] = float(value)
+            except ValueError:
+                raise typer.BadParameter(f"expected LEVEL=HZ, got {item!r}", param_hint="--level") from None
+            if not (name and math.isfinite(freqs[name]) and freqs[name] > 0):
+                raise typer.BadParameter(f"expected LEVEL=HZ with HZ > 0, got {item!r}", param_hint="--level")
+    elif "slow_freq" in data:
+        freqs = {"slow": float(data["slow_freq"]), "fast": cfg.freq}
+    else:
+        raise typer.BadParameter("a bare GaitConfig names no levels: give --level", param_hint="--level")
+    if not (math.isfinite(noise) and noise > 0) or episodes < 1:
+        raise typer.BadParameter(f"need --noise > 0 and --episodes >= 1, got {noise}, {episodes}")
+    targets = {}
+    for item in target or []:
+        name, _, value = item.partition("=")
+        try:
+            targets[name] = float(value)
+        except ValueError:
+            raise typer.BadParameter(f"expected LEVEL=SPEED, got {item!r}", param_hint="--target") from None
+        if name not in freqs or not math.isfinite(targets[name]):
+            raise typer.BadParameter(f"{item!r}: a finite speed for one of the levels {list(freqs)}",
+                                     param_hint="--target")  # fmt: skip
+    command = "gmt data gait " + " ".join(shlex.quote(a) for a in sys.argv[3:])
+    written = write_levels(cfg, freqs, noise, out_dir or BEHAVIOUR_DIR / "ant", command, episodes,
+                           targets=targets)  # fmt: skip
+    for path in written:
+        if path.suffix == ".json":
+            meta = json.loads(path.read_text())
+            typer.echo(f"{meta['level']}: {meta['mean_speed']:.3f} +- {meta['std_speed']:.3f} m/s, "
+                       f"{meta['extra']['falls']} falls in {episodes}")  # fmt: skip
+    typer.echo(f"wrote {', '.join(str(p) for p in written)}")
+
+
+@app.command()
 @needs("train", "gmt data refine")
 def refine(
     env: str = typer.Option(..., help="Gymnasium id, e.g. HalfCheetah-v5."),
