@@ -23,7 +23,7 @@ from model.data.start_states import CheckpointPolicy, StatePool, build_pool
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
 # sized to keep `make data` to minutes (their agents also fall, so episodes can be short).
-DEFAULT_EPISODES = {"halfcheetah": 150, "hopper": 150, "walker2d": 100, "ant": 60}
+DEFAULT_EPISODES = {"halfcheetah": 150, "hopper": 150, "walker2d": 100, "ant": 150}
 # Behaviour-noise multipliers. HalfCheetah's PPO snapshots with their full noise (std ~0.13) run ~20% slower than
 # their mean action and stall in ~7% of episodes; a policy that imitates the mean then overshoots every goal. At
 # 0.35 x their noise they stay diverse (per-episode speed std 0.03-0.07 m/s) and none stalled in 36 test episodes.
@@ -32,11 +32,13 @@ DEFAULT_NOISE_SCALE = {"halfcheetah": 0.35}
 # slow level is refined (`gmt data refine`) to brake from a sprint and to get going after random flailing; half of
 # its episodes show that, the other half start at rest. Hopper's two levels each start half their episodes from
 # the other's states (slow braking from a sprint, fast speeding up from a walk); falls are replaced (`drop_falls`).
-# The same for Walker2d, whose commanded agent brakes from a sprint in ~74% of its tries (falls are replaced).
+# The same for Walker2d, whose commanded agent brakes from a sprint in ~74% of its tries (falls are replaced), and
+# for Ant's scripted gait levels (`model.data.gait`), which pick up the stride where the other level left it.
 DEFAULT_POOL_START = {
     "halfcheetah": {"slow": 0.5},
     "hopper": {"slow": 0.5, "fast": 0.5},
     "walker2d": {"slow": 0.5, "fast": 0.5},
+    "ant": {"slow": 0.5, "fast": 0.5},
 }
 POOL_EPISODES = 10  # episodes per other level rolled out to build a level's start-state pool
 
@@ -288,7 +290,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
     fell = ", ".join(f"{k} {v['falls_dropped']}" for k, v in levels.items())
     description = (
-        f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} (PPO snapshots rolled out with "
+        f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} (behaviour snapshots rolled out with "
         f"{cfg.noise_scale:g} x their Gaussian noise{', and a uniform-random policy' * cfg.include_random}), {cfg.episodes_per_level} "
         f"episodes each, seed {cfg.seed}. "
         + f"Snapshot episodes where a running agent came to a standstill were replaced ({dropped}). "

@@ -122,7 +122,10 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
     beh = tmp_path / "behaviour"
     fake_snapshot(beh, "fast", 2.0, 0)
     fake_snapshot(beh, "slow", 1.0, 1)
-    assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Ant-v5").pool_start == {}
+    assert CollectConfig(ENV).pool_start == {"slow": 0.5} and CollectConfig("Ant-v5").pool_start == {
+        "slow": 0.5,
+        "fast": 0.5,
+    }
     with pytest.raises(ValueError, match="pool_start"):
         CollectConfig(ENV, pool_start={"slow": 1.5})
     # These random-weight snapshots barely move: pool-started episodes that end standing still are replaced

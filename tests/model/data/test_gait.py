@@ -3,6 +3,7 @@ that load like any behaviour level, and collection from them."""
 
 import json
 import math
+import re
 
 import gymnasium as gym
 import numpy as np
@@ -245,3 +246,38 @@ def test_the_speed_loop_moves_the_frequency_against_the_speed_error(env):
     assert open_loop.cfg.freq == 1.2 and open_loop.command == 1.2
     with pytest.raises(ValueError):
         GaitConfig(freq=1.5, **STRIDE, freq_range=(2.0, 1.0))
+
+
+def test_gmt_data_gait_refuses_bad_input_and_writes_measured_levels(tmp_path):
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    runner = CliRunner()
+    stride = tmp_path / "stride.json"
+    stride.write_text(json.dumps({"gait": {"freq": 1.5, **STRIDE}}))
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({"gait": {"freq": -1.0, **STRIDE}}))
+    out = tmp_path / "ant"
+    cases = [
+        ([str(tmp_path / "missing.json")], "cannot read"),
+        ([str(broken)], "is not a gait"),
+        ([str(stride)], "names no levels"),
+        ([str(stride), "--level", "slow=fast"], "LEVEL=HZ"),
+        ([str(stride), "--level", "slow=1.2", "--target", "fast=0.8"], "one of the levels"),
+        ([str(stride), "--level", "slow=1.2", "--noise", "0"], "--noise > 0"),
+    ]
+    for args, message in cases:
+        result = runner.invoke(app, ["data", "gait", *args, "--out-dir", str(out)])
+        text = " ".join(re.sub(r"[│╭╮╰╯─]", " ", result.output).split())  # unwrap the error box
+        assert result.exit_code == 2 and message in text, (args, result.output)
+    assert not out.exists()
+    result = runner.invoke(
+        app,
+        ["data", "gait", str(stride), "--level", "slow=1.2", "--target", "slow=0.5", "--episodes", "1",
+         "--out-dir", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    meta = json.loads((out / "slow.json").read_text())
+    assert meta["extra"]["gait"]["target_speed"] == 0.5 and meta["extra"]["gait"]["freq"] == 1.2
+    assert "slow: " in result.output and "| slow | 1.2 | 0.5 |" in (out / "TRAINED_WITH.md").read_text()
