@@ -6,6 +6,7 @@ the same arrays.
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,6 +106,12 @@ class CollectConfig:
         slug = env_slug(self.env_id)
         self.episodes_per_level = self.episodes_per_level or DEFAULT_EPISODES.get(slug, 50)
         self.dataset_id = self.dataset_id or default_dataset_id(self.env_id)
+        if not re.fullmatch(
+            r"([\w-]+/)*[\w-]+-v\d+", self.dataset_id
+        ):  # checked before minutes of collection
+            raise ValueError(
+                f"dataset id must look like namespace/name-vN (Minari's format), got {self.dataset_id!r}"
+            )
         if self.noise_scale is None:
             self.noise_scale = DEFAULT_NOISE_SCALE.get(slug, 1.0)
         if not self.noise_scale >= 0:

@@ -128,6 +128,13 @@ def test_pool_starts_begin_where_another_policy_was(tmp_path):
     }
     with pytest.raises(ValueError, match="pool_start"):
         CollectConfig(ENV, pool_start={"slow": 1.5})
+    with pytest.raises(
+        ValueError, match="name-vN"
+    ):  # Minari would only fail when writing, after the collection
+        CollectConfig(ENV, dataset_id="gmt/ant/gait-check")
+    assert (
+        CollectConfig(ENV, dataset_id="gmt/ant/gait-0608-check-v1").dataset_id == "gmt/ant/gait-0608-check-v1"
+    )
     # These random-weight snapshots barely move: pool-started episodes that end standing still are replaced
     # (from-rest ones, which never ran, are kept), a failed pooled start is retried from another pool state, and here every try fails.
     with pytest.raises(ValueError, match=r"unknown levels \['slwo'\]"):

@@ -177,7 +177,11 @@ def test_levels_are_measured_written_and_collected_with_pool_starts(tmp_path):
     meta = json.loads((tmp_path / "ant" / "fast.json").read_text())
     assert meta["extra"]["gait"]["freq"] == 1.5 and meta["extra"]["episodes"] == 2
     assert math.isfinite(meta["mean_speed"]) and meta["std_speed"] >= 0
-    assert "gmt data gait X" in (tmp_path / "ant" / "TRAINED_WITH.md").read_text()
+    provenance = tmp_path / "ant" / "TRAINED_WITH.md"
+    assert "gmt data gait X" in provenance.read_text()
+    provenance.write_text(provenance.read_text() + "\n## Notes (added by hand)\n\nkeep me\n")
+    write_levels(cfg, {"slow": 1.0}, 0.1, tmp_path / "ant", "gmt data gait Y", episodes=1, max_steps=5)
+    assert "gmt data gait Y" in provenance.read_text() and provenance.read_text().endswith("\n\nkeep me\n")
     result = collect(
         CollectConfig(
             env_id=ENV_ID,
