@@ -28,6 +28,22 @@ def _parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
     return out
 
 
+def _level_values(items: list[str] | None, value: str, hint: str) -> dict[str, float]:
+    """LEVEL=NUMBER options (repeated) as a dict; a missing level name or a non-finite number is refused."""
+    out: dict[str, float] = {}
+    for item in items or []:
+        name, _, text = item.partition("=")
+        try:
+            out[name] = float(text)
+        except ValueError:
+            raise typer.BadParameter(f"expected LEVEL={value}, got {item!r}", param_hint=hint) from None
+        if not name or not math.isfinite(out[name]):
+            raise typer.BadParameter(
+                f"expected LEVEL={value} with a finite number, got {item!r}", param_hint=hint
+            )
+    return out
+
+
 def _parse_range(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -291,31 +307,21 @@ def gait(
     except (TypeError, ValueError) as e:
         raise typer.BadParameter(f"{params} is not a gait: {e}", param_hint="PARAMS") from None
     if level:
-        freqs = {}
-        for item in level:
-            name, _, value = item.partition("=")
-            try:
-                freqs[name] = float(value)
-            except ValueError:
-                raise typer.BadParameter(f"expected LEVEL=HZ, got {item!r}", param_hint="--level") from None
-            if not (name and math.isfinite(freqs[name]) and freqs[name] > 0):
-                raise typer.BadParameter(f"expected LEVEL=HZ with HZ > 0, got {item!r}", param_hint="--level")
+        freqs = _level_values(level, "HZ", "--level")
+        if min(freqs.values()) <= 0:
+            raise typer.BadParameter(f"stride frequencies must be > 0 Hz, got {freqs}", param_hint="--level")
     elif "slow_freq" in data:
         freqs = {"slow": float(data["slow_freq"]), "fast": cfg.freq}
     else:
         raise typer.BadParameter("a bare GaitConfig names no levels: give --level", param_hint="--level")
     if not (math.isfinite(noise) and noise > 0) or episodes < 1:
         raise typer.BadParameter(f"need --noise > 0 and --episodes >= 1, got {noise}, {episodes}")
-    targets = {}
-    for item in target or []:
-        name, _, value = item.partition("=")
-        try:
-            targets[name] = float(value)
-        except ValueError:
-            raise typer.BadParameter(f"expected LEVEL=SPEED, got {item!r}", param_hint="--target") from None
-        if name not in freqs or not math.isfinite(targets[name]):
-            raise typer.BadParameter(f"{item!r}: a finite speed for one of the levels {list(freqs)}",
-                                     param_hint="--target")  # fmt: skip
+    targets = _level_values(target, "SPEED", "--target")
+    if set(targets) - set(freqs):
+        raise typer.BadParameter(
+            f"{sorted(set(targets) - set(freqs))}: a target speed needs one of the levels {list(freqs)}",
+            param_hint="--target",
+        )
     command = "gmt data gait " + " ".join(shlex.quote(a) for a in sys.argv[3:])
     written = write_levels(cfg, freqs, noise, out_dir or BEHAVIOUR_DIR / "ant", command, episodes,
                            targets=targets)  # fmt: skip
@@ -480,15 +486,7 @@ def collect(
             raise typer.BadParameter(
                 f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint=option
             )
-    shares = None
-    if pool_start:
-        shares = {}
-        for item in pool_start:
-            name, _, value = item.partition("=")
-            try:
-                shares[name] = float(value)
-            except ValueError:
-                raise typer.BadParameter(f"expected LEVEL=SHARE, got {item!r}") from None
+    shares = _level_values(pool_start, "SHARE", "--pool-start") if pool_start else None
 
     try:
         cfg = CollectConfig(

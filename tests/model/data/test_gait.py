@@ -268,7 +268,7 @@ def test_gmt_data_gait_refuses_bad_input_and_writes_measured_levels(tmp_path):
         ([str(broken)], "is not a gait"),
         ([str(stride)], "names no levels"),
         ([str(stride), "--level", "slow=fast"], "LEVEL=HZ"),
-        ([str(stride), "--level", "slow=1.2", "--target", "fast=0.8"], "one of the levels"),
+        ([str(stride), "--level", "slow=1.2", "--target", "fast=0.8"], "needs one of the levels"),
         ([str(stride), "--level", "slow=1.2", "--noise", "0"], "--noise > 0"),
     ]
     for args, message in cases:
