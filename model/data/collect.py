@@ -6,7 +6,6 @@ the same arrays.
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +15,7 @@ import numpy as np
 import torch
 
 from model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
-from model.data.minari_io import Episode, write_dataset
+from model.data.minari_io import Episode, check_dataset_id, write_dataset
 from model.data.plan import PlanConfig, PlannedPolicy
 from model.data.rollout import rollout, stuck_step
 from model.data.start_states import CheckpointPolicy, StatePool, build_pool
@@ -106,12 +105,7 @@ class CollectConfig:
         slug = env_slug(self.env_id)
         self.episodes_per_level = self.episodes_per_level or DEFAULT_EPISODES.get(slug, 50)
         self.dataset_id = self.dataset_id or default_dataset_id(self.env_id)
-        if not re.fullmatch(
-            r"([\w-]+/)*[\w-]+-v\d+", self.dataset_id
-        ):  # checked before minutes of collection
-            raise ValueError(
-                f"dataset id must look like namespace/name-vN (Minari's format), got {self.dataset_id!r}"
-            )
+        check_dataset_id(self.dataset_id)  # before minutes of collection, not after
         if self.noise_scale is None:
             self.noise_scale = DEFAULT_NOISE_SCALE.get(slug, 1.0)
         if not self.noise_scale >= 0:

@@ -19,7 +19,7 @@ action-noise `log_std` only, and `<level>.json`'s `extra["gait"]` holds a `GaitC
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -112,7 +112,7 @@ class GaitConfig:
 
     def with_freq(self, freq: float) -> GaitConfig:
         """The same stride at another frequency."""
-        return GaitConfig(**{**asdict(self), "freq": float(freq)})
+        return replace(self, freq=float(freq))
 
 
 def heading(obs: np.ndarray) -> float:
@@ -177,9 +177,7 @@ class GaitPolicy:
             self.cfg = self.cfg.with_freq(value)
         else:
             shift = self.cfg.ff_slope * (float(value) - self.cfg.target_speed)
-            self.cfg = GaitConfig(
-                **{**asdict(self.cfg), "target_speed": float(value), "freq": self.cfg.freq + shift}
-            )
+            self.cfg = replace(self.cfg, target_speed=float(value), freq=self.cfg.freq + shift)
 
     target = command  # as for `BehaviourPolicy`: the value a level is asked to hold
 
@@ -244,29 +242,6 @@ def gait_state(noise_std: float) -> dict[str, torch.Tensor]:
     return {"log_std": torch.full((8,), math.log(noise_std))}
 
 
-def measure(env, policy: GaitPolicy, episodes: int, seed: int, max_steps: int | None = None) -> dict:
-    """Per-episode mean x-velocity of `episodes` noisy episodes from reset seeds seed, seed + 1, ...
-
-    Returns:
-        mean_speed and std_speed over episodes (m/s), falls (episodes that terminated) and mean_length.
-    """
-    from model.data.rollout import rollout
-
-    rng = np.random.default_rng(seed)
-    speeds, falls, lengths = [], 0, []
-    for i in range(episodes):
-        ep = rollout(env, policy, seed=seed + i, rng=rng, max_steps=max_steps)
-        speeds.append(float(ep.infos["x_velocity"].mean()))
-        falls += ep.terminated
-        lengths.append(len(ep))
-    return {
-        "mean_speed": float(np.mean(speeds)),
-        "std_speed": float(np.std(speeds)),
-        "falls": int(falls),
-        "mean_length": float(np.mean(lengths)),
-    }
-
-
 def write_levels(
     cfg: GaitConfig,
     freqs: dict[str, float],
@@ -300,6 +275,7 @@ def write_levels(
     import gymnasium as gym
 
     from model.data.behaviour import save_behaviour
+    from model.data.rollout import measure
 
     if not freqs:
         raise ValueError("name at least one level")
@@ -311,7 +287,7 @@ def write_levels(
     state = gait_state(noise_std)
     rows, written = [], []
     for level, freq in freqs.items():
-        level_cfg = GaitConfig(**{**asdict(cfg), "freq": float(freq), "target_speed": targets.get(level)})
+        level_cfg = replace(cfg, freq=float(freq), target_speed=targets.get(level))
         policy = GaitPolicy(gait_meta(level, level_cfg), state["log_std"].numpy(), env.action_space.low,
                             env.action_space.high)  # fmt: skip
         m = measure(env, policy, episodes, seed, max_steps)

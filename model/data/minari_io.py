@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import warnings
 from collections.abc import Iterator
@@ -238,6 +239,16 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
     return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes), prep)
 
 
+def check_dataset_id(dataset_id: str) -> str:
+    """Return `dataset_id` if it has Minari's "namespace/name-vN" form, else raise ValueError saying so.
+
+    Minari accepts an id without "-vN" until it writes, and then fails on the missing version.
+    """
+    if not re.fullmatch(r"([\w-]+/)*[\w-]+-v\d+", dataset_id):
+        raise ValueError(f"dataset id must look like namespace/name-vN (Minari's format), got {dataset_id!r}")
+    return dataset_id
+
+
 def write_dataset(
     dataset_id: str,
     episodes: list[Episode],
@@ -274,6 +285,7 @@ def write_dataset(
     import minari
     from minari.data_collector import EpisodeBuffer
 
+    check_dataset_id(dataset_id)
     root = data_root(data_dir)
     target = root / dataset_id
     if target.exists():

@@ -127,3 +127,25 @@ def stuck_step(
     ran = ran_by_end[np.minimum(ends - run_window + 1, len(ran_by_end) - 1)]
     hits = np.flatnonzero(ran & (np.abs(stop_means) < stop_speed))
     return int(ends[hits[0]]) if len(hits) else None
+
+
+def measure(env, policy: Policy, episodes: int, seed: int, max_steps: int | None = None) -> dict:
+    """Roll out `episodes` stochastic episodes (reset seeds seed, seed + 1, ...): per-episode mean x-velocity,
+    length, return, and how many ended in a fall (termination)."""
+    rng = np.random.default_rng(seed)
+    speeds, lengths, returns, falls = [], [], [], 0
+    for i in range(episodes):
+        ep = rollout(env, policy, seed=seed + i, rng=rng, max_steps=max_steps)
+        speeds.append(float(ep.infos["x_velocity"].mean()))
+        lengths.append(len(ep))
+        returns.append(float(ep.rewards.sum()))
+        falls += ep.terminated
+    return {
+        "mean_speed": float(np.mean(speeds)),
+        "std_speed": float(np.std(speeds)),
+        "speeds": speeds,
+        "mean_length": float(np.mean(lengths)),
+        "min_length": int(np.min(lengths)),
+        "mean_return": float(np.mean(returns)),
+        "falls": int(falls),
+    }

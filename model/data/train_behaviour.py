@@ -26,7 +26,7 @@ from model.data.behaviour import (
     load_behaviour,
     save_behaviour,
 )
-from model.data.rollout import rollout, stuck_step
+from model.data.rollout import measure, stuck_step
 from model.data.start_states import PoolStart, build_pool
 
 FASTEST = "max"
@@ -252,25 +252,6 @@ def as_policy(state: dict, meta: BehaviourMeta, action_space) -> BehaviourPolicy
     )
     policy.load_state_dict(state, strict=False)
     return policy.eval()
-
-
-def measure(env, policy, episodes: int, seed: int) -> dict:
-    """Roll out `episodes` stochastic episodes; per-episode mean x-velocity, length and return."""
-    rng = np.random.default_rng(seed)
-    speeds, lengths, returns = [], [], []
-    for i in range(episodes):
-        ep = rollout(env, policy, seed=seed + i, rng=rng)
-        speeds.append(float(ep.infos["x_velocity"].mean()))
-        lengths.append(len(ep))
-        returns.append(float(ep.rewards.sum()))
-    return {
-        "mean_speed": float(np.mean(speeds)),
-        "std_speed": float(np.std(speeds)),
-        "speeds": speeds,
-        "mean_length": float(np.mean(lengths)),
-        "min_length": int(np.min(lengths)),
-        "mean_return": float(np.mean(returns)),
-    }
 
 
 def level_score(record: dict, target: float | str, max_len: int) -> float:
