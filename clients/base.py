@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import abc
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -115,6 +116,11 @@ class ActResult:
     action: np.ndarray | int
     step: int
     goal: int
+
+
+def new_session_id() -> str:
+    """A fresh session id drawn by the client (what makes a retried create safe)."""
+    return uuid.uuid4().hex
 
 
 def goal_selector(goal: int | str | None = None, target: float | None = None) -> tuple[str, Any] | None:
@@ -292,8 +298,13 @@ class PolicyClient(abc.ABC):
         target: float | None = None,
         seed: int | None = None,
         action_mode: str | None = None,
+        session_id: str | None = None,
     ) -> Session:
-        """Open a session on `model` (None: the server's only model) pursuing a goal (id, name or target)."""
+        """Open a session on `model` (None: the server's only model) pursuing a goal (id, name or target).
+
+        The client names the session (`session_id`, default a fresh random id), so that a create whose answer
+        was lost is retried safely: the server answers the session the first attempt created.
+        """
 
     @abc.abstractmethod
     def get_session(self, session_id: str) -> SessionInfo:

@@ -59,6 +59,12 @@ class FailedPrecondition(ServiceError):
     code = "failed_precondition"
 
 
+class AlreadyExists(ServiceError):
+    """A session id the client chose is taken by a session created with other parameters."""
+
+    code = "already_exists"
+
+
 class Aborted(ServiceError):
     """Another replica changed the session between this request's read and its write; nothing was applied and
     retrying is safe (the clients do, a few times)."""
@@ -114,6 +120,7 @@ _BY_CODE: dict[str, type[ServiceError]] = {
         PermissionDenied,
         NotFound,
         FailedPrecondition,
+        AlreadyExists,
         Aborted,
         ResourceExhausted,
         PayloadTooLarge,

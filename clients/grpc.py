@@ -26,6 +26,7 @@ from clients.base import (
     SessionInfo,
     as_observation,
     goal_selector,
+    new_session_id,
     with_retries,
 )
 from clients.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
@@ -269,13 +270,17 @@ class GrpcClient(PolicyClient):
         target: float | None = None,
         seed: int | None = None,
         action_mode: str | None = None,
+        session_id: str | None = None,
     ) -> Session:
         req = pb.CreateSessionRequest(
-            model=model or "", goal=goal_proto(goal, target), action_mode=action_mode or ""
+            model=model or "",
+            goal=goal_proto(goal, target),
+            action_mode=action_mode or "",
+            session_id=session_id or new_session_id(),
         )
         if seed is not None:
             req.seed = seed
-        info = self._seen_session(session_from_proto(self._call("CreateSession", req)))
+        info = self._seen_session(session_from_proto(self._call("CreateSession", req, safe=True)))
         return StreamSession(self, info) if self.stream else Session(self, info)
 
     def get_session(self, session_id: str) -> SessionInfo:

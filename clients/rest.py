@@ -21,6 +21,7 @@ from clients.base import (
     SessionInfo,
     as_observation,
     goal_selector,
+    new_session_id,
     with_retries,
 )
 from clients.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
@@ -231,6 +232,7 @@ class RestClient(PolicyClient):
         target: float | None = None,
         seed: int | None = None,
         action_mode: str | None = None,
+        session_id: str | None = None,
     ) -> Session:
         body: dict[str, Any] = _goal_body(goal, target)
         if model:
@@ -239,7 +241,8 @@ class RestClient(PolicyClient):
             body["seed"] = seed
         if action_mode:
             body["action_mode"] = action_mode
-        info = self._seen_session(session_from_json(self._request("POST", "/sessions", body)))
+        body["session_id"] = session_id or new_session_id()
+        info = self._seen_session(session_from_json(self._request("POST", "/sessions", body, safe=True)))
         return Session(self, info)
 
     def get_session(self, session_id: str) -> SessionInfo:

@@ -334,6 +334,14 @@ class PolicyEngine(PolicyRuntime):
         action = int(a) if self.discrete else self.ckpt.action_codec.decode(a[None])[0]
         return action, int(p.h_blend_to[s, pos])
 
+    def same_as_last(self, ctx: Context, state: np.ndarray) -> bool:
+        """Whether `state` (a prepared observation) is the one the context's last step acted on."""
+        p, s = self.pool, ctx.slot
+        if p.step[s] == 0:
+            return False
+        last = p.h_state[s, (p.step[s] - 1) % p.H]
+        return bool(np.array_equal(last, np.asarray(state, dtype=last.dtype).reshape(last.shape)))
+
     @_locked
     def reset(self, ctx: Context, goal: int | None = None) -> None:
         p, s = self.pool, ctx.slot

@@ -76,6 +76,10 @@ class PolicyRuntime(abc.ABC):
         """(action, goal) the context's last act answered, rebuilt from its history (for idempotent retries)."""
 
     @abc.abstractmethod
+    def same_as_last(self, ctx: Context, state: np.ndarray) -> bool:
+        """Whether a prepared observation is the one the context's last act answered (a retry must repeat it)."""
+
+    @abc.abstractmethod
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
         """Condition tokens from the next step on `goal`, faded in over `blend_steps` steps if > 0."""
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from model.context import Context
 from model.runtime import PolicyRuntime
+from service import units
 from service.errors import Unavailable
 
 log = logging.getLogger("gmt.batcher")
@@ -31,6 +32,7 @@ class _Item:
     obs: np.ndarray
     future: asyncio.Future | None
     group: int = 0  # items of one many-session call (> 0) go through one forward pass together
+    unit: units.Unit | None = None  # the change it belongs to: no longer cancellable once its forward starts
 
 
 class MicroBatcher:
@@ -113,14 +115,15 @@ class MicroBatcher:
 
         Raises the item's own error (an engine `StepFailed`) when its row alone failed.
 
-        Cancelling the caller before the batch runs drops the request; after, the result is discarded.
+        Cancelling the caller before the batch runs drops the request. Once it runs, its change is past its point
+        of no return (`service.units`): the core lets it finish and store its answer.
         """
         if self._task is None or self._task.done():
             raise RuntimeError("batcher is not running")
         if self.inline_alone and not self._pending and not self._running and self.expected() <= 1:
             return self._act_alone(ctx, obs)
         fut = asyncio.get_running_loop().create_future()
-        self._pending.append(_Item(ctx, obs, fut))
+        self._pending.append(_Item(ctx, obs, fut, unit=units.current()))
         self._wake.set()
         return await fut
 
@@ -147,7 +150,10 @@ class MicroBatcher:
             raise RuntimeError("batcher is not running")
         loop = asyncio.get_running_loop()
         self._groups += 1
-        items = [_Item(c, o, loop.create_future(), self._groups) for c, o in zip(ctxs, obs, strict=True)]
+        unit = units.current()
+        items = [
+            _Item(c, o, loop.create_future(), self._groups, unit) for c, o in zip(ctxs, obs, strict=True)
+        ]
         self._pending.extend(items)
         self._wake.set()
         return await asyncio.gather(*(it.future for it in items), return_exceptions=True)
@@ -193,6 +199,9 @@ class MicroBatcher:
             ):
                 item = self._pending.popleft()
                 if not item.future.done():
+                    units.point_of_no_return(
+                        item.unit
+                    )  # its forward runs now: its caller can no longer cancel
                     batch.append(item)
             if not batch:
                 continue

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import re
 import time
 import uuid
 import weakref
@@ -19,12 +20,20 @@ from model.checkpoint import Goal
 from model.context import Context
 from model.runtime import InvalidObservation, StepFailed
 from service.batcher import MicroBatcher
-from service.errors import FailedPrecondition, InvalidArgument, NotFound, ServiceError, Unavailable
+from service.errors import (
+    AlreadyExists,
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    ServiceError,
+    Unavailable,
+)
 from service.metrics import Metrics
 from service.observations import MAX_ABS_VALUE, to_array
 from service.registry import LoadedModel, ModelRegistry
 from service.sessions import Clock, MemorySessionStore, Session, SessionStore
 from service.settings import Settings
+from service.units import point_of_no_return, run_whole
 
 log = logging.getLogger("gmt.core")
 
@@ -32,6 +41,40 @@ log = logging.getLogger("gmt.core")
 def short_id(sid: str) -> str:
     """A session id as logs show it: its first 8 characters (a whole id is a bearer of the session)."""
     return sid[:8] + "..." if len(sid) > 8 else sid
+
+
+MAX_ID_LENGTH = 128  # the longest session id accepted (the server issues 32 hex digits)
+_CLIENT_ID = re.compile(rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}")  # URL-unreserved: one spelling in any path
+
+
+def check_session_id(sid: object) -> str:
+    """`sid` if it can name a session; the one owner of that rule for every call that names one.
+
+    An id too long to be one is refused without echoing it (an attacker's 200k characters must not come back in
+    a header, a message or gRPC metadata).
+
+    Raises:
+        NotFound: not a string, empty, or longer than `MAX_ID_LENGTH`.
+    """
+    if not isinstance(sid, str) or not sid:
+        raise NotFound("session id is empty: name a session created with POST /sessions")
+    if len(sid) > MAX_ID_LENGTH:
+        raise NotFound(f"no session has an id of {len(sid)} characters (ids are at most {MAX_ID_LENGTH})")
+    return sid
+
+
+def check_new_session_id(sid: str) -> str:
+    """A client-chosen id for a new session: 1 to 128 URL-unreserved characters (letters, digits, `._~-`).
+
+    Raises:
+        InvalidArgument: anything else (the id is not echoed when it is too long).
+    """
+    if not isinstance(sid, str) or not _CLIENT_ID.fullmatch(sid):
+        shown = repr(sid) if isinstance(sid, str) and len(sid) <= MAX_ID_LENGTH else "given"
+        raise InvalidArgument(
+            f"session_id {shown} is not 1 to {MAX_ID_LENGTH} characters of letters, digits, '.', '_', '~' or '-'"
+        )
+    return sid
 
 
 MAX_BLEND_STEPS = 100_000
@@ -342,12 +385,18 @@ class Core:
         target: float | None = None,
         seed: int | None = None,
         action_mode: str | None = None,
+        session_id: str | None = None,
     ) -> SessionView:
         """A new session on `model` (optional when one model is loaded) pursuing the given goal.
 
+        Args:
+            session_id: The client's own id for the session (else the server draws one). Creating is then
+                idempotent: a retry with the same id and parameters answers the session the first call created.
+
         Raises:
-            InvalidArgument: bad goal, target, seed or action mode.
+            InvalidArgument: bad goal, target, seed, action mode or session id.
             NotFound: unknown model.
+            AlreadyExists: `session_id` names a live session created with other parameters.
             ResourceExhausted: the maximum number of live sessions is reached.
         """
         self._check_serving()
@@ -363,26 +412,53 @@ class Core:
             )
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
-        now = self.clock()
-        sid = uuid.uuid4().hex
-        s = Session(sid, m.name, m.engine.new_context(g, mode, seed, key=sid), now, now)
-        try:
-            await self.store.create(s)
-        except BaseException:
-            m.engine.forget(sid)
-            raise
-        if not isinstance(self.store, MemorySessionStore):
-            # A shared store holds the truth, and a proxy routes the session's acts by its id, usually to another
-            # replica: keep no slot here until this replica is asked to act for it.
-            s.ctx = s.ctx.to_stored()
-            m.engine.forget(sid)
+        sid = uuid.uuid4().hex if session_id is None else check_new_session_id(session_id)
+        request = f"{m.name}|{g}|{seed}|{mode}"  # what a retry must repeat to be answered the same session
+        return await run_whole(self._create(m, sid, g, mode, seed, request, session_id is not None))
+
+    async def _create(
+        self, m: LoadedModel, sid: str, g: int, mode: str, seed: int | None, request: str, named: bool
+    ) -> SessionView:
+        async with self._lock(sid):
+            if named:  # perhaps a retried create: answer the session the first attempt made
+                try:
+                    return self._view_session(await self._existing(sid, request))
+                except NotFound:
+                    pass
+            now = self.clock()
+            s = Session(sid, m.name, m.engine.new_context(g, mode, seed, key=sid), now, now, request)
+            point_of_no_return()
+            try:
+                await self.store.create(s)
+            except AlreadyExists:  # another replica created it meanwhile: this slot was never the session's
+                m.engine.forget(sid)
+                return self._view_session(await self._existing(sid, request))
+            except BaseException:
+                m.engine.forget(sid)
+                raise
+            if not isinstance(self.store, MemorySessionStore):
+                # A shared store holds the truth, and a proxy routes the session's acts by its id, usually to
+                # another replica: keep no slot here until this replica is asked to act for it.
+                s.ctx = s.ctx.to_stored()
+                m.engine.forget(sid)
         self.metrics.sessions_created.labels(m.name).inc()
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session created", extra={"session": short_id(s.id), "model": m.name, "goal": g})
         return self._view_session(s)
 
+    async def _existing(self, sid: str, request: str) -> Session:
+        """The live session `sid` when it was created by the same request (a retried create), else AlreadyExists."""
+        s = await self.store.get(sid)
+        if s.request != request:
+            raise AlreadyExists(
+                f"session id {sid!r} is taken by a live session created with other parameters; "
+                "choose another id, or repeat the first request exactly to get that session"
+            )
+        return s
+
     async def get_session(self, sid: str) -> SessionView:
         """Inspect a session (does not count as use for the idle timeout). Raises NotFound / SessionExpired."""
+        check_session_id(sid)
         async with self._lock(sid):
             return self._view_session(await self.store.get(sid))
 
@@ -404,19 +480,28 @@ class Core:
     async def act(self, sid: str, observation: object, step: int | None = None) -> ActResult:
         """Append the observation to the session's context and answer the action (batched with others).
 
+        The act is one unit with its stored answer: a caller that gives up (deadline, cancel) does not stop it,
+        and its retry with the same `step` waits for it and gets its answer.
+
         Args:
             sid: Session id.
             observation: The raw observation.
             step: The step the client expects to act at (the index the answer reports; None = don't check).
-                A repeat of the last answered step returns that answer again without stepping (a safe retry).
+                A repeat of the last answered step with the same observation returns that answer again without
+                stepping (a safe retry).
 
         Raises:
             InvalidArgument: bad observation (the session is unchanged).
-            FailedPrecondition: `step` is neither the session's next step nor a repeat of its last one.
+            FailedPrecondition: `step` is neither the session's next step nor a repeat of its last one, or it
+                repeats the last step with another observation.
             NotFound / SessionExpired: no such session.
             Aborted: another replica changed the session meanwhile (retry).
         """
         self._check_serving()
+        check_session_id(sid)
+        return await run_whole(self._act(sid, observation, step))
+
+    async def _act(self, sid: str, observation: object, step: int | None) -> ActResult:
         async with self._lock(sid):
             s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
             if repeat is not None:
@@ -436,14 +521,17 @@ class Core:
         m = self._model_of(s)
         x = self.validate_observation(m, observation)
         ctx = self._live(m, s)
-        return s, m, ctx, x, self._repeat(m, sid, ctx, step)
+        return s, m, ctx, x, self._repeat(m, sid, ctx, step, x)
 
-    def _repeat(self, m: LoadedModel, sid: str, ctx: Context, step: int | None) -> ActResult | None:
+    def _repeat(
+        self, m: LoadedModel, sid: str, ctx: Context, step: int | None, x: np.ndarray
+    ) -> ActResult | None:
         """None when an act for `step` should run; the last answer when it repeats the last answered step.
 
         Raises:
             InvalidArgument: `step` is not an integer >= 0.
-            FailedPrecondition: `step` is neither the session's next step nor its last answered one.
+            FailedPrecondition: `step` is neither the session's next step nor its last answered one, or it is the
+                last answered one with an observation other than the one answered.
         """
         if step is None or step == ctx.step:
             if step is not None and (isinstance(step, bool) or not isinstance(step, int)):
@@ -452,6 +540,11 @@ class Core:
         if isinstance(step, bool) or not isinstance(step, int) or step < 0:
             raise InvalidArgument(f"step must be an integer >= 0, got {step!r}")
         if step == ctx.step - 1:
+            if not m.engine.same_as_last(ctx, x):
+                raise FailedPrecondition(
+                    f"session {sid!r} already answered step {step} for another observation; a retry must send "
+                    f"the same observation (or act at step {ctx.step} with a new one)"
+                )
             action, goal = m.engine.last_answer(ctx)
             return self._result(m, sid, action, step, goal)
         accepted = f"only {ctx.step}, or {ctx.step - 1} to repeat the last answer," if ctx.step else "only 0"
@@ -464,16 +557,25 @@ class Core:
 
         A bad item fails alone. A session may appear once per call; a repeat fails as invalid_argument (also
         when its first item failed). An expected step works as in `act`. An observation that is a ServiceError
-        (an adapter could not decode it) fails its item with that error.
+        (an adapter could not decode it) fails its item with that error. Like `act`, the call runs to its end
+        even if its caller gives up.
 
         Returns:
             In request order: the item's ActResult, or the ServiceError that failed it.
         """
         self._check_serving()
+        return await run_whole(self._act_many(items))
+
+    async def _act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
         out: list[ActResult | ServiceError | None] = [None] * len(items)
         seen: set[str] = set()
         order: list[int] = []
         for i, (sid, *_) in enumerate(items):
+            try:
+                check_session_id(sid)
+            except ServiceError as e:
+                out[i] = e
+                continue
             if sid in seen:
                 out[i] = InvalidArgument(f"session {sid!r} appears more than once in this call")
             else:
@@ -520,6 +622,7 @@ class Core:
 
     async def _save(self, m: LoadedModel, s: Session, read_version: int) -> None:
         """Write the session back (compare-and-set on the version read); a lost race drops this replica's copy."""
+        point_of_no_return()
         try:
             await self.store.save(s, read_version)
         except ServiceError:
@@ -542,6 +645,7 @@ class Core:
             NotFound / SessionExpired: no such session.
         """
         self._check_serving()
+        check_session_id(sid)
         if (
             isinstance(blend_steps, bool)
             or not isinstance(blend_steps, int)
@@ -550,6 +654,9 @@ class Core:
             raise InvalidArgument(
                 f"blend_steps must be an integer in 0..{MAX_BLEND_STEPS}, got {blend_steps!r}"
             )
+        return await run_whole(self._set_goal(sid, goal, target, blend_steps))
+
+    async def _set_goal(self, sid: str, goal: GoalRef, target: float | None, blend_steps: int) -> SessionView:
         async with self._lock(sid):
             s = await self.store.get(sid)
             m = self._model_of(s)
@@ -570,6 +677,10 @@ class Core:
             NotFound / SessionExpired: no such session.
         """
         self._check_serving()
+        check_session_id(sid)
+        return await run_whole(self._reset(sid, goal, target))
+
+    async def _reset(self, sid: str, goal: GoalRef, target: float | None) -> SessionView:
         async with self._lock(sid):
             s = await self.store.get(sid)
             m = self._model_of(s)
@@ -583,7 +694,12 @@ class Core:
 
     async def close_session(self, sid: str) -> None:
         """Forget the session. Raises NotFound / SessionExpired."""
+        check_session_id(sid)
+        await run_whole(self._close(sid))
+
+    async def _close(self, sid: str) -> None:
         async with self._lock(sid):
+            point_of_no_return()
             await self.store.delete(sid)
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session closed", extra={"session": short_id(sid)})

@@ -6,6 +6,8 @@ adapter aborts with `grpc_code` (the name of a `grpc.StatusCode`, so this module
 
 from __future__ import annotations
 
+MAX_MESSAGE = 1024  # longest error message answered (well inside gRPC's 8 KiB metadata budget for a status)
+
 
 class ServiceError(Exception):
     """Base class: an error a client can see.
@@ -22,6 +24,8 @@ class ServiceError(Exception):
     grpc_code = "INTERNAL"
 
     def __init__(self, message: str) -> None:
+        if len(message) > MAX_MESSAGE:  # a message may quote the request: never echo a hostile amount of it
+            message = f"{message[: MAX_MESSAGE - 40]}... ({len(message) - MAX_MESSAGE + 40} characters cut)"
         super().__init__(message)
         self.message = message
 
@@ -52,6 +56,12 @@ class FailedPrecondition(ServiceError):
     """The request is well-formed but the system is not in a state to run it."""
 
     code, http_status, grpc_code = "failed_precondition", 409, "FAILED_PRECONDITION"
+
+
+class AlreadyExists(ServiceError):
+    """A client-chosen session id is taken by a session created with other parameters."""
+
+    code, http_status, grpc_code = "already_exists", 409, "ALREADY_EXISTS"
 
 
 class Aborted(ServiceError):

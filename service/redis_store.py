@@ -2,21 +2,34 @@
 
 Layout (prefix `gmt:` by default): `s:<id>` is a hash written by `session_codec.encode` after every step;
 `live` is a sorted set of session ids scored by last use (the maximum-sessions count across replicas);
-`x:<id>` marks an expired session for a day, so that it answers "expired" rather than "not found".
+`x:<id>` marks an expired (`1`) or closed (`closed`) session for a day, so that it answers that rather than "not
+found"; `epoch` is a random marker written once: when it is gone or changed, the store lost its data.
 Expiry follows the store's clock; Redis key TTLs only collect sessions nobody touched for twice the timeout.
 """
 
 from __future__ import annotations
 
+import uuid
+
 from service import session_codec
-from service.errors import Aborted, Internal, NotFound, ResourceExhausted, SessionExpired, Unavailable
+from service.errors import (
+    Aborted,
+    AlreadyExists,
+    Internal,
+    NotFound,
+    ResourceExhausted,
+    SessionExpired,
+    Unavailable,
+)
 from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
 
 TOMBSTONE_TTL_S = 86_400
 
 # KEYS: live, session hash. ARGV: now, idle timeout, max sessions, id, key TTL ms, then field/value pairs.
+# Returns -1 when created, -2 when a live session has the id, else the live count that made the store full.
 _CREATE = """
 redis.call('ZREMRANGEBYSCORE', KEYS[1], '-inf', '(' .. (tonumber(ARGV[1]) - tonumber(ARGV[2])))
+if redis.call('ZSCORE', KEYS[1], ARGV[4]) then return -2 end
 local n = redis.call('ZCARD', KEYS[1])
 if n >= tonumber(ARGV[3]) then return n end
 redis.call('ZADD', KEYS[1], ARGV[1], ARGV[4])
@@ -71,6 +84,8 @@ class RedisSessionStore(SessionStore):
         self._create = self.redis.register_script(_CREATE)
         self._save = self.redis.register_script(_SAVE)
         self._seen: dict[str, tuple[str, float]] = {}  # id -> (model, last use here) of sessions touched here
+        self._epoch_key = f"{prefix}epoch"
+        self._epoch: bytes | None = None  # the store's epoch when this replica last checked (None: not yet)
 
     def _key(self, sid: str) -> str:
         return f"{self.prefix}s:{sid}"
@@ -89,8 +104,30 @@ class RedisSessionStore(SessionStore):
             raise Unavailable(f"session store unreachable: {e}") from e
 
     async def ping(self) -> None:
-        """Raise Unavailable unless Redis answers."""
+        """Raise Unavailable unless Redis answers; learn the store's epoch (see `_lost_message`)."""
         await self._call(self.redis.ping())
+        self._epoch = await self._current_epoch()
+
+    async def _current_epoch(self) -> bytes:
+        """The store's epoch: a random marker the first replica writes; it is gone when the store loses its data."""
+        await self._call(self.redis.set(self._epoch_key, uuid.uuid4().hex, nx=True))
+        return await self._call(self.redis.get(self._epoch_key)) or b""
+
+    async def _missing(self, sid: str) -> NotFound:
+        """The error for an id the store does not hold: expired, closed, lost with the store's data, or unknown."""
+        tomb = await self._call(self.redis.get(self._tomb(sid)))
+        if tomb == b"closed":
+            return NotFound(f"session {sid!r} was closed")
+        if tomb is not None:
+            return SessionExpired(expired_message(sid, self.idle_timeout_s))
+        epoch = await self._call(self.redis.get(self._epoch_key))
+        if self._epoch is not None and epoch != self._epoch:
+            self._epoch = await self._current_epoch()
+            return NotFound(
+                f"session {sid!r} not found in the session store, which was reset (lost its data) since this "
+                "server last saw it; create a new session"
+            )
+        return NotFound(not_found_message(sid) + "; or the session store lost its data")
 
     async def create(self, session: Session) -> None:
         flat: list[bytes | str] = []
@@ -98,6 +135,8 @@ class RedisSessionStore(SessionStore):
             flat += [k, v]
         args = [repr(self.clock()), repr(self.idle_timeout_s), self.max_sessions, session.id, self._ttl_ms]
         n = await self._call(self._create(keys=[self._live, self._key(session.id)], args=args + flat))
+        if n == -2:
+            raise AlreadyExists(f"session {session.id!r} exists")
         if n != -1:
             raise ResourceExhausted(
                 f"server is full: {n} live sessions (maximum {self.max_sessions}); close a session or retry later"
@@ -126,9 +165,7 @@ class RedisSessionStore(SessionStore):
         fields = await self._call(self.redis.hgetall(self._key(sid)))
         if not fields:
             self._forget(sid)
-            if await self._call(self.redis.exists(self._tomb(sid))):
-                raise SessionExpired(expired_message(sid, self.idle_timeout_s))
-            raise NotFound(not_found_message(sid))
+            raise await self._missing(sid)
         s = self._decode(sid, fields)
         if self.is_idle(s):
             await self._expire(sid)
@@ -156,7 +193,7 @@ class RedisSessionStore(SessionStore):
     async def delete(self, sid: str) -> None:
         await self.get(sid)
         async with self.redis.pipeline(transaction=True) as p:
-            p.delete(self._key(sid)).zrem(self._live, sid)
+            p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"closed", ex=TOMBSTONE_TTL_S)
             await self._call(p.execute())
         self._forget(sid)
 

@@ -25,6 +25,7 @@ def encode(session: Session) -> dict[str, bytes]:
         "model": session.model,
         "created_at": session.created_at,
         "last_used": session.last_used,
+        "request": session.request,
     }
     return {
         "meta": json.dumps(meta, separators=(",", ":")).encode(),
@@ -50,6 +51,7 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             ctx=StoredContext.from_fields(f),
             created_at=float(meta["created_at"]),
             last_used=float(meta["last_used"]),
+            request=str(meta.get("request", "")),
         )
     except CodecError:
         raise

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from model.context import Context, StoredContext
-from service.errors import NotFound, ResourceExhausted, SessionExpired
+from service.errors import AlreadyExists, NotFound, ResourceExhausted, SessionExpired
 
 Clock = Callable[[], float]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
@@ -29,6 +29,8 @@ class Session:
             it into a live context of the model's engine before use).
         created_at: Clock time of creation (seconds).
         last_used: Clock time of the last act / set_goal / reset.
+        request: What created it (model, goal, seed, action mode): a retried create must repeat it to be
+            answered this session.
     """
 
     id: str
@@ -36,6 +38,7 @@ class Session:
     ctx: Context | StoredContext
     created_at: float
     last_used: float
+    request: str = ""
 
 
 def expired_message(sid: str, idle_timeout_s: float) -> str:
@@ -73,6 +76,7 @@ class SessionStore(abc.ABC):
         """Add a new session.
 
         Raises:
+            AlreadyExists: a live session has this id (the caller decides whether it is a retried create).
             ResourceExhausted: the store already holds `max_sessions` live sessions.
         """
 
@@ -134,6 +138,11 @@ class MemorySessionStore(SessionStore):
         self._expired: OrderedDict[str, None] = OrderedDict()
 
     async def create(self, session: Session) -> None:
+        old = self._sessions.get(session.id)
+        if old is not None:
+            if not self.is_idle(old):
+                raise AlreadyExists(f"session {session.id!r} exists")
+            self._remove(old, expired=True)
         if len(self._sessions) >= self.max_sessions:
             await self.sweep()
         if len(self._sessions) >= self.max_sessions:

@@ -90,8 +90,9 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         async def call():
             goal, target = convert.goal(request.goal if request.HasField("goal") else None)
             seed = request.seed if request.HasField("seed") else None
+            sid = request.session_id if request.HasField("session_id") else None
             v = await self.core.create_session(
-                request.model or None, goal, target, seed, request.action_mode or None
+                request.model or None, goal, target, seed, request.action_mode or None, sid
             )
             return convert.session_info(v)
 

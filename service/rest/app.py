@@ -8,7 +8,6 @@ import re
 import secrets
 import time
 from contextlib import asynccontextmanager
-from urllib.parse import unquote
 
 import orjson
 from fastapi import FastAPI, Request
@@ -177,8 +176,9 @@ class AuthFirst:
 
 
 def _path_session(path: str) -> str | None:
+    """The session id of a `/sessions/{id}...` path (ASGI's `path` is already percent-decoded: never again)."""
     parts = path.split("/")
-    return unquote(parts[2]) if len(parts) > 2 and parts[1] == "sessions" and parts[2] else None
+    return parts[2] if len(parts) > 2 and parts[1] == "sessions" and parts[2] else None
 
 
 class ServedBy:
@@ -255,7 +255,7 @@ class FastAct:
             return await self.app(scope, receive, send)
         core = scope["app"].state.core
         t0 = time.perf_counter()
-        sid = unquote(m.group(1))
+        sid = m.group(1)  # `path` is decoded once by the server, as for every route: never decode it again
         in_flight = core.metrics.in_flight_rest
         in_flight.inc()
         try:

@@ -10,7 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
-from service.core import Core
+from service.core import MAX_ID_LENGTH, Core
 from service.errors import ServiceError
 from service.observations import check_act_items, decode_base64, decode_tensor
 from service.rest import schemas as S
@@ -19,8 +19,8 @@ SESSION_HEADER = "X-Session-Id"
 _ERRORS = {
     400: "Invalid argument",
     404: "Unknown or expired model or session",
-    409: "Failed precondition (the act's step is not the session's) or aborted (another replica changed the "
-    "session: retry)",
+    409: "Failed precondition (the act's step is not the session's), aborted (another replica changed the "
+    "session: retry) or already_exists (a session_id taken by another request)",
     413: "Request body larger than --max-request-bytes",
     429: "The server holds --max-sessions live sessions",
     503: "Unavailable: no model loaded, shutting down, or the session store is unreachable (retry)",
@@ -33,8 +33,10 @@ def errors(*codes: int) -> dict:
 
 
 def session_header(sid: str | None) -> dict:
-    """`X-Session-Id` for a response, when the id can be a header value (printable ASCII); else none."""
-    return {SESSION_HEADER: sid} if sid and sid.isascii() and sid.isprintable() else {}
+    """`X-Session-Id` for a response, when the id can be a session's (printable ASCII, at most 128 characters);
+    else none: a hostile id is never echoed."""
+    ok = sid and len(sid) <= MAX_ID_LENGTH and sid.isascii() and sid.isprintable()
+    return {SESSION_HEADER: sid} if ok else {}
 
 
 def get_core(request: Request) -> Core:
@@ -87,11 +89,13 @@ async def get_model(name: str, core: CoreDep) -> S.ModelOut:
     response_model=S.SessionOut,
     status_code=201,
     tags=["sessions"],
-    responses=errors(400, 404, 413, 429, 503),
+    responses=errors(400, 404, 409, 413, 429, 503),
 )
 async def create_session(body: S.CreateSession, core: CoreDep, response: Response) -> S.SessionOut:
     """Create a session on a model with a goal id, goal name, or target statistic value."""
-    v = await core.create_session(body.model, body.goal, body.target, body.seed, body.action_mode)
+    v = await core.create_session(
+        body.model, body.goal, body.target, body.seed, body.action_mode, body.session_id
+    )
     response.headers[SESSION_HEADER] = v.session_id
     return S.SessionOut.of(v)
 

@@ -138,6 +138,13 @@ class CreateSession(_Request):
         "(mean + the goal's calibrated behaviour noise; the default when the checkpoint is calibrated). "
         "`GET /models/{name}` lists a model's modes.",
     )
+    session_id: str | None = Field(
+        None,
+        description="Your own id for the session (1 to 128 letters, digits, '.', '_', '~', '-'); the server draws "
+        "one when omitted. With it, creating is idempotent: a retry with the same id and body answers the session "
+        "the first attempt created (a different body answers 409 already_exists).",
+        examples=["bot-7-episode-12"],
+    )
 
 
 class SetGoal(_Request):

@@ -13,6 +13,7 @@ import pytest
 from clients import base
 from clients.base import PolicyClient
 from clients.errors import (
+    AlreadyExists,
     ConnectionFailed,
     DeadlineExceeded,
     InvalidArgument,
@@ -238,17 +239,22 @@ def test_rest_act_lost_after_it_stepped_is_resent_with_its_step_and_never_steps_
     assert [b'"step":1' in b.replace(b" ", b"") for b in lossy.bodies[2:4]] == [True, True]
 
 
-def test_rest_retries_aborted_and_unavailable_answers_but_not_a_502_on_a_create(live_server, no_sleep):
+def test_rest_retries_aborted_and_unavailable_answers_and_a_lost_create_answers_its_session(
+    live_server, no_sleep
+):
     aborted = {"error": {"code": "aborted", "message": "session changed meanwhile (simulated)"}}
     unavailable = {"error": {"code": "unavailable", "message": "no replica answered (simulated)"}}
     flaky = LosesAnswers(replace={2: (409, aborted), 3: (503, unavailable)})
     with RestClient(live_server.rest_url, transport=flaky) as c:
         s = c.create_session(goal=0)
         assert s.act(OBS).step == 0 and flaky.calls == 4 and no_sleep == [0.2, 0.4]
-    flaky = LosesAnswers(replace={1: (502, unavailable)})
-    with RestClient(live_server.rest_url, transport=flaky) as c, pytest.raises(Unavailable):
-        c.create_session(goal=0)  # the replica may have created it: not repeated
-    assert flaky.calls == 1
+    lossy = LosesAnswers(lose={1})  # the server created the session; its answer was lost
+    with RestClient(live_server.rest_url, transport=lossy) as c:
+        s = c.create_session(goal=0, seed=5)  # the client named it: the retry answers the same session
+        assert lossy.calls == 2 and lossy.bodies[0] == lossy.bodies[1]
+        assert s.id in lossy.bodies[0].decode() and c.get_session(s.id).step == 0
+        with pytest.raises(AlreadyExists, match="other parameters"):  # the same id, another goal: not a retry
+            c.create_session(goal=1, seed=5, session_id=s.id)
 
 
 class Unreachable(grpc.RpcError):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
+import socket
+import subprocess
 from pathlib import Path
 
 import grpc
@@ -79,3 +82,42 @@ def make_server(ckpt_root):
 def clock() -> FakeClock:
     """A fake wall clock to inject into a server."""
     return FakeClock()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def redis_url(tmp_path_factory):
+    """A real redis-server on a free loopback port for the module (skipped where none is installed)."""
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.skip("redis-server is not installed (apt-get install redis-server; .ci/run installs it)")
+    port = _free_port()
+    proc = subprocess.Popen(
+        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        cwd=tmp_path_factory.mktemp("redis"),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    for line in proc.stdout:  # ends at EOF if redis exits
+        if "Ready to accept connections" in line:
+            break
+    assert proc.poll() is None, "redis-server did not start"
+    yield f"redis://127.0.0.1:{port}/0"
+    proc.terminate()
+    proc.wait(10)
+
+
+@pytest.fixture
+def redis_clean(redis_url):
+    """`redis_url`, emptied."""
+    import redis
+
+    r = redis.Redis.from_url(redis_url)
+    r.flushall()
+    r.close()
+    return redis_url

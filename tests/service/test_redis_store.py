@@ -3,9 +3,6 @@
 import asyncio
 import dataclasses
 import json
-import shutil
-import socket
-import subprocess
 
 import httpx
 import numpy as np
@@ -17,43 +14,6 @@ from model.engine import PolicyEngine
 from service import session_codec
 from service.errors import Aborted, NotFound, ResourceExhausted, SessionExpired
 from service.sessions import Session
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def redis_url(tmp_path_factory):
-    exe = shutil.which("redis-server")
-    if exe is None:
-        pytest.skip("redis-server is not installed (apt-get install redis-server; .ci/run installs it)")
-    port = _free_port()
-    proc = subprocess.Popen(
-        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        cwd=tmp_path_factory.mktemp("redis"),
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    for line in proc.stdout:  # ends at EOF if redis exits
-        if "Ready to accept connections" in line:
-            break
-    assert proc.poll() is None, "redis-server did not start"
-    yield f"redis://127.0.0.1:{port}/0"
-    proc.terminate()
-    proc.wait(10)
-
-
-@pytest.fixture
-def redis_clean(redis_url):
-    import redis
-
-    r = redis.Redis.from_url(redis_url)
-    r.flushall()
-    r.close()
-    return redis_url
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +96,7 @@ def test_redis_store_semantics(redis_clean, engine, clock):
             await a.delete("three")
             with pytest.raises(NotFound, match="closed or expired"):  # a write never revives it
                 await b.save(three, three.ctx.version)
-            with pytest.raises(NotFound, match="session 'three' not found"):
+            with pytest.raises(NotFound, match="session 'three' was closed"):
                 await b.get("three")
             clock.advance(20)
             with pytest.raises(SessionExpired):  # expired on access, without a sweep

@@ -18,8 +18,11 @@ def test_rest_repeat_is_idempotent_and_a_mismatch_names_the_step(http):
     sid = _create(http)
     first = http.post(f"/sessions/{sid}/act", json={"observation": OBS[0].tolist(), "step": 0})
     assert first.status_code == 200 and first.json()["step"] == 0
-    again = http.post(f"/sessions/{sid}/act", json={"observation": OBS[1].tolist(), "step": 0})
+    again = http.post(f"/sessions/{sid}/act", json={"observation": OBS[0].tolist(), "step": 0})
     assert again.status_code == 200 and again.json() == first.json()  # the same answer, not a new step
+    other = http.post(f"/sessions/{sid}/act", json={"observation": OBS[1].tolist(), "step": 0})
+    assert other.status_code == 409 and other.json()["error"]["code"] == "failed_precondition"
+    assert "already answered step 0 for another observation" in other.json()["error"]["message"]
     assert http.get(f"/sessions/{sid}").json()["step"] == 1
     second = http.post(f"/sessions/{sid}/act", json={"observation": OBS[1].tolist(), "step": 1})
     assert second.status_code == 200 and second.json()["step"] == 1
@@ -47,7 +50,12 @@ def test_grpc_step_field_and_act_batch(http, stub):
     assert e.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "is at step 1" in e.value.details()
     batch = stub.ActBatch(
         pb.ActBatchRequest(
-            requests=[pb.ActRequest(session_id=sid, values=pb.FloatVector(values=OBS[1]), step=0)]
+            requests=[pb.ActRequest(session_id=sid, values=pb.FloatVector(values=OBS[0]), step=0)]
         )
     )
     assert batch.results[0].action == a  # a repeat inside a batch is answered from the session's history
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Act(pb.ActRequest(session_id=sid, values=pb.FloatVector(values=OBS[1]), step=0))
+    assert (
+        e.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "another observation" in e.value.details()
+    )

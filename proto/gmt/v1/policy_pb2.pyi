@@ -141,16 +141,18 @@ class GetModelRequest(_message.Message):
     def __init__(self, name: _Optional[str] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("model", "goal", "seed", "action_mode")
+    __slots__ = ("model", "goal", "seed", "action_mode", "session_id")
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     model: str
     goal: GoalSelector
     seed: int
     action_mode: str
-    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ...) -> None: ...
+    session_id: str
+    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ..., session_id: _Optional[str] = ...) -> None: ...
 
 class GetSessionRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -1,0 +1,76 @@
+"""A session change as one unit: it either never happened or completes, whatever its caller does.
+
+A caller that gives up (a gRPC deadline, a cancelled call) cancels the change only while nothing of it is applied
+yet: before its forward pass starts, before its write is sent. Past that point of no return the change runs to
+its end, stored, holding its session's lock, so that a retry finds it made instead of racing it. The core runs
+every change through `run_whole`; the code that applies a change calls `point_of_no_return` first.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+from collections.abc import Awaitable
+from typing import TypeVar
+
+T = TypeVar("T")
+log = logging.getLogger("gmt.units")
+
+
+class Unit:
+    """One change in flight. `cancellable` turns False at its point of no return and never back."""
+
+    __slots__ = ("cancellable",)
+
+    def __init__(self) -> None:
+        self.cancellable = True
+
+
+_CURRENT: contextvars.ContextVar[Unit | None] = contextvars.ContextVar("gmt_unit", default=None)
+_orphans: set[asyncio.Task] = set()  # changes whose caller went away, running to their end
+
+
+def current() -> Unit | None:
+    """The unit of the running change (None outside one)."""
+    return _CURRENT.get()
+
+
+def point_of_no_return(unit: Unit | None = None) -> None:
+    """From here on the change (`unit`, default the running one) completes even if its caller gives up."""
+    unit = unit or _CURRENT.get()
+    if unit is not None:
+        unit.cancellable = False
+
+
+async def run_whole(work: Awaitable[T]) -> T:
+    """Await `work` as one unit (see the module docstring).
+
+    Raises:
+        asyncio.CancelledError: the caller was cancelled (the change was then dropped if nothing of it was
+            applied, else it goes on in the background).
+    """
+    unit = Unit()
+    token = _CURRENT.set(unit)
+    try:
+        task = asyncio.ensure_future(work)  # the task copies the context: it runs with `unit` current
+    finally:
+        _CURRENT.reset(token)
+    try:
+        return await asyncio.shield(task)
+    except asyncio.CancelledError:
+        if unit.cancellable:
+            task.cancel()  # nothing applied yet: it never happened
+        elif not task.done():
+            _orphans.add(task)
+            task.add_done_callback(_orphan_done)
+        raise
+
+
+def _orphan_done(task: asyncio.Task) -> None:
+    _orphans.discard(task)
+    if task.cancelled():
+        return
+    e = task.exception()  # retrieved, so asyncio does not warn; a service error was the caller's answer
+    if e is not None and not hasattr(e, "grpc_code"):
+        log.error("a change whose caller went away failed", exc_info=e)
