@@ -175,6 +175,42 @@ class Context:
         """[n] timesteps of the steps held."""
         return np.arange(self.step - self.size, self.step)
 
+    def scalars(self) -> dict:
+        """The stored form's scalar fields (goal, step, blend, mode, seed, version) as plain values, in one read."""
+        p, i = self.pool, self.slot
+        return {
+            "goal": int(p.goal[i]),
+            "step": int(p.step[i]),
+            "blend_from": int(p.blend_from[i]),
+            "blend_steps": int(p.blend_steps[i]),
+            "blend_done": int(p.blend_done[i]),
+            "action_mode": p.modes[p.mode[i]],
+            "seed": int(p.seed[i]),
+            "version": int(p.version[i]),
+        }
+
+    def layout(self) -> dict:
+        """How a held step is shaped: `H` (steps held at most), `state` and `action` as [dtype, shape]."""
+        p = self.pool
+        return {
+            "H": int(p.H),
+            "state": [p.h_state.dtype.str, list(p.h_state.shape[2:])],
+            "action": [p.h_action.dtype.str, list(p.h_action.shape[2:])],
+        }
+
+    def since(self, t0: int) -> dict[str, np.ndarray]:
+        """The held steps from timestep `t0` on: `t` [m] and goals, blend_to, blend_w, states, actions [m, ...]."""
+        t = np.arange(max(t0, self.step - self.size), self.step)
+        pos, p = t % self.pool.H, self.pool
+        return {
+            "t": t,
+            "goals": p.h_goal[self.slot, pos],
+            "blend_to": p.h_blend_to[self.slot, pos],
+            "blend_w": p.h_blend_w[self.slot, pos],
+            "states": p.h_state[self.slot, pos],
+            "actions": p.h_action[self.slot, pos],
+        }
+
     def to_stored(self) -> StoredContext:
         """The context as plain data (what a session store persists)."""
         return StoredContext(

@@ -11,6 +11,8 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
+- `store`: {stores: {memory | redis: {rest, rest_batch, rest_1_session}}, redis_vs_memory: {rest, rest_batch,
+  p50_1_session_added_ms}}: the same server with sessions in memory and in a local redis-server, same run.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 """
 
@@ -102,12 +104,15 @@ def bench_engine(Ks=(10, 20, 50, 100), batches=(1, 64), steps: int = 60) -> list
 
 
 # ----- serving ----------------------------------------------------------------------------------------------
-def start_server(checkpoint: Path, naive: bool, max_batch: int = 256) -> tuple[subprocess.Popen, dict]:
+def start_server(
+    checkpoint: Path, naive: bool, max_batch: int = 256, extra: tuple[str, ...] = ()
+) -> tuple[subprocess.Popen, dict]:
     """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record)."""
     exe = Path(sys.executable).parent / "gmt"
     args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
     args += ["--log-level", "INFO", "--max-batch", str(max_batch), "--max-sessions", "4096"]
     args += ["--naive"] if naive else []
+    args += list(extra)
     env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
     env["GMT_LOG_LEVEL"] = "INFO"
     proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
@@ -364,6 +369,66 @@ def bench_serving(
     return out
 
 
+# ----- store ------------------------------------------------------------------------------------------------
+def _redis_server() -> tuple[subprocess.Popen, str]:
+    """A private redis-server on a free loopback port (no persistence): (process, URL)."""
+    from service.cluster import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    for line in proc.stdout:
+        if "Ready to accept connections" in line:
+            threading.Thread(target=lambda: [None for _ in proc.stdout], daemon=True).start()
+            return proc, f"redis://127.0.0.1:{port}/0"
+    raise RuntimeError("redis-server exited before it was ready")
+
+
+def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0) -> dict:
+    """One server with sessions in memory beside the same server with a Redis store, same run, same load: REST
+    one call per act (one connection per session) and `POST /act` at `sessions`, and one session's REST p50."""
+    redis, url = _redis_server()
+    out: dict = {"model": str(checkpoint), "sessions": sessions, "seconds_per_point": seconds, "stores": {}}
+    try:
+        for store, extra in (("memory", ()), ("redis", ("--redis-url", url))):
+            proc, info = start_server(checkpoint, naive=False, extra=extra)
+            try:
+                base = f"http://127.0.0.1:{info['rest_port']}"
+                model = info["models"][0]
+                one = _sessions(base, model, 1)
+                single = bench_rest(base, one, seconds)
+                _close(base, one)
+                sids = _sessions(base, model, sessions)
+                res = {
+                    "rest": bench_rest(base, sids, seconds),
+                    "rest_batch": bench_rest_batch(base, sids, seconds),
+                }
+                _close(base, sids)
+                res["rest_1_session"] = single
+                out["stores"][store] = res
+                print(
+                    f"[bench] {store}: REST {res['rest']['acts_per_s']}/s, POST /act {res['rest_batch']['acts_per_s']}/s,"
+                    f" 1 session p50 {single['p50_ms']} ms",
+                    file=sys.stderr,
+                )
+            finally:
+                proc.terminate()
+                proc.wait(30)
+    finally:
+        redis.terminate()
+        redis.wait(30)
+    m, r = out["stores"]["memory"], out["stores"]["redis"]
+    out["redis_vs_memory"] = {
+        "rest": round(r["rest"]["acts_per_s"] / m["rest"]["acts_per_s"], 3),
+        "rest_batch": round(r["rest_batch"]["acts_per_s"] / m["rest_batch"]["acts_per_s"], 3),
+        "p50_1_session_added_ms": round(r["rest_1_session"]["p50_ms"] - m["rest_1_session"]["p50_ms"], 3),
+    }
+    return out
+
+
 # ----- cluster ----------------------------------------------------------------------------------------------
 def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0) -> dict:
     """REST load through nginx onto two replicas sharing Redis (`gmt cluster`): errors, latency, memory.
@@ -601,6 +666,13 @@ def run(
                 result["serving"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
             else:
                 result["serving"] = bench_serving(checkpoint, sessions, seconds)
+        if "store" in sections:
+            if shutil.which("wrk") is None or shutil.which("redis-server") is None:
+                result["store"] = {
+                    "skipped": "wrk and redis-server are needed (apt-get install wrk redis-server)"
+                }
+            else:
+                result["store"] = bench_store(checkpoint or _default(tmp), max(sessions), seconds)
         if "cluster" in sections:
             result["cluster"] = bench_cluster(
                 checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds

@@ -448,7 +448,7 @@ class Core:
 
     async def _existing(self, sid: str, request: str) -> Session:
         """The live session `sid` when it was created by the same request (a retried create), else AlreadyExists."""
-        s = await self.store.get(sid)
+        s = await self.store.get(sid, hold=False)
         if s.request != request:
             raise AlreadyExists(
                 f"session id {sid!r} is taken by a live session created with other parameters; "
@@ -460,7 +460,7 @@ class Core:
         """Inspect a session (does not count as use for the idle timeout). Raises NotFound / SessionExpired."""
         check_session_id(sid)
         async with self._lock(sid):
-            return self._view_session(await self.store.get(sid))
+            return self._view_session(await self.store.get(sid, hold=False))
 
     def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
         """The raw observation checked and normalised, once, into what the engine consumes.
@@ -605,6 +605,7 @@ class Core:
                 steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]
                 actions = await self._batchers[name].act_many([r[3] for r in rows], [r[4] for r in rows])
                 now = self.clock()
+                stepped = []
                 for (i, s, m, _, _), (step, goal, version), a in zip(rows, steps, actions, strict=True):
                     if isinstance(a, StepFailed):
                         out[i] = InvalidArgument(str(a))
@@ -612,12 +613,15 @@ class Core:
                     if isinstance(a, BaseException):
                         raise a
                     s.last_used = now
-                    try:
-                        await self._save(m, s, version)
-                    except ServiceError as e:
-                        out[i] = e
-                        continue
-                    out[i] = self._result(m, s.id, a, step, goal)
+                    stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal)))
+                # Every write at once: a shared store sends them in one round trip (group commit).
+                saved = await asyncio.gather(
+                    *(self._save(m, s, version) for _, s, m, version, _ in stepped), return_exceptions=True
+                )
+                for (i, *_, result), e in zip(stepped, saved, strict=True):
+                    if isinstance(e, BaseException) and not isinstance(e, ServiceError):
+                        raise e
+                    out[i] = e if isinstance(e, ServiceError) else result
         return out
 
     async def _save(self, m: LoadedModel, s: Session, read_version: int) -> None:

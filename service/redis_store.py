@@ -1,15 +1,29 @@
 """Sessions in Redis, shared by replicas: any replica can continue any session exactly where it stopped.
 
-Layout (prefix `gmt:` by default): `s:<id>` is a hash written by `session_codec.encode` after every step;
-`live` is a sorted set of session ids scored by last use (the maximum-sessions count across replicas);
-`x:<id>` marks an expired (`1`) or closed (`closed`) session for a day, so that it answers that rather than "not
-found"; `epoch` is a random marker written once: when it is gone or changed, the store lost its data.
-Expiry follows the store's clock; Redis key TTLs only collect sessions nobody touched for twice the timeout.
+Keys (prefix `gmt:` by default), each session's hash-tagged so that Redis Cluster keeps them on one shard:
+`{<id>}:s` is the session's hash (`session_codec`: written once at creation, then only what each change changed);
+`{<id>}:x` marks an expired (`1`) or closed (`closed`) session for a day, so that it answers that rather than "not
+found"; `live` is the index of live sessions (the maximum-sessions count, the expiry sweep), written only by
+creates, closes and sweeps, never by an act; `epoch` is a random marker written once: when it is gone or changed,
+the store lost its data.
+
+The hot path costs one write and no read: a replica keeps the sessions it serves (their live contexts and the
+version it last stored) and acts on them without reading the store; every write is a compare-and-set on the
+version, so a change by another replica meanwhile is detected (`aborted`: the copy is dropped and adopted afresh
+on the next request). The writes of one event-loop turn (one micro-batch, one batch call) go to Redis in one
+pipeline, and each change is answered once that pipeline is acknowledged: an answered step is a stored step.
+
+Expiry follows each session's own `last_used`; `live`'s scores are refreshed by each replica's sweep (for the
+sessions it served), so they can be stale by one sweep period and the sweep checks the session itself before it
+expires one. Redis key TTLs only collect sessions nobody touched for twice the timeout.
 """
 
 from __future__ import annotations
 
+import asyncio
 import uuid
+from collections import Counter
+from dataclasses import dataclass
 
 from service import session_codec
 from service.errors import (
@@ -18,6 +32,7 @@ from service.errors import (
     Internal,
     NotFound,
     ResourceExhausted,
+    ServiceError,
     SessionExpired,
     Unavailable,
 )
@@ -25,33 +40,39 @@ from service.sessions import Clock, Session, SessionStore, expired_message, not_
 
 TOMBSTONE_TTL_S = 86_400
 
-# KEYS: live, session hash. ARGV: now, idle timeout, max sessions, id, key TTL ms, then field/value pairs.
+# KEYS: live, session hash. ARGV: now, max sessions, id, key TTL ms, then field/value pairs.
 # Returns -1 when created, -2 when a live session has the id, else the live count that made the store full.
 _CREATE = """
-redis.call('ZREMRANGEBYSCORE', KEYS[1], '-inf', '(' .. (tonumber(ARGV[1]) - tonumber(ARGV[2])))
-if redis.call('ZSCORE', KEYS[1], ARGV[4]) then return -2 end
+if redis.call('ZSCORE', KEYS[1], ARGV[3]) and redis.call('EXISTS', KEYS[2]) == 1 then return -2 end
 local n = redis.call('ZCARD', KEYS[1])
-if n >= tonumber(ARGV[3]) then return n end
-redis.call('ZADD', KEYS[1], ARGV[1], ARGV[4])
+if n >= tonumber(ARGV[2]) then return n end
+redis.call('ZADD', KEYS[1], ARGV[1], ARGV[3])
 redis.call('DEL', KEYS[2])
-redis.call('HSET', KEYS[2], unpack(ARGV, 6))
-redis.call('PEXPIRE', KEYS[2], ARGV[5])
+redis.call('HSET', KEYS[2], unpack(ARGV, 5))
+redis.call('PEXPIRE', KEYS[2], ARGV[4])
 return -1
 """
 
-
-# KEYS: live, session hash. ARGV: read version ('' = any), last use, key TTL ms, id, then field/value pairs.
+# KEYS: session hash. ARGV: the expected `ver` ('' = any), key TTL ms, then field/value pairs.
 # Returns 0 when written, -1 when the session is gone (never revived), -2 when another writer came first.
 _SAVE = """
-local cur = redis.call('HGET', KEYS[2], 'ver')
+local cur = redis.call('HGET', KEYS[1], 'ver')
 if not cur then return -1 end
 if ARGV[1] ~= '' and cur ~= ARGV[1] then return -2 end
-redis.call('DEL', KEYS[2])
-redis.call('HSET', KEYS[2], unpack(ARGV, 5))
-redis.call('PEXPIRE', KEYS[2], ARGV[3])
-redis.call('ZADD', KEYS[1], ARGV[2], ARGV[4])
+redis.call('HSET', KEYS[1], unpack(ARGV, 3))
+redis.call('PEXPIRE', KEYS[1], ARGV[2])
 return 0
 """
+
+
+@dataclass
+class _Held:
+    """A session this replica serves: the session (its live context once used) and what the store holds of it."""
+
+    session: Session
+    version: int  # the context version the store holds
+    step: int  # the step the store holds the session at
+    refreshed: float  # `last_used` as last written into `live`'s score
 
 
 class RedisSessionStore(SessionStore):
@@ -81,17 +102,23 @@ class RedisSessionStore(SessionStore):
         self.redis = aioredis.Redis(connection_pool=pool)
         self.prefix = prefix
         self._live = f"{prefix}live"
-        self._create = self.redis.register_script(_CREATE)
-        self._save = self.redis.register_script(_SAVE)
-        self._seen: dict[str, tuple[str, float]] = {}  # id -> (model, last use here) of sessions touched here
         self._epoch_key = f"{prefix}epoch"
         self._epoch: bytes | None = None  # the store's epoch when this replica last checked (None: not yet)
+        self._create = self.redis.register_script(_CREATE)
+        self._held: dict[str, _Held] = {}
+        # id -> (model, last use) of every session created or read here: what this replica may soon serve (the
+        # micro-batcher waits for as many acts as there are such sessions).
+        self._seen: dict[str, tuple[str, float]] = {}
+        self._seen_per_model: Counter[str] = Counter()
+        self._queue: list[tuple[str, list, asyncio.Future]] = []  # writes waiting for this turn's pipeline
+        self._flushes: set[asyncio.Task] = set()
 
+    # ----- keys and calls ---------------------------------------------------------------------------------------
     def _key(self, sid: str) -> str:
-        return f"{self.prefix}s:{sid}"
+        return f"{self.prefix}{{{sid}}}:s"
 
     def _tomb(self, sid: str) -> str:
-        return f"{self.prefix}x:{sid}"
+        return f"{self.prefix}{{{sid}}}:x"
 
     @property
     def _ttl_ms(self) -> int:
@@ -104,7 +131,7 @@ class RedisSessionStore(SessionStore):
             raise Unavailable(f"session store unreachable: {e}") from e
 
     async def ping(self) -> None:
-        """Raise Unavailable unless Redis answers; learn the store's epoch (see `_lost_message`)."""
+        """Raise Unavailable unless Redis answers; learn the store's epoch (see `_missing`)."""
         await self._call(self.redis.ping())
         self._epoch = await self._current_epoch()
 
@@ -129,19 +156,106 @@ class RedisSessionStore(SessionStore):
             )
         return NotFound(not_found_message(sid) + "; or the session store lost its data")
 
+    # ----- sessions ---------------------------------------------------------------------------------------------
     async def create(self, session: Session) -> None:
-        flat: list[bytes | str] = []
-        for k, v in session_codec.encode(session).items():
-            flat += [k, v]
-        args = [repr(self.clock()), repr(self.idle_timeout_s), self.max_sessions, session.id, self._ttl_ms]
-        n = await self._call(self._create(keys=[self._live, self._key(session.id)], args=args + flat))
+        flat = _flat(session_codec.create_fields(session))
+        args = [repr(self.clock()), self.max_sessions, session.id, self._ttl_ms]
+        for attempt in range(2):
+            n = await self._call(self._create(keys=[self._live, self._key(session.id)], args=args + flat))
+            if n == -1:
+                self._see(session.id, session.model, session.last_used)
+                return
+            if n == -2:
+                raise AlreadyExists(f"session {session.id!r} exists")
+            if attempt == 0:
+                await self.sweep()  # the count may hold sessions that expired since the last sweep
+        raise ResourceExhausted(
+            f"server is full: {n} live sessions (maximum {self.max_sessions}); close a session or retry later"
+        )
+
+    async def get(self, sid: str, hold: bool = True) -> Session:
+        held = self._held.get(sid)
+        if held is not None and not self.is_idle(held.session):
+            return held.session  # served here, and the compare-and-set write will notice any other writer
+        fields = await self._call(self.redis.hgetall(self._key(sid)))
+        if not fields:
+            self._forget(sid)
+            raise await self._missing(sid)
+        try:
+            s = session_codec.decode(fields)
+        except session_codec.CodecError as e:
+            raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
+        if self.is_idle(s):
+            await self._expire(sid)
+            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+        if held is not None:
+            self._forget(sid)  # another replica used it meanwhile: adopt the stored copy, not ours
+        if hold:
+            self._held[sid] = _Held(s, s.ctx.version, s.ctx.step, s.last_used)
+        self._see(sid, s.model, s.last_used)
+        return s
+
+    async def save(self, session: Session, read_version: int | None = None) -> None:
+        held = self._held.get(session.id)
+        if held is None or held.session is not session:
+            raise ValueError(f"session {session.id!r} was not read from this store")
+        if read_version is not None and read_version != held.version:
+            raise Aborted(_aborted(session.id))
+        fields = session_codec.change_fields(session, held.step)
+        expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
+        try:
+            n = await self._write(session.id, [expect, self._ttl_ms, *_flat(fields)])
+        except ServiceError:
+            self._forget(session.id)  # unknown whether it was written: adopt afresh next time
+            raise
+        if n == -1:
+            self._forget(session.id)
+            raise NotFound(f"session {session.id!r} was closed or expired while this request ran")
         if n == -2:
-            raise AlreadyExists(f"session {session.id!r} exists")
-        if n != -1:
-            raise ResourceExhausted(
-                f"server is full: {n} live sessions (maximum {self.max_sessions}); close a session or retry later"
-            )
-        self._seen[session.id] = (session.model, session.last_used)
+            self._forget(session.id)
+            raise Aborted(_aborted(session.id))
+        held.version, held.step = session.ctx.version, session.ctx.step
+
+    async def _write(self, sid: str, args: list) -> int:
+        """Run the save script for `sid` in this loop turn's pipeline; its answer once Redis acknowledged it."""
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+        if not self._queue:
+            loop.call_soon(self._start_flush)
+        self._queue.append((sid, args, fut))
+        return await fut
+
+    def _start_flush(self) -> None:
+        task = asyncio.get_running_loop().create_task(self._flush())
+        self._flushes.add(task)  # the loop holds tasks weakly
+        task.add_done_callback(self._flushes.discard)
+
+    async def _flush(self) -> None:
+        """Send the queued writes in one pipeline and answer each."""
+        queue, self._queue = self._queue, []
+        try:
+            # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
+            async with self.redis.pipeline(transaction=False) as p:
+                for sid, args, _ in queue:
+                    p.eval(_SAVE, 1, self._key(sid), *args)
+                results = await self._call(p.execute(raise_on_error=False))
+            if len(results) != len(queue):
+                raise Internal(f"the store answered {len(results)} of {len(queue)} writes")
+        except BaseException as e:  # noqa: BLE001 - every waiter gets the failure
+            err = e if isinstance(e, ServiceError) else Unavailable(f"session store unreachable: {e}")
+            for *_, fut in queue:
+                if not fut.done():
+                    fut.set_exception(err)
+            if not isinstance(e, Exception):
+                raise
+            return
+        for (*_, fut), r in zip(queue, results, strict=True):
+            if fut.done():
+                continue
+            if isinstance(r, Exception):
+                fut.set_exception(Unavailable(f"session store write failed: {r}"))
+            else:
+                fut.set_result(int(r))
 
     async def _expire(self, sid: str) -> None:
         async with self.redis.pipeline(transaction=True) as p:
@@ -149,46 +263,21 @@ class RedisSessionStore(SessionStore):
             await self._call(p.execute())
         self._forget(sid)
 
-    def _forget(self, sid: str) -> None:
+    def _see(self, sid: str, model: str, last_used: float) -> None:
+        if sid not in self._seen:
+            self._seen_per_model[model] += 1
+        self._seen[sid] = (model, last_used)
+
+    def _unsee(self, sid: str) -> None:
         seen = self._seen.pop(sid, None)
         if seen is not None:
-            self.on_remove(sid, seen[0])
+            self._seen_per_model[seen[0]] -= 1
 
-    @staticmethod
-    def _decode(sid: str, fields: dict) -> Session:
-        try:
-            return session_codec.decode(fields)
-        except session_codec.CodecError as e:
-            raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
-
-    async def get(self, sid: str) -> Session:
-        fields = await self._call(self.redis.hgetall(self._key(sid)))
-        if not fields:
-            self._forget(sid)
-            raise await self._missing(sid)
-        s = self._decode(sid, fields)
-        if self.is_idle(s):
-            await self._expire(sid)
-            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
-        self._seen[sid] = (s.model, s.last_used)
-        return s
-
-    async def save(self, session: Session, read_version: int | None = None) -> None:
-        flat: list[bytes | str] = []
-        for k, v in session_codec.encode(session).items():
-            flat += [k, v]
-        expect = "" if read_version is None else str(read_version)
-        args = [expect, repr(session.last_used), self._ttl_ms, session.id]
-        n = await self._call(self._save(keys=[self._live, self._key(session.id)], args=args + flat))
-        if n == -1:
-            self._forget(session.id)
-            raise NotFound(f"session {session.id!r} was closed or expired while this request ran")
-        if n == -2:
-            raise Aborted(
-                f"session {session.id!r} was changed by another replica while this request ran; "
-                "retry the request (with the same step: a repeat is answered without stepping twice)"
-            )
-        self._seen[session.id] = (session.model, session.last_used)
+    def _forget(self, sid: str) -> None:
+        self._unsee(sid)
+        held = self._held.pop(sid, None)
+        if held is not None:
+            self.on_remove(sid, held.session.model)
 
     async def delete(self, sid: str) -> None:
         await self.get(sid)
@@ -198,29 +287,62 @@ class RedisSessionStore(SessionStore):
         self._forget(sid)
 
     async def count(self) -> int:
-        low = self.clock() - self.idle_timeout_s
-        return int(await self._call(self.redis.zcount(self._live, low, "+inf")))
+        return int(await self._call(self.redis.zcard(self._live)))
 
     async def sweep(self) -> list[Session]:
+        """Refresh `live`'s scores of the sessions used here, expire the idle ones, and let go of those this replica
+        no longer serves."""
         low = self.clock() - self.idle_timeout_s
-        stale = await self._call(self.redis.zrangebyscore(self._live, "-inf", f"({low!r}"))
+        used = {
+            sid: h.session.last_used for sid, h in self._held.items() if h.session.last_used > h.refreshed
+        }
+        if used:
+            await self._call(self.redis.zadd(self._live, used, xx=True, gt=True))
+            for sid, t in used.items():
+                self._held[sid].refreshed = t
+        stale = [
+            raw.decode()
+            for raw in await self._call(self.redis.zrangebyscore(self._live, "-inf", f"({low!r}"))
+        ]
         gone = []
-        for raw in stale:
-            sid = raw.decode()
+        for sid in stale:
+            raw = await self._call(self.redis.hget(self._key(sid), "st"))
+            if raw is None:  # collected by its key TTL, or lost
+                await self._call(self.redis.zrem(self._live, sid))
+                continue
             fields = await self._call(self.redis.hgetall(self._key(sid)))
-            if fields:
-                s = self._decode(sid, fields)
-                if not self.is_idle(s):
-                    continue
-                gone.append(s)
+            try:
+                s = session_codec.decode(fields)
+            except session_codec.CodecError:
+                continue
+            if not self.is_idle(s):  # used on a replica that has not refreshed its score yet
+                await self._call(self.redis.zadd(self._live, {sid: s.last_used}, xx=True, gt=True))
+                continue
+            gone.append(s)
             await self._expire(sid)
-        for k in [k for k, v in self._seen.items() if v[1] < low]:
-            self._forget(k)
+        for sid in [sid for sid, h in self._held.items() if h.session.last_used < low]:
+            self._forget(sid)
+        for sid in [sid for sid, (_, t) in self._seen.items() if t < low and sid not in self._held]:
+            self._unsee(sid)
         return gone
 
     def local_count(self, model: str) -> int:
-        return sum(1 for m, _ in self._seen.values() if m == model)
+        return self._seen_per_model[model]  # every held session was seen
 
     async def close(self) -> None:
         await self.redis.aclose()
         await self.redis.connection_pool.disconnect()  # a pool passed in is not closed by the client
+
+
+def _flat(fields: dict[str, bytes]) -> list:
+    out: list = []
+    for k, v in fields.items():
+        out += [k, v]
+    return out
+
+
+def _aborted(sid: str) -> str:
+    return (
+        f"session {sid!r} was changed by another replica while this request ran; retry the request (with the same "
+        "step: a repeat is answered without stepping twice)"
+    )

@@ -1,59 +1,167 @@
-"""A session as bytes without pickle: JSON for its own fields, and the context's own encoding (raw arrays)."""
+"""A session as Redis hash fields, without pickle, written step by step.
+
+Fields (format 3):
+- `meta`: JSON written once at creation: id, model, created_at, the creating request, and the layout of a step
+  record (`H` held steps, the state's and the action's dtype and shape);
+- `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
+  matches a copy of its predecessor);
+- `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version) and `last_used`;
+- `r:<t mod H>`: the record of held step `t`: t, goal token, blend target and weight, state, action, as raw
+  little-endian bytes.
+
+An act writes `ver`, `st` and its one new record; a goal change or a reset writes `ver` and `st`. Reading a session
+back gathers the records of its last `min(step, H)` steps, each checked to be the step its slot should hold, into
+a `StoredContext`: exactly the context a replica needs to continue the session.
+"""
 
 from __future__ import annotations
 
-import json
+import dataclasses
+import functools
+import struct
+import sys
 
-from model.context import Context, StoredContext, StoredContextError
+import numpy as np
+import orjson
+
+from model.context import Context, StoredContext
 from service.sessions import Session
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+_ARRAYS = ("goals", "blend_to", "blend_w", "states", "actions")
+SCALARS = tuple(f.name for f in dataclasses.fields(StoredContext) if f.name not in _ARRAYS)
+_HEAD = struct.Struct("<qqqf")  # t, goal token, blend target, blend weight: the record's first fields
+_LITTLE = sys.byteorder == "little"
 
 
 class CodecError(ValueError):
-    """Stored bytes do not describe a session."""
+    """Stored fields do not describe a session."""
 
 
-def encode(session: Session) -> dict[str, bytes]:
-    """Hash fields: `meta` (JSON: id, model, times), `ver` (the context's version as decimal text) and the
-    context's own fields (`StoredContext.to_fields`)."""
+def cas_token(session: Session, version: int) -> bytes:
+    """The value of `ver` for `session` at `version`."""
+    return f"{version}@{session.created_at!r}".encode()
+
+
+def _record_dtype(layout: dict) -> np.dtype:
+    (sd, ss), (ad, ash) = layout["state"], layout["action"]
+    return _record_of(sd, tuple(ss), ad, tuple(ash))
+
+
+@functools.lru_cache(maxsize=64)
+def _record_of(sd: str, ss: tuple, ad: str, ash: tuple) -> np.dtype:
+    """One step's record: t, goal token, blend target and weight, state, action (little-endian)."""
+    return np.dtype(
+        [
+            ("t", "<i8"),
+            ("goal", "<i8"),
+            ("blend_to", "<i8"),
+            ("blend_w", "<f4"),
+            ("state", np.dtype(sd).newbyteorder("<"), ss),
+            ("action", np.dtype(ad).newbyteorder("<"), ash),
+        ]
+    )
+
+
+def _state(session: Session, ctx: Context) -> bytes:
+    st = ctx.scalars()
+    st["last_used"] = session.last_used
+    return orjson.dumps(st)
+
+
+def _record(ctx: Context, t: int) -> bytes:
+    """Held step `t` as a record's bytes (`_record_dtype`), written field by field: no structured array."""
+    p, s = ctx.pool, ctx.slot
+    pos = t % p.H
+    head = _HEAD.pack(t, int(p.h_goal[s, pos]), int(p.h_blend_to[s, pos]), float(p.h_blend_w[s, pos]))
+    state, action = p.h_state[s, pos], p.h_action[s, pos]
+    if not _LITTLE:
+        state, action = (
+            state.astype(state.dtype.newbyteorder("<")),
+            action.astype(action.dtype.newbyteorder("<")),
+        )
+    return head + state.tobytes() + action.tobytes()
+
+
+def create_fields(session: Session) -> dict[str, bytes]:
+    """Every field of a new session (its live context at step 0)."""
     ctx = session.ctx
-    stored = ctx.to_stored() if isinstance(ctx, Context) else ctx
+    if not isinstance(ctx, Context) or ctx.step != 0:
+        raise ValueError("a session is created from a live context at step 0")
     meta = {
         "v": FORMAT_VERSION,
         "id": session.id,
         "model": session.model,
         "created_at": session.created_at,
-        "last_used": session.last_used,
         "request": session.request,
+        "layout": ctx.layout(),
     }
     return {
-        "meta": json.dumps(meta, separators=(",", ":")).encode(),
-        "ver": str(stored.version).encode(),  # what a compare-and-set write checks
-        **stored.to_fields(),
+        "meta": orjson.dumps(meta),
+        "ver": cas_token(session, ctx.version),
+        "st": _state(session, ctx),
     }
+
+
+def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
+    """What a change wrote, for a store that holds the session up to step `since_step`: `ver`, `st`, and the
+    records of the held steps from `since_step` on (all held steps when the step went back, as after a reset)."""
+    ctx = session.ctx
+    if not isinstance(ctx, Context):
+        raise ValueError("only a live context has changes to write")
+    out = {"ver": cas_token(session, ctx.version), "st": _state(session, ctx)}
+    t1 = ctx.step
+    for t in range(max(since_step if since_step <= t1 else 0, t1 - ctx.size), t1):
+        out[f"r:{t % ctx.pool.H}"] = _record(ctx, t)
+    return out
 
 
 def decode(fields: dict[bytes | str, bytes]) -> Session:
-    """Inverse of `encode` (keys may be bytes, as redis-py returns them); the context comes back stored.
+    """The session the fields describe (keys may be bytes, as redis-py returns them), its context stored.
 
     Raises:
-        CodecError: the fields do not describe a session of this format.
+        CodecError: the fields do not describe a session of this format, or a held step's record is missing.
     """
     f = {(k.decode() if isinstance(k, bytes) else k): v for k, v in fields.items()}
     try:
-        meta = json.loads(f["meta"])
+        meta = orjson.loads(f["meta"])
         if meta.get("v") != FORMAT_VERSION:
             raise CodecError(f"session format v{meta.get('v')} is not v{FORMAT_VERSION}")
+        st = orjson.loads(f["st"])
+        layout = meta["layout"]
+        H, dtype = int(layout["H"]), _record_dtype(layout)
+        step = int(st["step"])
+        t = np.arange(max(step - H, 0), step)
+        rec = np.zeros(len(t), dtype)
+        for i, ti in enumerate(t):
+            raw = f.get(f"r:{ti % H}")
+            if raw is None or len(raw) != dtype.itemsize:
+                raise CodecError(f"the record of step {ti} is missing or malformed")
+            rec[i] = np.frombuffer(raw, dtype)[0]
+            if rec[i]["t"] != ti:
+                raise CodecError(f"slot {ti % H} holds step {rec[i]['t']}, not step {ti}")
+        ctx = StoredContext(
+            **{name: st[name] for name in SCALARS},
+            goals=_native(rec["goal"]),
+            blend_to=_native(rec["blend_to"]),
+            blend_w=_native(rec["blend_w"]),
+            states=_native(rec["state"]),
+            actions=_native(rec["action"]),
+        )
         return Session(
             id=meta["id"],
             model=meta["model"],
-            ctx=StoredContext.from_fields(f),
+            ctx=ctx,
             created_at=float(meta["created_at"]),
-            last_used=float(meta["last_used"]),
+            last_used=float(st["last_used"]),
             request=str(meta.get("request", "")),
         )
     except CodecError:
         raise
-    except (StoredContextError, KeyError, TypeError, ValueError, AttributeError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError, orjson.JSONDecodeError) as e:
         raise CodecError(f"unreadable session: {type(e).__name__}: {e}") from e
+
+
+def _native(a: np.ndarray) -> np.ndarray:
+    """A record field as a contiguous array in native byte order."""
+    return np.ascontiguousarray(a).astype(a.dtype.newbyteorder("="))

@@ -81,8 +81,12 @@ class SessionStore(abc.ABC):
         """
 
     @abc.abstractmethod
-    async def get(self, sid: str) -> Session:
+    async def get(self, sid: str, hold: bool = True) -> Session:
         """The session `sid` (a copy for remote stores: write changes back with `save`).
+
+        Args:
+            hold: This replica is about to change the session and serve it from now on: a shared store keeps
+                its copy and serves it again without reading (False for a look that changes nothing).
 
         Raises:
             SessionExpired: it was idle for too long (it is then removed).
@@ -173,7 +177,7 @@ class MemorySessionStore(SessionStore):
             while len(self._expired) > TOMBSTONES:
                 self._expired.popitem(last=False)
 
-    async def get(self, sid: str) -> Session:
+    async def get(self, sid: str, hold: bool = True) -> Session:
         return self._lookup(sid)
 
     async def save(self, session: Session, read_version: int | None = None) -> None:

@@ -21,79 +21,118 @@ def cartpole(ckpt_root) -> PolicyEngine:
     return PolicyEngine(load_checkpoint(ckpt_root / "tiny-cartpole"))
 
 
-def test_codec_round_trip_keeps_every_field_and_the_actions_exact(cartpole):
-    rng = np.random.default_rng(0)
-    ctx = cartpole.new_context(1, action_mode="sample", seed=11, key="s1")
-    obs = rng.normal(size=(9, 4)).astype(np.float32)
-    for o in obs[:6]:
-        cartpole.act([ctx], [o])
-    cartpole.set_goal(ctx, 0, blend_steps=2)
-    fields = session_codec.encode(Session("s1", "tiny-cartpole", ctx, 1.0, 2.0))
-    meta = json.loads(fields["meta"])  # plain JSON, no pickle anywhere
-    assert meta["id"] == "s1" and json.loads(fields["ctx"])["scalars"]["seed"] == 11
-    assert all(isinstance(v, bytes) and not v.startswith(b"\x80") for v in fields.values())
-    back = session_codec.decode({k.encode(): v for k, v in fields.items()})
-    assert (back.id, back.model, back.created_at, back.last_used) == ("s1", "tiny-cartpole", 1.0, 2.0)
-    want = ctx.to_stored()
+def _same_stored(want, got) -> None:
     for f in dataclasses.fields(want):  # every field of the stored form survives, whatever is added later
-        a, b = getattr(want, f.name), getattr(back.ctx, f.name)
+        a, b = getattr(want, f.name), getattr(got, f.name)
         if isinstance(a, np.ndarray):
             assert a.dtype == b.dtype and np.array_equal(a, b), f.name
         else:
             assert a == b, f.name
+
+
+def test_codec_writes_what_changed_and_reads_back_exactly(cartpole):
+    rng = np.random.default_rng(0)
+    ctx = cartpole.new_context(1, action_mode="sample", seed=11, key="s1")
+    session = Session("s1", "tiny-cartpole", ctx, 1.0, 2.0, request="tiny-cartpole|1|11|sample")
+    stored = {k.encode(): v for k, v in session_codec.create_fields(session).items()}  # what Redis holds
+    meta = json.loads(stored[b"meta"])  # plain JSON, no pickle anywhere
+    assert meta["id"] == "s1" and meta["layout"]["H"] == cartpole.pool.H
+    since = 0
+    obs = rng.normal(size=(3 * cartpole.pool.H, 4)).astype(np.float32)
+    for t, o in enumerate(obs[:-4]):  # past the held history: old records are overwritten in place
+        if t == 5:
+            cartpole.set_goal(ctx, 0, blend_steps=2)
+            change = session_codec.change_fields(session, since)
+            assert set(change) == {"ver", "st"}  # a goal change writes no step record
+            stored.update({k.encode(): v for k, v in change.items()})
+        cartpole.act([ctx], [o])
+        change = session_codec.change_fields(session, since)
+        assert set(change) == {"ver", "st", f"r:{t % cartpole.pool.H}"}  # an act writes its one record
+        assert all(isinstance(v, bytes) and not v.startswith(b"\x80") for v in change.values())
+        stored.update({k.encode(): v for k, v in change.items()})
+        since = ctx.step
+    back = session_codec.decode(stored)
+    assert (back.id, back.model, back.created_at, back.last_used) == ("s1", "tiny-cartpole", 1.0, 2.0)
+    assert back.request == session.request
+    _same_stored(ctx.to_stored(), back.ctx)
     # Sampled actions continue identically in a context adopted from the stored form.
     twin = PolicyEngine(cartpole.ckpt)
     adopted = twin.from_stored(back.ctx, key="s1")
-    original = [cartpole.act([ctx], [o])[0] for o in obs[6:]]
-    restored = [twin.act([adopted], [o])[0] for o in obs[6:]]
+    original = [cartpole.act([ctx], [o])[0] for o in obs[-4:]]
+    restored = [twin.act([adopted], [o])[0] for o in obs[-4:]]
     assert original == restored and ctx.version == adopted.version
+    # A reset writes no record, and the steps after it are read back without the old episode's.
+    cartpole.reset(ctx)
+    stored.update({k.encode(): v for k, v in session_codec.change_fields(session, ctx.step + 4).items()})
+    cartpole.act([ctx], [obs[0]])
+    stored.update({k.encode(): v for k, v in session_codec.change_fields(session, 0).items()})
+    _same_stored(ctx.to_stored(), session_codec.decode(stored).ctx)
 
 
-def test_codec_refuses_foreign_data():
+def test_codec_refuses_foreign_and_broken_data(cartpole):
     with pytest.raises(session_codec.CodecError):
         session_codec.decode({b"meta": b"\x80\x04K\x01."})  # a pickle
-    meta = json.dumps(
-        {"v": session_codec.FORMAT_VERSION, "id": "x", "model": "m", "created_at": 0, "last_used": 0}
-    )
-    bad = {"v": 2, "scalars": {"goal": 0}, "arrays": {}}
-    with pytest.raises(session_codec.CodecError, match="do not match"):
-        session_codec.decode({b"meta": meta.encode(), b"ctx": json.dumps(bad).encode()})
+    ctx = cartpole.new_context(1, key="s2")
+    session = Session("s2", "tiny-cartpole", ctx, 1.0, 2.0)
+    stored = dict(session_codec.create_fields(session))
+    for o in np.zeros((3, 4), np.float32):
+        cartpole.act([ctx], [o])
+        stored.update(session_codec.change_fields(session, ctx.step - 1))
+    assert session_codec.decode(stored).ctx.step == 3
+    with pytest.raises(session_codec.CodecError, match="record of step 1 is missing"):
+        session_codec.decode({k: v for k, v in stored.items() if k != "r:1"})
+    with pytest.raises(session_codec.CodecError, match="slot 2 holds step 1"):
+        session_codec.decode({**stored, "r:2": stored["r:1"]})
+    meta = json.loads(stored["meta"])
+    with pytest.raises(session_codec.CodecError, match="format v2 is not v3"):
+        session_codec.decode({**stored, "meta": json.dumps({**meta, "v": 2}).encode()})
 
 
 def test_redis_store_semantics(redis_clean, engine, clock):
     from service.redis_store import RedisSessionStore
 
+    def new(sid: str, goal: int) -> Session:
+        return Session(sid, "tiny-gmt", engine.new_context(goal, key=sid), clock(), clock())
+
+    async def act(store, sid: str) -> Session:
+        got = await store.get(sid)
+        read = got.ctx.version
+        if not isinstance(got.ctx, type(engine.new_context(0))):
+            got.ctx = engine.from_stored(got.ctx, key=sid)
+        engine.act([got.ctx], [np.zeros(17, np.float32)])
+        got.last_used = clock()
+        await store.save(got, read)
+        return got
+
     async def scenario():
         a = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=2, clock=clock)
         b = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=2, clock=clock)  # a second replica
         try:
-            s1 = Session("one", "tiny-gmt", engine.new_context(0), clock(), clock())
-            await a.create(s1)
-            await b.create(Session("two", "tiny-gmt", engine.new_context(2), clock(), clock()))
+            await a.create(new("one", 0))
+            await b.create(new("two", 2))
             with pytest.raises(ResourceExhausted, match=r"server is full: 2 live sessions \(maximum 2\)"):
-                await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
+                await a.create(new("three", 0))
             assert await a.count() == await b.count() == 2
-            got = await b.get("one")
-            read = got.ctx.version
-            got.ctx = engine.from_stored(got.ctx, key="one")
-            engine.act([got.ctx], [np.zeros(17, np.float32)])
+            stale = await a.get("one")  # replica a holds "one" at step 0
             clock.advance(6)
-            got.last_used = clock()
-            await b.save(got, read)
-            again = await a.get("one")
+            got = await act(b, "one")  # ... while replica b acts for it
+            again = await (RedisSessionStore(redis_clean, 10, 2, clock)).get("one")
             assert again.ctx.step == 1 and np.array_equal(again.ctx.states, got.ctx.states)
-            # Compare-and-set: a replica that read the old version loses the race instead of overwriting.
-            stale = Session("one", "tiny-gmt", engine.new_context(1), clock(), clock())
+            # Compare-and-set: a replica whose copy is old loses the race instead of overwriting.
+            stale.ctx = engine.from_stored(stale.ctx, key="stale")
+            engine.set_goal(stale.ctx, 1)
             with pytest.raises(Aborted, match="changed by another replica"):
-                await a.save(stale, read)
+                await a.save(stale, 0)
+            assert (await a.get("one")).ctx.step == 1  # a dropped its copy and read the stored one
             assert (await b.get("one")).ctx.goal == 0
             clock.advance(6)  # "two" is now idle for 12 s, "one" for 6 s
             assert [s.id for s in await a.sweep()] == ["two"]
             with pytest.raises(SessionExpired, match="session 'two' expired"):
                 await b.get("two")
-            await a.create(Session("three", "tiny-gmt", engine.new_context(0), clock(), clock()))
+            await a.create(new("three", 0))
             three = await b.get("three")
             await a.delete("three")
+            three.ctx = engine.from_stored(three.ctx, key="three")
             with pytest.raises(NotFound, match="closed or expired"):  # a write never revives it
                 await b.save(three, three.ctx.version)
             with pytest.raises(NotFound, match="session 'three' was closed"):
