@@ -1,4 +1,5 @@
-"""Attack clients for tests/service/test_stream_limits.py, each run in its own process (`python h2_attacks.py`):
+"""Attack clients for tests/service/test_stream_limits.py and test_slowloris.py, each run in its own process
+(`python h2_attacks.py control-flood|slowloris ...`):
 
 - `control-flood`: raw HTTP/2 connections, each with several `Control` streams that keep sending act commands and
   never read an answer (no WINDOW_UPDATE is ever sent, so the server's send window goes to 0). It reads the
@@ -7,7 +8,7 @@
 - `slowloris`: many TCP connections to the REST port, each sending the headers of a request one byte at a time
   and never finishing them.
 
-Each prints one JSON line of what it did (`ready` once the attack is fully under way, a summary at the end) and
+Each prints JSON lines (`progress`; `ready` once slowloris has opened its connections; `done`, a summary) and
 stops after its time limit or when its stdin is closed.
 """
 
