@@ -80,6 +80,20 @@ class Metrics:
         self.sessions_expired = Counter(
             "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r
         )
+        self.rest_connections = Gauge("gmt_rest_connections", "Open REST connections.", registry=r)
+        self.connections_closed = Counter(
+            "gmt_connections_closed",
+            "Connections (REST) and Control streams (gRPC) the server closed to protect itself, by transport and "
+            "reason: header_timeout, body_timeout, evicted (the oldest connection without a request in progress, "
+            "for a new one past the cap), over_limit (a new connection past the cap, none could be evicted), "
+            "write_timeout (a Control stream whose client took no answer).",
+            ["transport", "reason"],
+            registry=r,
+        )
+
+    def closed(self, transport: str, reason: str) -> None:
+        """Count one connection or stream closed by the server (`gmt_connections_closed`)."""
+        self._child(self.connections_closed, transport, reason).inc()
 
     def observe_request(self, transport: str, method: str, code: str, seconds: float) -> None:
         """Record one answered request."""

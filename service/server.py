@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import signal
 import socket
@@ -12,7 +13,9 @@ import uvicorn
 
 from service.core import Core
 from service.grpc.server import GrpcServer
+from service.limits import connection_caps
 from service.rest.app import create_app
+from service.rest.protocol import ConnectionGuard, GuardedHttpProtocol
 from service.settings import Settings
 
 log = logging.getLogger("gmt.server")
@@ -67,8 +70,14 @@ class Server:
         s = self.settings
         sock = _bind(s.host, s.rest_port)
         self.rest_port = sock.getsockname()[1]
+        caps = connection_caps(s)
+        guard = ConnectionGuard(
+            caps.rest, s.header_timeout_s, s.body_timeout_s, s.replica_id, self.core.metrics
+        )
         config = uvicorn.Config(
             create_app(s, self.core),
+            http=functools.partial(GuardedHttpProtocol, guard=guard),  # read deadlines, connection cap
+            ws="none",
             log_config=None,
             access_log=False,
             lifespan="on",
@@ -105,6 +114,9 @@ class Server:
                 "ready": self.core.ready,
                 "auth": s.token is not None,
                 "session_store": "redis" if s.redis_url else "memory",
+                "descriptors": caps.descriptors,
+                "rest_max_connections": caps.rest,
+                "grpc_max_connections": caps.grpc,
             },
         )
 

@@ -37,6 +37,24 @@ class Settings(BaseSettings):
         keep_alive_s: An idle HTTP keep-alive connection is closed after this long. Longer than a proxy's
             upstream keep-alive (60 s in docker/nginx.conf), so that the proxy never reuses a connection the
             server is just closing (which it answers with a 502).
+        header_timeout_s: A REST request's headers must arrive within this long of its first byte (of the
+            connection, for its first request), else 408 and the connection is closed (nginx:
+            client_header_timeout).
+        body_timeout_s: A REST request's body must arrive within this long of its headers, else the connection is
+            closed (nginx: client_body_timeout, which times each read instead).
+        rest_max_connections: Open REST connections at most (0 = half the descriptor limit above a reserve, see
+            docs/reliability.md); a new one past it closes the oldest connection without a request in progress.
+        grpc_max_connections: Open gRPC connections at most (0 = from the descriptor limit); gRPC closes new ones
+            past it at once.
+        grpc_handshake_timeout_s: A gRPC connection must complete its HTTP/2 handshake within this long.
+        grpc_window_bytes: HTTP/2 flow-control window of each gRPC stream: the most a stream's client may send
+            that the server has not read yet (a larger message still arrives: the window opens for it).
+        grpc_max_streams_per_connection: Concurrent gRPC streams on one connection (HTTP/2
+            SETTINGS_MAX_CONCURRENT_STREAMS).
+        grpc_max_concurrent_rpcs: Concurrent gRPC calls (Control streams included) of the whole server; one past
+            it answers RESOURCE_EXHAUSTED at once.
+        grpc_write_timeout_s: A Control stream whose client takes no answer for this long (its flow-control window
+            stays closed) ends with RESOURCE_EXHAUSTED, which the client reads after the answers still queued.
         event_loop: `uvloop` (the default: a faster loop for both transports) or `asyncio`.
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
@@ -62,6 +80,15 @@ class Settings(BaseSettings):
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
     keep_alive_s: float = Field(75.0, ge=1)
+    header_timeout_s: float = Field(10.0, gt=0)
+    body_timeout_s: float = Field(30.0, gt=0)
+    rest_max_connections: int = Field(0, ge=0)
+    grpc_max_connections: int = Field(0, ge=0)
+    grpc_handshake_timeout_s: float = Field(10.0, gt=0)
+    grpc_window_bytes: int = Field(64 * 1024, ge=1024, le=(1 << 31) - 1)
+    grpc_max_streams_per_connection: int = Field(1024, ge=1)
+    grpc_max_concurrent_rpcs: int = Field(2048, ge=1)
+    grpc_write_timeout_s: float = Field(30.0, gt=0)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid

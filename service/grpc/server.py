@@ -13,6 +13,8 @@ from grpc_reflection.v1alpha import reflection
 from service.core import Core
 from service.errors import Unauthenticated
 from service.grpc.servicer import PolicyServicer, Undecodable
+from service.limits import connection_caps
+from service.settings import Settings
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
 OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
@@ -219,6 +221,24 @@ class BearerAuth(grpc.aio.ServerInterceptor):
         return make(deny, handler.request_deserializer, handler.response_serializer)
 
 
+def server_options(settings: Settings, max_connections: int) -> list[tuple[str, int]]:
+    """grpcio channel arguments bounding what clients can make the server hold (docs/reliability.md, "Control
+    streams that never read"); each one's effect was checked against grpcio 1.85."""
+    limit = settings.max_request_bytes
+    return [
+        ("grpc.max_receive_message_length", limit),
+        ("grpc.max_send_message_length", 4 * limit),
+        # With BDP probing on, gRPC raised every stream's window (SETTINGS_INITIAL_WINDOW_SIZE) to 64-128 MiB
+        # on loopback, and buffered that much per stream that its handler had not read. Off, the window is
+        # lookahead_bytes; a larger message still arrives (gRPC opens the window for the message it reads).
+        ("grpc.http2.bdp_probe", 0),
+        ("grpc.http2.lookahead_bytes", settings.grpc_window_bytes),
+        ("grpc.max_concurrent_streams", settings.grpc_max_streams_per_connection),
+        ("grpc.max_allowed_incoming_connections", max_connections),
+        ("grpc.server_handshake_timeout_ms", int(settings.grpc_handshake_timeout_s * 1000)),
+    ]
+
+
 class GrpcServer:
     """The gRPC side of a server process.
 
@@ -237,10 +257,10 @@ class GrpcServer:
             *([BearerAuth(s.token)] if s.token else []),
             RefuseUndecodable(),
         ]
-        limit = s.max_request_bytes
         self.server = grpc.aio.server(
             interceptors=interceptors,
-            options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", 4 * limit)],
+            options=server_options(s, connection_caps(s).grpc),
+            maximum_concurrent_rpcs=s.grpc_max_concurrent_rpcs,  # one more answers RESOURCE_EXHAUSTED
         )
         self.servicer = PolicyServicer(core)
         policy_pb2_grpc.add_PolicyServiceServicer_to_server(self.servicer, self.server)
@@ -270,3 +290,4 @@ class GrpcServer:
         await self.health.enter_graceful_shutdown()
         self.servicer.stop_streams()
         await self.server.stop(grace)
+        self.servicer.trimmer.cancel()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TypeVar
@@ -14,9 +15,11 @@ from gmt.v1 import policy_pb2_grpc
 from service.core import Core
 from service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from service.grpc import convert
+from service.memory import Trimmer
 from service.observations import check_act_items
 
 T = TypeVar("T")
+log = logging.getLogger("gmt.grpc")
 SHUTTING_DOWN = "server is shutting down: open the stream again (a proxy sends it to another replica)"
 
 
@@ -47,6 +50,8 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     def __init__(self, core: Core) -> None:
         self.core = core
+        self.write_timeout_s = core.settings.grpc_write_timeout_s
+        self.trimmer = Trimmer()
         self._stopping = False
         self._idle_streams: set[asyncio.Task] = set()  # Control streams waiting for their next command
         self._woken: set[asyncio.Task] = set()  # ... of which `stop_streams` cancelled these
@@ -157,14 +162,19 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
         return await self._unary("CloseSession", context, call)
 
-    async def Control(
-        self, request_iterator: AsyncIterator[pb.ControlRequest], context
-    ) -> AsyncIterator[pb.ControlResponse]:
+    async def Control(self, request_iterator: AsyncIterator[pb.ControlRequest], context) -> None:
         """Apply one session's commands in order; errors answer in-band and the stream stays open.
 
         A message that is not a valid ControlRequest is an in-band invalid_argument too. When the server shuts
-        down, the stream ends with UNAVAILABLE after answering the command in flight.
+        down, the stream ends with UNAVAILABLE after answering the command in flight; when the client takes no
+        answer for `grpc_write_timeout_s`, with RESOURCE_EXHAUSTED.
         """
+        try:
+            await self._control(request_iterator, context)
+        finally:
+            self.trimmer.soon()  # what the stream held is freed now: hand it back to the OS
+
+    async def _control(self, request_iterator: AsyncIterator, context) -> None:
         bound: str | None = None
         commands = request_iterator.__aiter__()
         in_flight = self.core.metrics.in_flight_grpc
@@ -200,7 +210,31 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             finally:
                 in_flight.dec()
             self.core.metrics.observe_request("grpc", f"Control.{kind}", code, time.perf_counter() - t0)
-            yield out
+            await self._answer(context, out, bound)
+
+    async def _answer(self, context, answer: pb.ControlResponse, session_id: str | None) -> None:
+        """Write one Control answer. The write waits for the client's flow-control window: a client that takes no
+        answer for `write_timeout_s` ends the stream with RESOURCE_EXHAUSTED (which it reads after the answers
+        still queued; gRPC keeps the stream, at most its window of unread requests, until then or until the
+        client goes)."""
+        try:
+            async with asyncio.timeout(self.write_timeout_s):
+                await context.write(answer)
+        except TimeoutError:
+            log.warning(
+                "Control stream ended: its client took no answer",
+                extra={"session_id": session_id, "write_timeout_s": self.write_timeout_s},
+            )
+            self.core.metrics.closed("grpc", "write_timeout")
+            try:
+                await context.abort(
+                    grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    f"the client took no answer of this stream for {self.write_timeout_s:g} s: read the answers",
+                )
+            except grpc.aio.AbortError:
+                raise
+            except Exception:  # noqa: BLE001 - gRPC's ExecuteBatchError: the client went away meanwhile
+                pass  # the call is over; gRPC ends it as aborted
 
     async def _next_command(self, commands: AsyncIterator, context) -> pb.ControlRequest | Undecodable | None:
         """The stream's next message (None once the client closed its side); ends the call with UNAVAILABLE when

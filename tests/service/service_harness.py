@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import resource
 import subprocess
 import sys
 import threading
@@ -102,12 +103,21 @@ def make_settings(**kw) -> Settings:
 class ServeProcess:
     """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
 
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, nofile: int | None = None) -> None:
         exe = Path(sys.executable).parent / "gmt"
         env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
+
+        def limit_descriptors() -> None:  # `ulimit -n nofile` in the child
+            resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
         self.proc = subprocess.Popen(
-            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+            cmd,
+            stderr=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+            text=True,
+            env=env,
+            preexec_fn=limit_descriptors if nofile else None,
         )
         self.lines: list[dict] = []
         self.serving: dict | None = None
