@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import signal
 import time
 from collections import Counter
@@ -85,7 +86,7 @@ class Drill:
         killed_at: When it was killed (time.monotonic()).
         episodes: Every session's episode.
         errors: Answers that were sent again, by kind (e.g. "rest 503 unavailable", "grpc UNAVAILABLE").
-        examples: The first message of each kind in `errors`.
+        examples: The distinct messages of each kind in `errors` (digits as N; the first 5 kinds of message).
         lost: Sessions that are gone, or whose stored step is not the number of steps answered.
     """
 
@@ -94,7 +95,7 @@ class Drill:
     killed_at: float
     episodes: list[Episode]
     errors: dict[str, int]
-    examples: dict[str, str]
+    examples: dict[str, list[str]]
     lost: list[str]
 
     @property
@@ -127,7 +128,7 @@ class Drill:
             "steps_answered": sum(steps),
             "steps_per_session": [min(steps), max(steps)],
             "retried_answers": dict(sorted(self.errors.items())),
-            "first_message_by_kind": dict(sorted(self.examples.items())),
+            "messages_by_kind": dict(sorted(self.examples.items())),
             "failed_sessions": {e.session_id: e.failure for e in self.episodes if e.failure},
             "lost_sessions": self.lost,
         }
@@ -278,7 +279,10 @@ async def _episode(e: Episode, actor: _Actor, stop: asyncio.Event, seen: tuple[C
                 break
             except _Retry as r:
                 seen[0][r.kind] += 1
-                seen[1].setdefault(r.kind, r.message)
+                shapes = seen[1].setdefault(r.kind, [])
+                shape = re.sub(r"\d+", "N", r.message)
+                if shape not in shapes and len(shapes) < 5:
+                    shapes.append(shape)
                 if time.monotonic() - sent > cfg["act_deadline_s"]:
                     e.failure = f"step {t}: retried for {cfg['act_deadline_s']} s, last {r.kind}: {r.message}"
                     return
