@@ -25,6 +25,7 @@ def serve_command(**flags: Any) -> None:
     from pydantic import ValidationError
 
     from service import logs
+    from service.errors import Unavailable
     from service.server import serve
 
     try:
@@ -36,9 +37,13 @@ def serve_command(**flags: Any) -> None:
         ]
         raise typer.BadParameter("; ".join(problems)) from None
     logs.configure(settings.log_format, settings.log_level)
-    if settings.event_loop == "uvloop":
-        import uvloop
+    try:
+        if settings.event_loop == "uvloop":
+            import uvloop
 
-        uvloop.run(serve(settings))
-    else:
-        asyncio.run(serve(settings))
+            uvloop.run(serve(settings))
+        else:
+            asyncio.run(serve(settings))
+    except Unavailable as e:  # the session store did not answer at startup
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None

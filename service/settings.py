@@ -31,7 +31,8 @@ class Settings(BaseSettings):
         max_request_bytes: Largest REST body / gRPC message accepted.
         auth_token: Bearer token required on every call except health checks (None = no auth).
         redis_url: Keep sessions in this Redis instead of in memory: one server (redis://localhost:6379/0) or the
-            primary that Redis Sentinel watches (redis+sentinel://h1:26379,h2:26379,h3:26379/<service-name>[/db]).
+            primary that Redis Sentinel watches (redis+sentinel://h1:26379,h2:26379,h3:26379/<service-name>, a
+            database number may follow: /<service-name>/1).
         store_min_replicas: With a Redis store, acknowledge a step (and a new session) only once this many Redis
             replicas hold it (Redis WAIT); fewer within the wait timeout answers `unavailable` (0 = do not wait).
         store_wait_timeout_s: Longest wait for those replicas (under the store's 5 s socket timeout).

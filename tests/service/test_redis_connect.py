@@ -3,6 +3,7 @@ never the password), and the settings that need a Redis store say so."""
 
 import os
 import re
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -94,3 +95,18 @@ def test_gmt_serve_refuses_a_bad_url_at_startup_without_showing_the_password():
     assert "redis_url: Value error, sentinel URL 'redis+sentinel://:***@127.0.0.1:26379" in r.stderr
     assert "names a sentinel twice" in r.stderr
     assert "s3cret" not in r.stderr + r.stdout
+
+
+def test_gmt_serve_exits_with_a_clear_message_when_no_sentinel_names_a_primary(tmp_path):
+    gmt = str(Path(sys.executable).parent / "gmt")
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:  # nothing listens there once closed
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    url = f"redis+sentinel://127.0.0.1:{ports[0]},127.0.0.1:{ports[1]}/gmt"
+    args = [gmt, "serve", "--redis-url", url, "--rest-port", "0", "--grpc-port", "0", "-c", str(tmp_path)]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stderr
+    assert "error: session store unreachable: No master found for 'gmt'" in r.stderr
+    assert "Traceback" not in r.stderr
