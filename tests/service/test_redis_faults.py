@@ -93,11 +93,13 @@ def _spawn(args: list[str], log) -> subprocess.Popen:
     return subprocess.Popen(args, stdout=open(log, "ab"), stderr=subprocess.STDOUT)  # noqa: SIM115
 
 
-def _redis_node(port: int, data_dir, *extra: str) -> subprocess.Popen:
-    """redis-server on loopback (AOF fsynced at every write), its log in `data_dir`; returns once it answers."""
+def _redis_node(port: int, data_dir, *extra: str, aof: bool = True) -> subprocess.Popen:
+    """redis-server on loopback (with `aof`, fsynced at every write), its log in `data_dir`; returns once it
+    answers."""
     data_dir.mkdir(exist_ok=True)
-    args = ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "yes"]
-    args += ["--appendfsync", "always", "--dir", str(data_dir), "--repl-diskless-sync-delay", "0", *extra]
+    args = ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", ""]
+    args += ["--appendonly", "yes", "--appendfsync", "always"] if aof else ["--appendonly", "no"]
+    args += ["--dir", str(data_dir), "--repl-diskless-sync-delay", "0", *extra]
     proc = _spawn(args, data_dir / "redis.log")
     _poll(lambda: cluster._redis_ping("127.0.0.1", port), 10, f"redis-server on :{port} did not start", proc)
     return proc
@@ -192,8 +194,10 @@ def test_a_step_no_replica_holds_is_never_acknowledged(tmp_path, ckpt_root):
     obs = np.random.default_rng(11).normal(size=(8, 17)).astype(np.float32)
     want = _twin(ckpt_root, obs)
     port, replica_port = _free_port(), _free_port()
-    primary = _redis_node(port, tmp_path / "primary")
-    replica = _redis_node(replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port))
+    primary = _redis_node(port, tmp_path / "primary", aof=False)  # no fsync to slow the replica's answers
+    replica = _redis_node(
+        replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port), aof=False
+    )
     server = None
     try:
         _poll(lambda: cluster._replica_in_sync("127.0.0.1", replica_port), 10, "the replica did not sync")
@@ -201,17 +205,17 @@ def test_a_step_no_replica_holds_is_never_acknowledged(tmp_path, ckpt_root):
             checkpoints=[ckpt_root],
             redis_url=f"redis://127.0.0.1:{port}/0",
             store_min_replicas=1,
-            store_wait_timeout_s=0.3,
+            store_wait_timeout_s=0.5,
         )
         server = RunningServer(settings).start()
         with httpx.Client(base_url=server.url, timeout=30) as http, redis.Redis(port=port) as r:
-            sid = http.post("/sessions", json={"model": "tiny-sampled", "goal": 1, "seed": 4}).json()[
-                "session_id"
-            ]
+            created = http.post("/sessions", json={"model": "tiny-sampled", "goal": 1, "seed": 4})
+            assert created.status_code == 201, created.text
+            sid = created.json()["session_id"]
             for t in range(4):
-                np.testing.assert_array_equal(
-                    np.float32(_act(http, sid, obs[t], t).json()["action"]), want[t]
-                )
+                got = _act(http, sid, obs[t], t)
+                assert got.status_code == 200, got.text
+                np.testing.assert_array_equal(np.float32(got.json()["action"]), want[t])
             os.kill(replica.pid, signal.SIGSTOP)
             down = _act(http, sid, obs[4], 4)
             assert down.status_code == 503 and down.json()["error"]["code"] == "unavailable", down.text
