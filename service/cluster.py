@@ -265,15 +265,20 @@ def _redis(host: str, port: int, timeout_s: float = 1.0):
     return redis.Redis(host=host, port=port, socket_timeout=timeout_s, socket_connect_timeout=timeout_s)
 
 
-def _replica_in_sync(host: str, port: int) -> bool:
+def _replica_in_sync(host: str, port: int, primary_port: int) -> bool:
+    """The replica at `port` is linked to its primary, and the primary counts it online (after a diskless sync
+    that takes the replica's first acknowledgement, up to a second later: until then WAIT does not count it)."""
     import redis
 
     try:
         with _redis(host, port) as r:
             info = r.info("replication")
+        with _redis(host, primary_port) as r:
+            replicas = [v for k, v in r.info("replication").items() if re.fullmatch(r"slave\d+", k)]
     except redis.RedisError:
         return False
-    return info.get("role") == "slave" and info.get("master_link_status") == "up"
+    online = any(int(v.get("port", 0)) == port and v.get("state") == "online" for v in replicas)
+    return info.get("role") == "slave" and info.get("master_link_status") == "up" and online
 
 
 def _sentinel_primary(host: str, port: int, timeout_s: float = 1.0) -> int | None:
@@ -434,7 +439,7 @@ def up(
             ready = (
                 (lambda: _redis_ping(host, redis_port))
                 if name == "redis"
-                else (lambda n=name: _replica_in_sync(host, ports[n]))
+                else (lambda n=name: _replica_in_sync(host, ports[n], redis_port))
             )
             _wait(name, ready, pids[name], run_dir / f"{name}.log", deadline)
         # Started once the replicas are in sync: a sentinel learns them from the primary's first INFO answer.

@@ -159,8 +159,10 @@ def test_cluster_is_up_with_one_pid_file_per_process(running):
     # The store: both Redis replicas in sync, every sentinel naming the primary (loopback, quorum 2, 1 s), and the
     # gmt replicas reaching it through the sentinels, acknowledging a step once a Redis replica holds it.
     assert running.primary() == "redis"
-    assert all(cluster._replica_in_sync("127.0.0.1", running.ports[n]) for n in cluster.REDIS_NODES[1:])
     primary_port = running.ports["redis"]
+    assert all(
+        cluster._replica_in_sync("127.0.0.1", running.ports[n], primary_port) for n in cluster.REDIS_NODES[1:]
+    )
     for name in cluster.SENTINELS:
         assert cluster._sentinel_ready("127.0.0.1", running.ports[name], primary_port, 2), name
         conf = (running.run_dir / name / "sentinel.conf").read_text()

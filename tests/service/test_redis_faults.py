@@ -200,7 +200,9 @@ def test_a_step_no_replica_holds_is_never_acknowledged(tmp_path, ckpt_root):
     )
     server = None
     try:
-        _poll(lambda: cluster._replica_in_sync("127.0.0.1", replica_port), 10, "the replica did not sync")
+        _poll(
+            lambda: cluster._replica_in_sync("127.0.0.1", replica_port, port), 10, "the replica did not sync"
+        )
         settings = make_settings(
             checkpoints=[ckpt_root],
             redis_url=f"redis://127.0.0.1:{port}/0",
