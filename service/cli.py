@@ -95,7 +95,7 @@ COMMANDS = (
     Entry(
         "cluster",
         "service.cluster:app",
-        "The scale-out topology on loopback: redis-server, two gmt serve replicas and nginx (docker/nginx.conf).",
+        "The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
         "serve",
     ),
     Entry(
