@@ -23,13 +23,16 @@ venv: $(VENV)/.installed-dev
 serve: $(VENV)/.installed-serve
 	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT)
 
-# redis-server, two replicas (gmt-1, gmt-2) and nginx (docker/nginx.conf) on loopback, REST :$(REST_PORT) and gRPC
-# :$(GRPC_PORT) through nginx; returns once all are ready. Pids and logs in run/cluster/. Needs nginx and
-# redis-server (apt-get install nginx redis-server). More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --max-batch 32"
+# A Redis primary (redis) and two replicas (redis-replica, redis-replica-2) watched by three sentinels (sentinel-1..3,
+# quorum 2: a failed primary is replaced by a replica), two gmt replicas (gmt-1, gmt-2: --redis-url redis+sentinel://...,
+# --store-min-replicas 1) and nginx (docker/nginx.conf), all on loopback; REST :$(REST_PORT) and gRPC :$(GRPC_PORT)
+# through nginx. Returns once all are ready (Redis replicas in sync, sentinels agreeing). Pids, logs, Redis data and
+# sentinel configs in run/cluster/. Needs nginx and redis-server (apt-get install nginx redis-server).
+# More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --max-batch 32"
 cluster: $(VENV)/.installed-serve
 	$(BIN)/gmt cluster up --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT) $(CLUSTER_ARGS)
 
-# Stops exactly the processes whose pids are in run/cluster/*.pid.
+# Stops exactly the processes whose pids are in run/cluster/*.pid (nginx, gmt-*, sentinel-*, then the Redis servers).
 cluster-down:
 	$(BIN)/gmt cluster down
 

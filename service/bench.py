@@ -1,6 +1,7 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
-Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `training`, `alternatives`.
+Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `cluster`,
+`failover`, `training`, `alternatives`.
 
 - `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
   a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
@@ -10,6 +11,10 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
+- `cluster`: wrk's REST load through `gmt cluster` (nginx, two replicas, Redis with Sentinel): errors, latency,
+  each replica's memory.
+- `failover`: the Redis primary of `gmt cluster` killed under load (`service.failover`): {sessions, killed,
+  promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
 - `store`: {stores: {memory | redis: {rest, rest_batch, rest_1_session}}, redis_vs_memory: {rest, rest_batch,
   p50_1_session_added_ms}}: the same server with sessions in memory and in a local redis-server, same run.
@@ -473,6 +478,40 @@ def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0)
     }
 
 
+def bench_failover(checkpoint: Path, sessions: int = 64, steps: int = 20) -> dict:
+    """The Redis primary of a `gmt cluster` killed (SIGKILL) while `sessions` sessions act as fast as they can
+    (REST, gRPC unary and Control streams in turn): time to resume, retried answers by kind, sessions lost, and
+    sessions whose actions differ from an uninterrupted twin's (`service.failover`)."""
+    import httpx
+
+    from service import cluster, failover
+
+    run_dir = Path(tempfile.mkdtemp(prefix="gmt-failover-"))
+    c = cluster.up(
+        run_dir, rest_port=0, grpc_port=0, checkpoints=[checkpoint], serve_args=["--max-sessions", "4096"]
+    )
+    try:
+        name = httpx.get(f"{c.rest_url}/models", timeout=30).json()["models"][0]["name"]
+        spec = httpx.get(f"{c.rest_url}/models/{name}", timeout=30).json()
+        d = failover.run_drill(
+            c,
+            name,
+            sessions=sessions,
+            obs_dim=int(np.prod(spec["observation_space"]["shape"])),
+            goals=len(spec["goals"]),
+            steps_before=steps,
+            steps_after=steps,
+        )
+    finally:
+        cluster.down(run_dir, quiet=True)
+        shutil.rmtree(run_dir, ignore_errors=True)
+    before = [a for e in d.episodes for a in e.answered if a <= d.killed_at]
+    first = min(s for e in d.episodes for s in e.sent)
+    out = d.summary(failover.twin_actions(checkpoint, d.episodes))
+    out["acts_per_s_before_kill"] = round(len(before) / (d.killed_at - first), 1)
+    return out
+
+
 # ----- training ---------------------------------------------------------------------------------------------
 def gemm_gflops(dtype) -> float:
     """Measured matrix-product rate of one thread (1024 x 1024 x 1024)."""
@@ -677,6 +716,8 @@ def run(
             result["cluster"] = bench_cluster(
                 checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
             )
+        if "failover" in sections:
+            result["failover"] = bench_failover(checkpoint or _default(tmp), max(sessions))
         if "training" in sections:
             result["training"] = bench_training()
         if "alternatives" in sections:

@@ -95,7 +95,7 @@ COMMANDS = (
     Entry(
         "cluster",
         "service.cluster:app",
-        "The scale-out topology on loopback: redis-server, two gmt serve replicas and nginx (docker/nginx.conf).",
+        "The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
         "serve",
     ),
     Entry(
@@ -181,7 +181,7 @@ def bench_command(
     ),
     sections: str = typer.Option(
         "engine,serving,training,alternatives",
-        help="Comma-separated: engine, serving, store, cluster, training, alternatives.",
+        help="Comma-separated: engine, serving, store, cluster, failover, training, alternatives.",
     ),
     seconds: float = typer.Option(8.0, help="Load duration per serving measurement point."),
     sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),

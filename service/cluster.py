@@ -1,10 +1,15 @@
 """`gmt cluster up|down` (`make cluster` / `make cluster-down`): the scale-out topology, natively on loopback.
 
-redis-server (AOF on, data under the run directory), two `gmt serve` replicas (`gmt-1`, `gmt-2`) sharing it,
-and nginx in front with `docker/nginx.conf` rendered for loopback addresses: REST on :8000 and gRPC on :50051
-by default (DESIGN.md section 8; `docker/compose.yaml` is the same topology in containers). `up` returns once
-every process is ready and nginx answers on both ports; each process's pid is in `<run dir>/<name>.pid`
-(`redis`, `gmt-1`, `gmt-2`, `nginx`), and `down` stops exactly those processes.
+The session store has no single point of failure: a Redis primary (`redis`) and two replicas (`redis-replica`,
+`redis-replica-2`, `--replicaof` the primary; AOF on, data under the run directory), watched by three sentinels
+(`sentinel-1..3`, quorum 2) that promote a replica when the primary fails. Two `gmt serve` replicas (`gmt-1`,
+`gmt-2`) reach the primary through the sentinels (`--redis-url redis+sentinel://...`) and acknowledge a step only
+once a Redis replica holds it (`--store-min-replicas 1`); two Redis replicas, so that one is still there to
+acknowledge after the other was promoted. nginx is in front with `docker/nginx.conf` rendered for loopback
+addresses: REST on :8000 and gRPC on :50051 by default (DESIGN.md section 8; `docker/compose.yaml` is the same
+topology in containers). `up` returns once every process is ready (the Redis replicas in sync, the sentinels
+agreeing on the primary and knowing each other and the replicas, nginx answering on both ports); each
+process's pid is in `<run dir>/<name>.pid`, and `down` stops exactly those processes.
 
 The processes outlive the command that started them (each in a session of its own); their output goes to
 `<run dir>/<name>.log`, nginx's to `<run dir>/nginx/error.log` and `access.log` (which replica served what).
@@ -30,10 +35,17 @@ import typer
 NGINX_TEMPLATE = Path(__file__).resolve().parents[1] / "docker" / "nginx.conf"
 DEFAULT_RUN_DIR = Path("run/cluster")
 REPLICAS = ("gmt-1", "gmt-2")
+REDIS_NODES = ("redis", "redis-replica", "redis-replica-2")  # the primary `up` starts, then its replicas
+SENTINELS = ("sentinel-1", "sentinel-2", "sentinel-3")
+SENTINEL_SERVICE = "gmt"  # the name the sentinels monitor the primary under
+SENTINEL_QUORUM = 2
+SENTINEL_DOWN_AFTER_MS = 1000  # a primary silent this long is down (for a sentinel; for all once 2 agree)
+SENTINEL_FAILOVER_TIMEOUT_MS = 3000  # a failover that stalls is retried after twice this
 INSTALL_HINT = "apt-get install nginx redis-server (.ci/run installs both)"
 _PLACEHOLDER = re.compile(r"\$\{(GMT_[A-Z0-9_]+)\}")
-# The order `down` stops them in: no new calls first, then the replicas (graceful), the store last.
-_STOP_ORDER = ("nginx", *REPLICAS, "redis")
+# The order `down` stops them in: no new calls first, then the replicas (graceful), then the sentinels (so that
+# stopping the primary starts no failover), the Redis servers last.
+_STOP_ORDER = ("nginx", *REPLICAS, *SENTINELS, *REDIS_NODES)
 
 # Processes this Python process started: polled (and so reaped) instead of probed by pid.
 _children: dict[int, subprocess.Popen] = {}
@@ -63,10 +75,26 @@ class Cluster:
     redis_url: str
     pids: dict[str, int]
     replicas: list[Replica] = field(default_factory=list)
+    ports: dict[str, int] = field(default_factory=dict)  # of the Redis servers and the sentinels, by name
 
     def replica(self, name: str) -> Replica:
         """The replica with this id."""
         return next(r for r in self.replicas if r.name == name)
+
+    def primary(self, timeout_s: float = 1.0) -> str | None:
+        """The Redis server (`redis`, `redis-replica`, ...) that a majority of the sentinels name as the primary
+        (None: no majority answers, or they name no server of this cluster)."""
+        named = [_sentinel_primary(self.host, self.ports[s], timeout_s) for s in SENTINELS]
+        by_port = {self.ports[n]: n for n in REDIS_NODES if n in self.ports}
+        for port in {p for p in named if p is not None}:
+            if named.count(port) >= SENTINEL_QUORUM:
+                return by_port.get(port)
+        return None
+
+    @property
+    def host(self) -> str:
+        """The interface every process binds."""
+        return self.grpc_target.rpartition(":")[0].strip("[]")
 
 
 # ----- helpers -------------------------------------------------------------------------------------------------
@@ -179,8 +207,8 @@ def _is_ours(name: str, pid: int) -> bool:
         return False
     if cmd == "":
         return True  # no /proc: trust the pid file
-    if name == "redis":
-        return "redis-server" in cmd
+    if name in REDIS_NODES or name in SENTINELS:
+        return "redis-server" in cmd or "redis-sentinel" in cmd
     if name == "nginx":
         return "nginx" in cmd
     return "serve" in cmd and name in cmd
@@ -231,6 +259,83 @@ def _redis_ping(host: str, port: int) -> bool:
         return False
 
 
+def _redis(host: str, port: int, timeout_s: float = 1.0):
+    import redis
+
+    return redis.Redis(host=host, port=port, socket_timeout=timeout_s, socket_connect_timeout=timeout_s)
+
+
+def _replica_in_sync(host: str, port: int, primary_port: int) -> bool:
+    """The replica at `port` is linked to its primary, the primary counts it online, and a write to the primary is
+    acknowledged by its replicas (WAIT): only then does a write with `--store-min-replicas` succeed."""
+    import redis
+
+    try:
+        with _redis(host, port) as r:
+            info = r.info("replication")
+        with _redis(host, primary_port) as r:
+            replicas = [v for k, v in r.info("replication").items() if re.fullmatch(r"slave\d+", k)]
+    except redis.RedisError:
+        return False
+    online = any(int(v.get("port", 0)) == port and v.get("state") == "online" for v in replicas)
+    if not (info.get("role") == "slave" and info.get("master_link_status") == "up" and online):
+        return False
+    try:  # and it acknowledges writes: WAIT counts it (seen: "online" a few hundred ms before it does)
+        with _redis(host, primary_port) as r:
+            r.set("gmt:replication-probe", b"1", px=1000)
+            return int(r.execute_command("WAIT", len(replicas), 200)) >= len(replicas)
+    except redis.RedisError:
+        return False
+
+
+def _sentinel_primary(host: str, port: int, timeout_s: float = 1.0) -> int | None:
+    """The port of the primary this sentinel names (None: it names none, or does not answer)."""
+    import redis
+
+    try:
+        with _redis(host, port, timeout_s) as r:
+            addr = r.sentinel_get_master_addr_by_name(SENTINEL_SERVICE)
+    except redis.RedisError:
+        return None
+    return int(addr[1]) if addr else None
+
+
+def _sentinel_ready(host: str, port: int, primary_port: int, replicas: int) -> bool:
+    """This sentinel sees the primary up, with every replica and the other two sentinels."""
+    import redis
+
+    try:
+        with _redis(host, port) as r:
+            m = r.sentinel_master(SENTINEL_SERVICE)
+    except redis.RedisError:
+        return False
+    return (
+        int(m["port"]) == primary_port
+        and m["is_master"]
+        and not (m["is_sdown"] or m["is_odown"])
+        and m["num-slaves"] == replicas
+        and m["num-other-sentinels"] == len(SENTINELS) - 1
+    )
+
+
+def sentinel_conf(host: str, port: int, primary_port: int, work_dir: Path) -> str:
+    """A sentinel's config file: loopback only, quorum 2, a primary silent for 1 s is down, short failovers."""
+    s = SENTINEL_SERVICE
+    return "\n".join(
+        [
+            f"bind {host}",
+            f"port {port}",
+            "daemonize no",
+            f"dir {work_dir.resolve()}",  # sentinels rewrite their config file (what they learn) here
+            f"sentinel monitor {s} {host} {primary_port} {SENTINEL_QUORUM}",
+            f"sentinel down-after-milliseconds {s} {SENTINEL_DOWN_AFTER_MS}",
+            f"sentinel failover-timeout {s} {SENTINEL_FAILOVER_TIMEOUT_MS}",
+            f"sentinel parallel-syncs {s} 1",
+            "",
+        ]
+    )
+
+
 def _http_ready(url: str) -> bool:
     import httpx
 
@@ -268,19 +373,22 @@ def up(
     rest_port: int = 8000,
     grpc_port: int = 50051,
     redis_port: int = 0,
+    store_min_replicas: int = 1,
     checkpoints: Sequence[Path] = (),
     serve_args: Sequence[str] = (),
     env: Mapping[str, str] | None = None,
     timeout_s: float = 180.0,
     template: Path = NGINX_TEMPLATE,
 ) -> Cluster:
-    """Start redis-server, the replicas and nginx; return once all are ready.
+    """Start the Redis servers, the sentinels, the replicas and nginx; return once all are ready.
 
     Args:
-        run_dir: Pid files, logs, Redis data (AOF) and nginx's files.
+        run_dir: Pid files, logs, Redis data (AOF), sentinel configs and nginx's files.
         host: The loopback (or other) interface every process binds.
         rest_port / grpc_port: Where nginx listens (0 = a free port).
-        redis_port: Redis's port (0 = a free port); the replicas' ports are always free ones.
+        redis_port: The Redis primary's port (0 = a free port); the other ports are always free ones.
+        store_min_replicas: Each replica's `--store-min-replicas` (Redis replicas that must hold a step before
+            it is acknowledged; at most the two there are).
         checkpoints: Passed to each replica as --checkpoints (none: its default, GMT_CHECKPOINTS or checkpoints/).
         serve_args: More `gmt serve` flags for both replicas (e.g. ["--batch-wait-ms", "5"]).
         env: The replicas' environment (default: this process's; GMT_* variables apply where no flag is given).
@@ -294,65 +402,82 @@ def up(
     missing = [n for n, exe in (("redis-server", redis_exe), ("nginx", nginx_exe)) if exe is None]
     if missing:
         raise ClusterError(f"{' and '.join(missing)} not installed ({INSTALL_HINT})")
+    if not 0 <= store_min_replicas < len(REDIS_NODES):
+        raise ClusterError(
+            f"store_min_replicas must be 0 to {len(REDIS_NODES) - 1}, got {store_min_replicas}"
+        )
     run_dir = Path(run_dir)
     running = [n for n, pid in _read_pids(run_dir).items() if _is_ours(n, pid)] if run_dir.exists() else []
     if running:
         raise ClusterError(f"a cluster already runs from {run_dir} ({', '.join(running)}); stop it first")
     for f in run_dir.glob("*.pid"):
         f.unlink()  # stale
-    (run_dir / "redis").mkdir(parents=True, exist_ok=True)
-    (run_dir / "nginx").mkdir(parents=True, exist_ok=True)
+    for name in (*REDIS_NODES, *SENTINELS, "nginx"):
+        (run_dir / name).mkdir(parents=True, exist_ok=True)
     rest_port = rest_port or free_port(host)
     grpc_port = grpc_port or free_port(host)
     _check_free(host, rest_port, "REST (nginx)")
     _check_free(host, grpc_port, "gRPC (nginx)")
     redis_port = redis_port or free_port(host)
     _check_free(host, redis_port, "Redis")
-    ports = [(free_port(host), free_port(host)) for _ in REPLICAS]
+    ports = {"redis": redis_port} | {n: free_port(host) for n in (*REDIS_NODES[1:], *SENTINELS)}
+    gmt_ports = [(free_port(host), free_port(host)) for _ in REPLICAS]
     h = f"[{host}]" if ":" in host else host
-    redis_url = f"redis://{h}:{redis_port}/0"
+    redis_url = f"redis+sentinel://{','.join(f'{h}:{ports[n]}' for n in SENTINELS)}/{SENTINEL_SERVICE}"
     deadline = time.monotonic() + timeout_s
+    pids: dict[str, int] = {}
     try:
-        pids = {
-            "redis": _spawn(
-                "redis",
-                [
-                    redis_exe,
-                    "--bind", host,
-                    "--port", str(redis_port),
-                    "--dir", str((run_dir / "redis").resolve()),
-                    "--appendonly", "yes",
-                    "--appendfsync", "everysec",
-                    "--save", "",
-                    "--daemonize", "no",
-                ],
-                run_dir,
+        for name in REDIS_NODES:
+            cmd = [
+                redis_exe,
+                "--bind", host,
+                "--port", str(ports[name]),
+                "--dir", str((run_dir / name).resolve()),
+                "--appendonly", "yes",
+                "--appendfsync", "everysec",
+                "--save", "",
+                "--repl-diskless-sync-delay", "0",  # a replica's full sync starts at once (default: after 5 s)
+                "--daemonize", "no",
+            ]  # fmt: skip
+            if name != "redis":
+                cmd += ["--replicaof", host, str(redis_port)]
+            pids[name] = _spawn(name, cmd, run_dir)
+        for name in REDIS_NODES:
+            ready = (
+                (lambda: _redis_ping(host, redis_port))
+                if name == "redis"
+                else (lambda n=name: _replica_in_sync(host, ports[n], redis_port))
             )
-        }  # fmt: skip
-        _wait(
-            "redis-server",
-            lambda: _redis_ping(host, redis_port),
-            pids["redis"],
-            run_dir / "redis.log",
-            deadline,
-        )
+            _wait(name, ready, pids[name], run_dir / f"{name}.log", deadline)
+        # Started once the replicas are in sync: a sentinel learns them from the primary's first INFO answer.
+        for name in SENTINELS:
+            conf = run_dir / name / "sentinel.conf"
+            conf.write_text(sentinel_conf(host, ports[name], redis_port, run_dir / name))
+            pids[name] = _spawn(name, [redis_exe, str(conf.resolve()), "--sentinel"], run_dir)
 
         exe = Path(sys.executable).parent / "gmt"
         gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"]
         ckpt = [a for c in checkpoints for a in ("--checkpoints", str(c))]
         replicas = []
-        for name, (rest, grpc_) in zip(REPLICAS, ports, strict=True):
+        for name, (rest, grpc_) in zip(REPLICAS, gmt_ports, strict=True):
             cmd = [*gmt, "serve", "--replica-id", name, "--host", host, "--rest-port", str(rest)]
-            cmd += ["--grpc-port", str(grpc_), "--redis-url", redis_url, *ckpt, *serve_args]
+            cmd += ["--grpc-port", str(grpc_), "--redis-url", redis_url]
+            cmd += ["--store-min-replicas", str(store_min_replicas), *ckpt, *serve_args]
             pids[name] = _spawn(name, cmd, run_dir, env)
             replicas.append(Replica(name, pids[name], rest, grpc_))
 
         conf = run_dir / "nginx" / "nginx.conf"
-        conf.write_text(render_nginx_conf(nginx_values(run_dir, host, rest_port, grpc_port, ports), template))
+        conf.write_text(
+            render_nginx_conf(nginx_values(run_dir, host, rest_port, grpc_port, gmt_ports), template)
+        )
         nginx_dir = (run_dir / "nginx").resolve()
         cmd = [nginx_exe, "-p", str(nginx_dir), "-c", str(conf.resolve()), "-e", str(nginx_dir / "error.log")]
         pids["nginx"] = _spawn("nginx", [*cmd, "-g", "daemon off;"], run_dir)
 
+        replica_count = len(REDIS_NODES) - 1
+        for name in SENTINELS:
+            ready = lambda n=name: _sentinel_ready(host, ports[n], redis_port, replica_count)  # noqa: E731
+            _wait(name, ready, pids[name], run_dir / f"{name}.log", deadline)
         for r in replicas:
             log = run_dir / f"{r.name}.log"
             _wait(r.name, lambda r=r: _http_ready(f"http://{h}:{r.rest_port}/readyz"), r.pid, log, deadline)
@@ -363,7 +488,7 @@ def up(
     except BaseException:
         down(run_dir, quiet=True)
         raise
-    cluster = Cluster(run_dir, rest_url, grpc_target, redis_url, pids, replicas)
+    cluster = Cluster(run_dir, rest_url, grpc_target, redis_url, pids, replicas, ports)
     state = {**asdict(cluster), "run_dir": str(run_dir)}
     (run_dir / "cluster.json").write_text(json.dumps(state, indent=2) + "\n")
     return cluster
@@ -388,8 +513,16 @@ def down(run_dir: Path = DEFAULT_RUN_DIR, *, timeout_s: float = 15.0, quiet: boo
     pids = _read_pids(run_dir) if run_dir.exists() else {}
     order = sorted(pids, key=lambda n: _STOP_ORDER.index(n) if n in _STOP_ORDER else len(_STOP_ORDER))
     outcome: dict[str, str] = {}
-    # nginx first (no new calls), then every replica at once (graceful, GMT_SHUTDOWN_GRACE_S), Redis last.
-    for group in (["nginx"], [n for n in order if n not in ("nginx", "redis")], ["redis"]):
+    # nginx first (no new calls), then every replica at once (graceful, GMT_SHUTDOWN_GRACE_S), the sentinels
+    # (no failover while the Redis servers stop), the Redis servers last.
+    store = (*SENTINELS, *REDIS_NODES)
+    groups = (
+        ["nginx"],
+        [n for n in order if n != "nginx" and n not in store],
+        list(SENTINELS),
+        list(REDIS_NODES),
+    )
+    for group in groups:
         live = {}
         for name in (n for n in group if n in pids):
             pid = pids[name]
@@ -424,7 +557,7 @@ def down(run_dir: Path = DEFAULT_RUN_DIR, *, timeout_s: float = 15.0, quiet: boo
 
 # ----- the command ---------------------------------------------------------------------------------------------
 app = typer.Typer(
-    help="The scale-out topology on loopback: redis-server, two gmt serve replicas and nginx (docker/nginx.conf).",
+    help="The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
     no_args_is_help=True,
 )
 
@@ -432,11 +565,16 @@ app = typer.Typer(
 @app.command("up", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def up_command(
     ctx: typer.Context,
-    run_dir: Path = typer.Option(DEFAULT_RUN_DIR, help="Pid files, logs, Redis data and nginx files."),
+    run_dir: Path = typer.Option(
+        DEFAULT_RUN_DIR, help="Pid files, logs, Redis data, sentinel and nginx files."
+    ),
     host: str = typer.Option("127.0.0.1", help="Interface every process binds."),
     rest_port: int = typer.Option(8000, help="nginx's REST port (0 = any free port)."),
     grpc_port: int = typer.Option(50051, help="nginx's gRPC port (0 = any free port)."),
-    redis_port: int = typer.Option(0, help="Redis's port (0 = any free port)."),
+    redis_port: int = typer.Option(0, help="The Redis primary's port (0 = any free port)."),
+    store_min_replicas: int = typer.Option(
+        1, help="Redis replicas that must hold a step before a gmt replica acknowledges it (0, 1 or 2)."
+    ),
     checkpoints: list[Path] = typer.Option(
         None, "--checkpoints", "-c", help="Checkpoints for both replicas (default: theirs, checkpoints/)."
     ),
@@ -451,6 +589,7 @@ def up_command(
             rest_port=rest_port,
             grpc_port=grpc_port,
             redis_port=redis_port,
+            store_min_replicas=store_min_replicas,
             checkpoints=checkpoints or (),
             serve_args=list(ctx.args),
             timeout_s=timeout,
@@ -461,7 +600,13 @@ def up_command(
     typer.echo(f"REST {c.rest_url}  gRPC {c.grpc_target}  (through nginx)")
     for r in c.replicas:
         typer.echo(f"{r.name}: pid {r.pid}, REST :{r.rest_port}, gRPC :{r.grpc_port}")
-    typer.echo(f"redis: pid {c.pids['redis']}, {c.redis_url} (AOF in {run_dir}/redis)")
+    for name in REDIS_NODES:
+        typer.echo(f"{name}: pid {c.pids[name]}, :{c.ports[name]} (AOF in {run_dir}/{name})")
+    for name in SENTINELS:
+        typer.echo(f"{name}: pid {c.pids[name]}, :{c.ports[name]}")
+    typer.echo(
+        f"store: {c.redis_url} (primary: redis; acknowledged once {store_min_replicas} replica(s) hold it)"
+    )
     typer.echo(f"nginx: pid {c.pids['nginx']}; pids in {run_dir}/*.pid, logs in {run_dir}/*.log")
 
 

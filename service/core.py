@@ -183,9 +183,9 @@ class Core:
             )
         if self.store is None:
             if s.redis_url:
-                from service.redis_store import RedisSessionStore
+                from service.redis_store import store_for
 
-                self.store = RedisSessionStore(s.redis_url, s.idle_timeout_s, s.max_sessions, self.clock)
+                self.store = store_for(s, self.clock)
                 await self.store.ping()
             else:
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)

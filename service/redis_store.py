@@ -13,6 +13,10 @@ version, so a change by another replica meanwhile is detected (`aborted`: the co
 on the next request). The writes of one event-loop turn (one micro-batch, one batch call) go to Redis in one
 pipeline, and each change is answered once that pipeline is acknowledged: an answered step is a stored step.
 
+With a minimum number of replicas (`--store-min-replicas`), every write that answers a client is followed on the
+same connection by `WAIT`: a change is acknowledged only once that many Redis replicas hold it, so a replica that
+Sentinel promotes has every acknowledged step (docs/reliability.md).
+
 Expiry follows each session's own `last_used`; `live`'s scores are refreshed by each replica's sweep (for the
 sessions it served), so they can be stale by one sweep period and the sweep checks the session itself before it
 expires one. Redis key TTLs only collect sessions nobody touched for twice the timeout.
@@ -21,6 +25,7 @@ expires one. Redis key TTLs only collect sessions nobody touched for twice the t
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import uuid
 from collections import Counter
 from dataclasses import dataclass
@@ -37,6 +42,7 @@ from service.errors import (
     Unavailable,
 )
 from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
+from service.settings import Settings
 
 TOMBSTONE_TTL_S = 86_400
 
@@ -53,15 +59,26 @@ redis.call('PEXPIRE', KEYS[2], ARGV[4])
 return -1
 """
 
-# KEYS: session hash. ARGV: the expected `ver` ('' = any), key TTL ms, then field/value pairs.
-# Returns 0 when written, -1 when the session is gone (never revived), -2 when another writer came first.
+# Many sessions' changes in one call (one per session on Redis Cluster, where one call may touch one slot only).
+# KEYS: session hashes. ARGV: key TTL ms, then per key: the expected `ver` ('' = any), the number of fields, the
+# field/value pairs. Returns per key 0 when written, -1 when the session is gone (never revived), -2 when another
+# writer came first.
 _SAVE = """
-local cur = redis.call('HGET', KEYS[1], 'ver')
-if not cur then return -1 end
-if ARGV[1] ~= '' and cur ~= ARGV[1] then return -2 end
-redis.call('HSET', KEYS[1], unpack(ARGV, 3))
-redis.call('PEXPIRE', KEYS[1], ARGV[2])
-return 0
+local ttl, a, out = ARGV[1], 2, {}
+for i = 1, #KEYS do
+  local expect, n = ARGV[a], tonumber(ARGV[a + 1])
+  a = a + 2
+  local cur = redis.call('HGET', KEYS[i], 'ver')
+  if not cur then out[i] = -1
+  elseif expect ~= '' and cur ~= expect then out[i] = -2
+  else
+    redis.call('HSET', KEYS[i], unpack(ARGV, a, a + 2 * n - 1))
+    redis.call('PEXPIRE', KEYS[i], ttl)
+    out[i] = 0
+  end
+  a = a + 2 * n
+end
+return out
 """
 
 
@@ -76,35 +93,49 @@ class _Held:
 
 
 class RedisSessionStore(SessionStore):
-    """A `SessionStore` over a Redis server (redis-py asyncio client).
+    """A `SessionStore` over Redis: one server, or a primary that Redis Sentinel watches (redis-py asyncio client).
 
     Args:
-        url: Redis URL, e.g. redis://localhost:6379/0.
+        url: Redis URL, e.g. redis://localhost:6379/0 or redis+sentinel://h1:26379,h2:26379/mymaster
+            (`service.redis_connect`).
         idle_timeout_s: Sessions unused for longer expire.
         max_sessions: Live sessions allowed at once, counted over all replicas.
         clock: Wall-clock seconds; replicas must agree, so use real time outside tests.
         prefix: Key prefix.
+        min_replicas: Redis replicas that must hold a write before it is acknowledged (0: do not wait).
+        wait_timeout_s: Longest wait for them.
     """
 
     def __init__(
-        self, url: str, idle_timeout_s: float, max_sessions: int, clock: Clock, prefix: str = "gmt:"
+        self,
+        url: str,
+        idle_timeout_s: float,
+        max_sessions: int,
+        clock: Clock,
+        prefix: str = "gmt:",
+        *,
+        min_replicas: int = 0,
+        wait_timeout_s: float = 1.0,
     ) -> None:
         super().__init__(idle_timeout_s, max_sessions, clock)
         import redis.asyncio as aioredis  # optional dependency: only needed with --redis-url
 
+        from service import redis_connect
+
         self._errors = (aioredis.RedisError, OSError)
-        # A bounded pool that makes callers wait for a free connection: the default pool answers "Too many
-        # connections" once 100 requests are in flight (seen at 256 concurrent sessions through nginx).
-        # Socket timeouts bound a call to a paused or unreachable Redis: it answers `unavailable` (retryable).
-        pool = aioredis.BlockingConnectionPool.from_url(
-            url, max_connections=64, timeout=10, socket_timeout=5, socket_connect_timeout=5
-        )
-        self.redis = aioredis.Redis(connection_pool=pool)
+        # A bounded pool that makes callers wait for a free connection (the default pool answered "Too many
+        # connections" past 100 requests in flight); socket timeouts bound a call to a paused or unreachable Redis:
+        # it answers `unavailable` (retryable).
+        self._client = redis_connect.connect(url, max_connections=64, pool_timeout_s=10, socket_timeout_s=5)
+        self.redis = self._client.redis
+        self.min_replicas = min_replicas
+        self._wait_ms = max(1, round(wait_timeout_s * 1000))
+        # Sessions whose last write here may not have reached `min_replicas` replicas: confirmed before use.
+        self._unconfirmed: set[str] = set()
         self.prefix = prefix
         self._live = f"{prefix}live"
         self._epoch_key = f"{prefix}epoch"
         self._epoch: bytes | None = None  # the store's epoch when this replica last checked (None: not yet)
-        self._create = self.redis.register_script(_CREATE)
         self._held: dict[str, _Held] = {}
         # id -> (model, last use) of every session created or read here: what this replica may soon serve (the
         # micro-batcher waits for as many acts as there are such sessions).
@@ -157,12 +188,33 @@ class RedisSessionStore(SessionStore):
         return NotFound(not_found_message(sid) + "; or the session store lost its data")
 
     # ----- sessions ---------------------------------------------------------------------------------------------
+    def _not_replicated(self, acked: int | None) -> Unavailable | None:
+        if acked is None or acked >= self.min_replicas:
+            return None
+        return Unavailable(
+            f"session store: the write reached {acked} of the {self.min_replicas} Redis replica(s) required "
+            f"within {self._wait_ms} ms, so it is not acknowledged; retry (an act with the same step is "
+            "answered without stepping twice)"
+        )
+
     async def create(self, session: Session) -> None:
         flat = _flat(session_codec.create_fields(session))
         args = [repr(self.clock()), self.max_sessions, session.id, self._ttl_ms]
+        keys = [self._live, self._key(session.id)]
         for attempt in range(2):
-            n = await self._call(self._create(keys=[self._live, self._key(session.id)], args=args + flat))
+            async with self.redis.pipeline(transaction=False) as p:
+                p.eval(_CREATE, len(keys), *keys, *args, *flat)
+                if self.min_replicas:  # on the same connection: WAIT counts the writes of its own connection
+                    p.wait(self.min_replicas, self._wait_ms)
+                n, *acked = await self._call(p.execute())
             if n == -1:
+                if (e := self._not_replicated(acked[0] if acked else None)) is not None:
+                    # Nobody will learn of this session (the client creates it again): take it back if Redis can.
+                    async with self.redis.pipeline(transaction=True) as p:
+                        p.delete(self._key(session.id)).zrem(self._live, session.id)
+                        with contextlib.suppress(*self._errors):
+                            await p.execute()
+                    raise e
                 self._see(session.id, session.model, session.last_used)
                 return
             if n == -2:
@@ -177,9 +229,13 @@ class RedisSessionStore(SessionStore):
         held = self._held.get(sid)
         if held is not None and not self.is_idle(held.session):
             return held.session  # served here, and the compare-and-set write will notice any other writer
-        fields = await self._call(self.redis.hgetall(self._key(sid)))
+        if sid in self._unconfirmed:
+            fields = await self._confirmed_read(sid)
+        else:
+            fields = await self._call(self.redis.hgetall(self._key(sid)))
         if not fields:
             self._forget(sid)
+            self._unconfirmed.discard(sid)
             raise await self._missing(sid)
         try:
             s = session_codec.decode(fields)
@@ -195,6 +251,21 @@ class RedisSessionStore(SessionStore):
         self._see(sid, s.model, s.last_used)
         return s
 
+    async def _confirmed_read(self, sid: str) -> dict:
+        """The session's fields, once `min_replicas` replicas hold them: a retry after a write that was not
+        acknowledged may be answered from that write, which must not be acknowledged before it is replicated.
+
+        PEXPIRE (the key's TTL again) is a write, and WAIT after it covers every write before it on the primary's
+        replication stream, the session's last one included."""
+        key = self._key(sid)
+        async with self.redis.pipeline(transaction=False) as p:
+            p.hgetall(key).pexpire(key, self._ttl_ms).wait(self.min_replicas, self._wait_ms)
+            fields, _, acked = await self._call(p.execute())
+        if fields and (e := self._not_replicated(acked)) is not None:
+            raise e
+        self._unconfirmed.discard(sid)
+        return fields
+
     async def save(self, session: Session, read_version: int | None = None) -> None:
         held = self._held.get(session.id)
         if held is None or held.session is not session:
@@ -204,9 +275,11 @@ class RedisSessionStore(SessionStore):
         fields = session_codec.change_fields(session, held.step)
         expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
         try:
-            n = await self._write(session.id, [expect, self._ttl_ms, *_flat(fields)])
+            n = await self._write(session.id, [expect, len(fields), *_flat(fields)])
         except ServiceError:
-            self._forget(session.id)  # unknown whether it was written: adopt afresh next time
+            self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
+            if self.min_replicas:
+                self._unconfirmed.add(session.id)
             raise
         if n == -1:
             self._forget(session.id)
@@ -234,13 +307,18 @@ class RedisSessionStore(SessionStore):
         """Send the queued writes in one pipeline and answer each."""
         queue, self._queue = self._queue, []
         try:
-            # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
+            # One script call for the whole turn (EVAL, not EVALSHA: no script-cache round trip, and a promoted
+            # replica needs no script loaded), then WAIT on the same connection when replicas must hold it.
+            keys = [self._key(sid) for sid, _, _ in queue]
+            argv = [self._ttl_ms, *(a for _, args, _ in queue for a in args)]
             async with self.redis.pipeline(transaction=False) as p:
-                for sid, args, _ in queue:
-                    p.eval(_SAVE, 1, self._key(sid), *args)
-                results = await self._call(p.execute(raise_on_error=False))
+                p.eval(_SAVE, len(keys), *keys, *argv)
+                if self.min_replicas:
+                    p.wait(self.min_replicas, self._wait_ms)
+                results, *acked = await self._call(p.execute())
             if len(results) != len(queue):
                 raise Internal(f"the store answered {len(results)} of {len(queue)} writes")
+            short = self._not_replicated(acked[0] if acked else None)
         except BaseException as e:  # noqa: BLE001 - every waiter gets the failure
             err = e if isinstance(e, ServiceError) else Unavailable(f"session store unreachable: {e}")
             for *_, fut in queue:
@@ -252,12 +330,13 @@ class RedisSessionStore(SessionStore):
         for (*_, fut), r in zip(queue, results, strict=True):
             if fut.done():
                 continue
-            if isinstance(r, Exception):
-                fut.set_exception(Unavailable(f"session store write failed: {r}"))
+            if short is not None and int(r) == 0:
+                fut.set_exception(short)  # written on the primary only: not acknowledged (`save` marks it)
             else:
                 fut.set_result(int(r))
 
     async def _expire(self, sid: str) -> None:
+        self._unconfirmed.discard(sid)
         async with self.redis.pipeline(transaction=True) as p:
             p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"1", ex=TOMBSTONE_TTL_S)
             await self._call(p.execute())
@@ -285,6 +364,7 @@ class RedisSessionStore(SessionStore):
             p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"closed", ex=TOMBSTONE_TTL_S)
             await self._call(p.execute())
         self._forget(sid)
+        self._unconfirmed.discard(sid)
 
     async def count(self) -> int:
         return int(await self._call(self.redis.zcard(self._live)))
@@ -330,8 +410,7 @@ class RedisSessionStore(SessionStore):
         return self._seen_per_model[model]  # every held session was seen
 
     async def close(self) -> None:
-        await self.redis.aclose()
-        await self.redis.connection_pool.disconnect()  # a pool passed in is not closed by the client
+        await self._client.aclose()
 
 
 def _flat(fields: dict[str, bytes]) -> list:
@@ -345,4 +424,18 @@ def _aborted(sid: str) -> str:
     return (
         f"session {sid!r} was changed by another replica while this request ran; retry the request (with the same "
         "step: a repeat is answered without stepping twice)"
+    )
+
+
+def store_for(settings: Settings, clock: Clock) -> RedisSessionStore | None:
+    """The Redis store `settings` ask for (URL, idle timeout, maximum sessions, replicas to wait for), or None."""
+    if not settings.redis_url:
+        return None
+    return RedisSessionStore(
+        settings.redis_url,
+        settings.idle_timeout_s,
+        settings.max_sessions,
+        clock,
+        min_replicas=settings.store_min_replicas,
+        wait_timeout_s=settings.store_wait_timeout_s,
     )

@@ -25,16 +25,25 @@ def serve_command(**flags: Any) -> None:
     from pydantic import ValidationError
 
     from service import logs
+    from service.errors import Unavailable
     from service.server import serve
 
     try:
         settings = Settings(**{k: v for k, v in flags.items() if v is not None and v != [] and v != ()})
-    except ValidationError as e:
-        raise typer.BadParameter(str(e)) from None
+    except ValidationError as e:  # each problem by its setting; not the input, which may hold a password
+        problems = [
+            f"{'.'.join(map(str, err['loc'])) or 'settings'}: {err['msg']}"
+            for err in e.errors(include_url=False, include_input=False)
+        ]
+        raise typer.BadParameter("; ".join(problems)) from None
     logs.configure(settings.log_format, settings.log_level)
-    if settings.event_loop == "uvloop":
-        import uvloop
+    try:
+        if settings.event_loop == "uvloop":
+            import uvloop
 
-        uvloop.run(serve(settings))
-    else:
-        asyncio.run(serve(settings))
+            uvloop.run(serve(settings))
+        else:
+            asyncio.run(serve(settings))
+    except Unavailable as e:  # the session store did not answer at startup
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None

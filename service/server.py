@@ -8,6 +8,7 @@ import functools
 import logging
 import signal
 import socket
+import time
 
 import uvicorn
 
@@ -51,12 +52,20 @@ class Server:
 
     Args:
         settings: Server settings.
-        core: A core to serve (default: built from settings); the REST lifespan starts it, `stop` closes it.
+        core: A core to serve (default: built from settings, with the Redis store they name); the REST lifespan
+            starts it, `stop` closes it.
     """
 
     def __init__(self, settings: Settings, core: Core | None = None) -> None:
         self.settings = settings
-        self.core = core or Core(settings)
+        if core is None:
+            store = None
+            if settings.redis_url:  # built here with every store setting (Core builds one from the URL alone)
+                from service.redis_store import store_for
+
+                store = store_for(settings, time.time)
+            core = Core(settings, store=store)
+        self.core = core
         self.rest_port = 0
         self.grpc_port = 0
         self._grpc: GrpcServer | None = None
@@ -68,6 +77,13 @@ class Server:
         and `grpc_port`.
         """
         s = self.settings
+        store = self.core.store
+        if store is not None and not self.core.started and hasattr(store, "ping"):
+            try:  # Core checks only a store it built: fail now if Redis is unreachable
+                await store.ping()
+            except BaseException:
+                await self.core.close()
+                raise
         sock = _bind(s.host, s.rest_port)
         self.rest_port = sock.getsockname()[1]
         caps = connection_caps(s)

@@ -8,7 +8,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 _REPLICA_ID = re.compile(r"[\x21-\x7e]{1,128}")  # valid in an HTTP header and in gRPC metadata
@@ -30,7 +30,12 @@ class Settings(BaseSettings):
         inference_threads: Worker threads running forward passes (and torch intra-op threads).
         max_request_bytes: Largest REST body / gRPC message accepted.
         auth_token: Bearer token required on every call except health checks (None = no auth).
-        redis_url: Keep sessions in this Redis (e.g. redis://localhost:6379/0) instead of in memory.
+        redis_url: Keep sessions in this Redis instead of in memory: one server (redis://localhost:6379/0) or the
+            primary that Redis Sentinel watches (redis+sentinel://h1:26379,h2:26379,h3:26379/<service-name>, a
+            database number may follow: /<service-name>/1).
+        store_min_replicas: With a Redis store, acknowledge a step (and a new session) only once this many Redis
+            replicas hold it (Redis WAIT); fewer within the wait timeout answers `unavailable` (0 = do not wait).
+        store_wait_timeout_s: Longest wait for those replicas (under the store's 5 s socket timeout).
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
@@ -76,6 +81,8 @@ class Settings(BaseSettings):
     max_request_bytes: int = Field(1 << 20, ge=1024)
     auth_token: SecretStr | None = None
     redis_url: str | None = None
+    store_min_replicas: int = Field(0, ge=0)
+    store_wait_timeout_s: float = Field(1.0, gt=0, le=4.0)
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
@@ -104,6 +111,23 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
+
+    @field_validator("redis_url")
+    @classmethod
+    def _valid_store_url(cls, v: str | None) -> str | None:
+        if v is not None:
+            from service.redis_connect import parse_redis_url
+
+            parse_redis_url(v)  # a ValueError naming the problem
+        return v
+
+    @model_validator(mode="after")
+    def _replicas_need_redis(self) -> Settings:
+        if self.store_min_replicas and not self.redis_url:
+            raise ValueError(
+                "store_min_replicas needs a Redis store (redis_url): sessions in memory have no replicas"
+            )
+        return self
 
     @field_validator("replica_id")
     @classmethod

@@ -9,9 +9,11 @@ import resource
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from service.core import Core
+from service.redis_store import store_for
 from service.server import Server
 from service.settings import Settings
 
@@ -36,7 +38,8 @@ class RunningServer:
 
     def __init__(self, settings: Settings, clock=None) -> None:
         self.settings = settings
-        self.core = Core(settings, clock=clock) if clock else Core(settings)
+        clock = clock or time.time
+        self.core = Core(settings, store=store_for(settings, clock), clock=clock)  # as `Server` builds it
         self.server = Server(settings, self.core)
         self._started = threading.Event()
         self._error: BaseException | None = None

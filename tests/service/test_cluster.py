@@ -1,7 +1,8 @@
-"""The scale-out topology for real (DESIGN.md section 8): `gmt cluster up` starts redis-server, two `gmt serve`
-replicas and nginx with the shipped docker/nginx.conf on free loopback ports. nginx routes each session to one
-replica, and when that replica is killed (SIGKILL) while a request is in flight, the clients' retries (with the
-expected step) continue the episode on the other one with exactly the actions of an uninterrupted twin."""
+"""The scale-out topology for real (DESIGN.md section 8): `gmt cluster up` starts a Redis primary, two Redis
+replicas and three sentinels, two `gmt serve` replicas and nginx with the shipped docker/nginx.conf on free
+loopback ports. nginx routes each session to one replica, and when that replica is killed (SIGKILL) while a
+request is in flight, the clients' retries (with the expected step) continue the episode on the other one with
+exactly the actions of an uninterrupted twin. (The Redis primary killed: tests/service/test_failover.py.)"""
 
 from __future__ import annotations
 
@@ -65,17 +66,39 @@ def test_the_template_and_compose_agree():
     assert set(re.findall(r"^\s+(GMT_[A-Z0-9_]+):", nginx_service, flags=re.M)) == placeholders
     assert "GMT_AUTH_TOKEN: ${GMT_AUTH_TOKEN:?" in compose and '"--appendonly", "yes"' in compose
     assert "GMT_REPLICA_ID: gmt-1" in compose and "GMT_REPLICA_ID: gmt-2" in compose
-    assert compose.count("condition: service_healthy") == 3
+    # The same store as `gmt cluster up`: every Redis server and sentinel of the native topology is a service,
+    # the replicas follow the primary, the sentinels watch it with its quorum and timings, and the gmt replicas
+    # reach it through all three sentinels, acknowledging a step once a Redis replica holds it.
+    services = compose[compose.index("\nservices:") : compose.index("\n  gmt-1:")]
+    for name in (*cluster.REDIS_NODES, *cluster.SENTINELS):
+        assert f"\n  {name}:" in services, name
+    assert services.count('"--replicaof", "redis", "6379"') == len(cluster.REDIS_NODES) - 1
+    assert f"sentinel monitor gmt redis 6379 {cluster.SENTINEL_QUORUM}" in compose
+    assert f"down-after-milliseconds gmt {cluster.SENTINEL_DOWN_AFTER_MS}" in compose
+    assert f"failover-timeout gmt {cluster.SENTINEL_FAILOVER_TIMEOUT_MS}" in compose
+    sentinels = ",".join(f"{n}:26379" for n in cluster.SENTINELS)
+    assert f"GMT_REDIS_URL: redis+sentinel://{sentinels}/{cluster.SENTINEL_SERVICE}" in compose
+    assert 'GMT_STORE_MIN_REPLICAS: "1"' in compose
+    assert compose.count("condition: service_healthy") == 9  # replicas, sentinels, gmt, nginx wait for theirs
     with pytest.raises(cluster.ClusterError, match="without a value"):
         cluster.render_nginx_conf({"GMT_REST_1": "x"})
 
 
 @needs_programs
-def test_a_replica_that_cannot_start_fails_up_and_leaves_nothing_running(tmp_path):
+def test_a_replica_that_cannot_start_fails_up_and_leaves_nothing_running(tmp_path, monkeypatch):
     run_dir = tmp_path / "cluster"
+    spawned, spawn = {}, cluster._spawn
+
+    def recorded(name, *args, **kw):
+        spawned[name] = spawn(name, *args, **kw)
+        return spawned[name]
+
+    monkeypatch.setattr(cluster, "_spawn", recorded)
     with pytest.raises(cluster.ClusterError, match=r"gmt-1 exited while starting(.|\n)*no-such-flag"):
         cluster.up(run_dir, rest_port=0, grpc_port=0, serve_args=["--no-such-flag"], timeout_s=60)
     assert not list(run_dir.glob("*.pid"))
+    assert {*cluster.REDIS_NODES, *cluster.SENTINELS, "gmt-1"} <= set(spawned)
+    assert not [name for name, pid in spawned.items() if cluster._alive(pid)]  # redis-server renames itself
     if Path("/proc/self").exists():  # redis-server and nginx, started before the replica failed, are gone
         left = [
             p for p in Path("/proc").glob("[0-9]*") if str(run_dir) in (cluster._cmdline(int(p.name)) or "")
@@ -119,15 +142,36 @@ def grpc_replica(stub, sid: str) -> str:
 
 @needs_programs
 def test_cluster_is_up_with_one_pid_file_per_process(running):
-    assert sorted(p.name for p in running.run_dir.glob("*.pid")) == [
-        "gmt-1.pid",
-        "gmt-2.pid",
-        "nginx.pid",
-        "redis.pid",
+    assert sorted(p.stem for p in running.run_dir.glob("*.pid")) == [
+        "gmt-1",
+        "gmt-2",
+        "nginx",
+        "redis",
+        "redis-replica",
+        "redis-replica-2",
+        "sentinel-1",
+        "sentinel-2",
+        "sentinel-3",
     ]
     for name, pid in running.pids.items():
         assert int((running.run_dir / f"{name}.pid").read_text()) == pid
         assert cluster._is_ours(name, pid), name
+    # The store: both Redis replicas in sync, every sentinel naming the primary (loopback, quorum 2, 1 s), and the
+    # gmt replicas reaching it through the sentinels, acknowledging a step once a Redis replica holds it.
+    assert running.primary() == "redis"
+    primary_port = running.ports["redis"]
+    assert all(
+        cluster._replica_in_sync("127.0.0.1", running.ports[n], primary_port) for n in cluster.REDIS_NODES[1:]
+    )
+    for name in cluster.SENTINELS:
+        assert cluster._sentinel_ready("127.0.0.1", running.ports[name], primary_port, 2), name
+        conf = (running.run_dir / name / "sentinel.conf").read_text()
+        assert "bind 127.0.0.1\n" in conf and "down-after-milliseconds gmt 1000" in conf
+    sentinels = ",".join(f"127.0.0.1:{running.ports[n]}" for n in cluster.SENTINELS)
+    assert running.redis_url == f"redis+sentinel://{sentinels}/gmt"
+    for name in cluster.REPLICAS:
+        cmd = cluster._cmdline(running.pids[name])
+        assert f"--redis-url {running.redis_url}" in cmd and "--store-min-replicas 1" in cmd
     r = httpx.get(f"{running.rest_url}/readyz")
     assert r.status_code == 200 and r.headers["x-served-by"] in ("gmt-1", "gmt-2")
     r = httpx.get(f"{running.rest_url}/no/such/route")
@@ -305,7 +349,8 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
 def test_cluster_down_stops_exactly_its_processes(running):
     pids = dict(running.pids)
     outcome = cluster.down(running.run_dir, timeout_s=10, quiet=True)
-    assert outcome == {"nginx": "stopped", "gmt-1": "not running", "gmt-2": "stopped", "redis": "stopped"}
+    stopped = {name: "stopped" for name in (*cluster.SENTINELS, *cluster.REDIS_NODES, "nginx", "gmt-2")}
+    assert outcome == {**stopped, "gmt-1": "not running"}
     assert not list(running.run_dir.glob("*.pid"))
     assert not any(cluster._alive(pid) for pid in pids.values())
     assert (running.run_dir / "redis" / "appendonlydir").is_dir()  # Redis kept an AOF
