@@ -1,7 +1,7 @@
 """The one client interface both transports implement, the values it returns, and the Session handle.
 
-`PolicyClient` is what the runner and users code against; `clients.rest.RestClient` and
-`clients.grpc.GrpcClient` implement it.
+`PolicyClient` is what the runner and users code against; `gmt.client.rest.RestClient` and
+`gmt.client.grpc.GrpcClient` implement it.
 
 Retries (a few, with exponential backoff) never apply anything twice:
 - a call that never reached a server (refused connection) is always retried;
@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from clients.errors import ConnectionFailed, ServiceError
+from gmt.client.errors import ConnectionFailed, ServiceError
 
 T = TypeVar("T")
 
@@ -51,7 +51,7 @@ class GoalInfo:
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """A served model: its environment, spaces (as `clients.spaces.space_to_dict` dicts) and goals."""
+    """A served model: its environment, spaces (as `gmt.client.spaces.space_to_dict` dicts) and goals."""
 
     name: str
     env_id: str

@@ -10,10 +10,10 @@ from typing import Any
 
 import typer
 
-from clients.base import DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
-from clients.cli_support import dataclass_flags, field_docs, with_flags
-from clients.extras import MissingExtra
-from clients.runner import RunConfig
+from gmt.client.base import DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
+from gmt.client.cli_support import dataclass_flags, field_docs, with_flags
+from gmt.client.extras import MissingExtra
+from gmt.client.runner import RunConfig
 
 # Options from the configuration they fill (`RunConfig`) and the clients' defaults; goal and schedule are parsed.
 RUN_FLAGS = dataclass_flags(RunConfig, skip=("goal", "schedule", "transport"), names={"env_id": ("--env",)})
@@ -42,9 +42,9 @@ def run_command(
     """Drive an agent remotely: send observations, apply actions, report each goal segment."""
     import gymnasium as gym
 
-    from clients.envs import SpaceMismatch
-    from clients.errors import ServiceError
-    from clients.runner import StatusLine, parse_goal, parse_schedule, run
+    from gmt.client.envs import SpaceMismatch
+    from gmt.client.errors import ServiceError
+    from gmt.client.runner import StatusLine, parse_goal, parse_schedule, run
 
     if flags["video"] and flags["out"] is None:
         raise typer.BadParameter("--video needs --out DIR for the MP4 files", param_hint="--video")
@@ -58,11 +58,11 @@ def run_command(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     if grpc:
-        from clients.grpc import GrpcClient
+        from gmt.client.grpc import GrpcClient
 
         client = GrpcClient(grpc, timeout_s=timeout, retries=retries, token=token, stream=stream)
     else:
-        from clients.rest import RestClient
+        from gmt.client.rest import RestClient
 
         client = RestClient(server, timeout_s=timeout, retries=retries, token=token)
     try:

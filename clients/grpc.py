@@ -11,10 +11,8 @@ from typing import Any
 
 import grpc
 import numpy as np
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc as pb_grpc
 
-from clients.base import (
+from gmt.client.base import (
     DEFAULT_BACKOFF_S,
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
@@ -29,7 +27,9 @@ from clients.base import (
     new_session_id,
     with_retries,
 )
-from clients.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc as pb_grpc
 
 # gRPC reports a server it never reached as UNAVAILABLE, like a server that answers "unavailable"; these
 # phrases of gRPC core mark the former (the request was not sent, so retrying it is safe).
@@ -88,7 +88,7 @@ def _error(e: grpc.RpcError) -> ServiceError:
 
 # ----- messages <-> values ------------------------------------------------------------------------------------
 def space_from_proto(s: pb.Space) -> dict:
-    """A space dict in the shape of `clients.spaces.space_to_dict` (infinite or absent bounds are None)."""
+    """A space dict in the shape of `gmt.client.spaces.space_to_dict` (infinite or absent bounds are None)."""
     if s.type == "discrete":
         return {"type": "discrete", "n": int(s.n), "shape": list(s.shape), "dtype": s.dtype or "int64"}
 
@@ -192,7 +192,7 @@ class GrpcClient(PolicyClient):
     Args:
         target: "host:port" of the gRPC server.
         timeout_s: Deadline of each unary call, and the longest wait for each answer on a Control stream.
-        retries: Extra attempts after a failure that a retry cannot make worse (see `clients.base`).
+        retries: Extra attempts after a failure that a retry cannot make worse (see `gmt.client.base`).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
         stream: Sessions send act / set_goal / reset over one ordered `Control` stream instead of unary calls.
@@ -361,7 +361,7 @@ class ControlStream:
     A reader thread moves answers into a queue so that each wait has the client's timeout. The stream carries
     the session's id as `x-session-id` metadata, so that a proxy routes it to the session's replica. When a
     command fails, the stream is reopened (a new call, which the proxy may route to another replica) and the
-    command resent, under the rules of `clients.base`: always when the stream never reached a server or the
+    command resent, under the rules of `gmt.client.base`: always when the stream never reached a server or the
     server answered `aborted` / `unavailable` in-band; after a broken stream (e.g. its replica died) only when
     the command is `safe` to repeat (an act carrying its step, reset, set_goal without a blend). A silent stream
     (no answer within the timeout) is an error, never resent.

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.segments import MOVING_AVERAGE, Segment, moving_average
-from clients.statistics import is_sum
+from gmt.client.segments import MOVING_AVERAGE, Segment, moving_average
+from gmt.client.statistics import is_sum
 
 
 def plot_episode(

@@ -9,7 +9,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from clients.base import (
+from gmt.client.base import (
     DEFAULT_BACKOFF_S,
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
@@ -24,7 +24,7 @@ from clients.base import (
     new_session_id,
     with_retries,
 )
-from clients.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
 
 
 def _is_connection_error(e: BaseException) -> bool:
@@ -122,7 +122,7 @@ class RestClient(PolicyClient):
     Args:
         base_url: e.g. "http://localhost:8000".
         timeout_s: Per-request timeout (connect, read, write).
-        retries: Extra attempts after a failure that a retry cannot make worse (see `clients.base`).
+        retries: Extra attempts after a failure that a retry cannot make worse (see `gmt.client.base`).
         backoff_s: First retry delay; doubles with each retry.
         token: Bearer token, when the server requires one.
         transport: An httpx transport to use instead of the network (tests).

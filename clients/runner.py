@@ -13,16 +13,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from clients.base import ModelInfo, PolicyClient, Session
-from clients.extras import require_module
-from clients.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
-from clients.statistics import signal_from_step
-from clients.trace import Trace
+from gmt.client.base import ModelInfo, PolicyClient, Session
+from gmt.client.extras import require_module
+from gmt.client.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
+from gmt.client.statistics import signal_from_step
+from gmt.client.trace import Trace
 
 if TYPE_CHECKING:
     import gymnasium as gym
 
-    from clients.video import VideoWriter
+    from gmt.client.video import VideoWriter
 
 StepHook = Callable[[int, Session], None]
 
@@ -214,8 +214,8 @@ def _check_goals(spec: ModelInfo, cfg: RunConfig) -> None:
 
 
 def _write_outputs(res: EpisodeResult, spec: ModelInfo, cfg: RunConfig, env_id: str) -> list[Path]:
-    from clients.plots import plot_episode
-    from clients.trace import write_csv, write_json
+    from gmt.client.plots import plot_episode
+    from gmt.client.trace import write_csv, write_json
 
     assert cfg.out is not None
     stem = cfg.out / f"episode-{res.episode}"
@@ -250,7 +250,7 @@ def run(
         ServiceError: the server answered with an error.
         MissingExtra: the environment or the plots need an extra that is not installed.
     """
-    from clients.envs import make_env
+    from gmt.client.envs import make_env
 
     if cfg.video and cfg.out is None:
         raise ValueError("video needs an output folder (out)")
@@ -268,7 +268,7 @@ def run(
             seed = cfg.seed + ep
             video = None
             if cfg.video and cfg.out is not None:
-                from clients.video import VideoWriter
+                from gmt.client.video import VideoWriter
 
                 fps = env.metadata.get("render_fps") or 30
                 video = VideoWriter(cfg.out / f"episode-{ep}.mp4", fps=fps, strip_every=cfg.strip_every)

@@ -21,15 +21,15 @@ from typing import Protocol
 
 import numpy as np
 
-from clients.statistics import is_sum
-from clients.tables import text_table
+from gmt.client.statistics import is_sum
+from gmt.client.tables import text_table
 
 SETTLE_MAX = 100
 MOVING_AVERAGE = 50  # steps of the trailing mean shown live by `gmt run` and drawn in its plots
 
 
 class GoalLike(Protocol):
-    """A row of a goal table: `clients.base.GoalInfo` (from a server) or `model.checkpoint.Goal`."""
+    """A row of a goal table: `gmt.client.base.GoalInfo` (from a server) or `gmt.model.checkpoint.Goal`."""
 
     id: int
     name: str

@@ -1,7 +1,7 @@
 """Named per-trajectory statistics: a per-step signal and an aggregation over any range of steps.
 
 Torch-free and dataset-free: the remote runner measures a live episode with the same definitions that
-relabelling (`model.data.statistics`) and evaluation apply to datasets.
+relabelling (`gmt.model.data.statistics`) and evaluation apply to datasets.
 
 Evaluation needs the value over step ranges (e.g. steps [100, 1000)), so every statistic is defined by
 `per_step(episode) -> [T]` and `aggregate(values) -> float`; `of_episode` is the aggregate over all steps.
@@ -21,7 +21,7 @@ Aggregation = Callable[[np.ndarray], float]
 
 
 class Episode(Protocol):
-    """What a statistic reads of an episode (e.g. `model.data.minari_io.Episode`)."""
+    """What a statistic reads of an episode (e.g. `gmt.model.data.minari_io.Episode`)."""
 
     rewards: np.ndarray
     infos: Mapping[str, np.ndarray]

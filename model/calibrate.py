@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from model.gmt import GMT
-from model.tokens import WindowSampler
+from gmt.model.gmt import GMT
+from gmt.model.tokens import WindowSampler
 
 
 @torch.inference_mode()

@@ -11,10 +11,10 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from model.config import GMTConfig
-from model.data.relabel import Goal
-from model.gmt import GMT
-from model.tokens import ActionCodec, ObsNormalizer
+from gmt.model.config import GMTConfig
+from gmt.model.data.relabel import Goal
+from gmt.model.gmt import GMT
+from gmt.model.tokens import ActionCodec, ObsNormalizer
 
 FORMAT = "gmt-checkpoint"
 FORMAT_VERSION = 1
@@ -35,7 +35,7 @@ class Checkpoint:
         name: Model name (the directory name by default).
         model: The network, in eval mode.
         env_id: Gymnasium environment id.
-        observation_space: `clients.spaces.space_to_dict` of the observation space.
+        observation_space: `gmt.client.spaces.space_to_dict` of the observation space.
         action_space: Same for the action space.
         obs_norm: State normalisation from the training dataset.
         action_codec: Action scaling to and from [-1, 1].
@@ -43,7 +43,7 @@ class Checkpoint:
         goals: Goal table, goal 0 = lowest statistic.
         meta: The whole gmt.json (training config, dataset fingerprint, code revision, ...).
         action_noise: [n_goals, A] per-goal action std in model space for sampled continuous actions
-            (`model.calibrate`), or None when not calibrated.
+            (`gmt.model.calibrate`), or None when not calibrated.
         preprocessing: The observation pipeline of the training data (Atari frames: wrappers and their
             arguments, from the dataset's metadata), or None for raw environment observations. Clients build
             their environment from it.

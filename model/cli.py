@@ -10,8 +10,8 @@ from typing import Any
 
 import typer
 
-from clients.cli_support import dataclass_flags, needs, pick, with_flags
-from model.config import GMTConfig, TrainConfig
+from gmt.client.cli_support import dataclass_flags, needs, pick, with_flags
+from gmt.model.config import GMTConfig, TrainConfig
 
 # The options of `gmt train` are the fields of the configurations it fills: defaults and help cannot drift.
 TRAIN_FLAGS = dataclass_flags(
@@ -32,11 +32,11 @@ def train_command(
     **flags: Any,
 ) -> None:
     """Train a Goal-Masked Transformer and write a checkpoint directory (safetensors + gmt.json)."""
-    from model.checkpoint import Goal
-    from model.data.minari_io import load_dataset
-    from model.data.relabel import GoalTable, relabel
-    from model.data.statistics import per_trajectory
-    from model.train import train
+    from gmt.model.checkpoint import Goal
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.model.data.relabel import GoalTable, relabel
+    from gmt.model.data.statistics import per_trajectory
+    from gmt.model.train import train
 
     ds = load_dataset(dataset)
     if labels is not None:
@@ -93,16 +93,16 @@ def eval_command(
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
 
-    A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`model.evaluate_return`):
+    A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`gmt.model.evaluate_return`):
     hold every goal, switch at step 300 between the low, middle and high goals, against the expected return.
     A Decision Transformer (`--conditioning return` at training) plays the same protocol steered by
-    returns-to-go (`model.evaluate_dt`).
+    returns-to-go (`gmt.model.evaluate_dt`).
     """
     import torch
 
-    from model.checkpoint import load_checkpoint
-    from model.engine import PolicyEngine
-    from model.evaluate import evaluate
+    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.engine import PolicyEngine
+    from gmt.model.evaluate import evaluate
 
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
@@ -113,17 +113,17 @@ def eval_command(
             f"{action_mode!r} is not one of this model's modes {modes}", param_hint="--action-mode"
         )
     if dt:
-        from model.eval_plot import plot_eval
-        from model.evaluate_dt import evaluate_dt
+        from gmt.model.eval_plot import plot_eval
+        from gmt.model.evaluate_dt import evaluate_dt
 
         result = evaluate_dt(ckpt, seeds=seeds, steps=steps)
     elif ckpt.statistic == "return":
-        from model.evaluate_return import evaluate_returns, plot_returns
+        from gmt.model.evaluate_return import evaluate_returns, plot_returns
 
         result = evaluate_returns(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
         plot_eval = plot_returns
     else:
-        from model.eval_plot import plot_eval
+        from gmt.model.eval_plot import plot_eval
 
         result = evaluate(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
     table = result.markdown()

@@ -32,7 +32,7 @@ class GMTConfig:
             last K timesteps, so a per-layer key/value cache reproduces the reference forward exactly.
         conditioning: `goal`: the first token of each step is a goal id (GMT). `return`: it is the return-to-go,
             embedded linearly (Decision Transformer, the paper's baseline); such a model is evaluated by
-            `model.evaluate_dt` and not served.
+            `gmt.model.evaluate_dt` and not served.
         return_scale: Returns-to-go are divided by this before their embedding (`return` conditioning only).
     """
 
@@ -121,14 +121,14 @@ class TrainConfig:
         statistic: Per-trajectory statistic the goals cluster.
         k: Number of goals; None picks k by silhouette score.
         calibration_batches: Batches of windows scored after training to measure the per-goal action noise
-            of continuous-action models (`model.calibrate`).
+            of continuous-action models (`gmt.model.calibrate`).
         bf16: Run matrix products under bfloat16 autocast (pays off only on CPUs with AMX).
         sequence_length: Timesteps per training sequence; 0 = K for `full` attention and 2K for `window`
             attention (a window model must learn from sequences longer than its span).
         device: Where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda. Under
-            `torchrun`, every process trains on its share of each batch (`model.distributed`).
+            `torchrun`, every process trains on its share of each batch (`gmt.model.distributed`).
         augment_shift: Image models: largest random shift of each training sequence's frames, in pixels
-            (`model.augment`; 0 = off).
+            (`gmt.model.augment`; 0 = off).
         augment_degrees: Image models: largest random rotation of each training sequence's frames, in degrees
             (0 = off).
         default_action_mode: Action mode of sessions that name none, stored in the checkpoint (None: the

@@ -2,7 +2,7 @@
 
 Under `torchrun` (WORLD_SIZE > 1) every process draws the same global batch from the same seeded generator and
 trains on its own contiguous share of the rows; DistributedDataParallel averages the gradients. Losses are
-normalised by the global batch's counts (`model.losses.gmt_loss(counts=...)`), so the shares add up to exactly
+normalised by the global batch's counts (`gmt.model.losses.gmt_loss(counts=...)`), so the shares add up to exactly
 the loss of one process training on the whole batch: same curve, same checkpoint, up to float summation order.
 Backend: gloo on CPU, NCCL on CUDA. Only rank 0 writes files.
 """

@@ -23,11 +23,11 @@ import threading
 import numpy as np
 import torch
 
-from model import native as native_kernel
-from model.checkpoint import Checkpoint
-from model.context import Context, StoredContext
-from model.kv_cache import KVCache
-from model.runtime import InvalidObservation, PolicyRuntime, RuntimeInfo, StepFailed
+from gmt.model import native as native_kernel
+from gmt.model.checkpoint import Checkpoint
+from gmt.model.context import Context, StoredContext
+from gmt.model.kv_cache import KVCache
+from gmt.model.runtime import InvalidObservation, PolicyRuntime, RuntimeInfo, StepFailed
 
 __all__ = ["InvalidObservation", "PolicyEngine", "SessionPool", "StepFailed"]
 
@@ -192,7 +192,7 @@ class PolicyEngine(PolicyRuntime):
         incremental: Use the key/value-cache path (None = whenever the model has `window` attention);
             False forces the reference recompute.
         n_slots: Initial pool size (it grows as sessions arrive).
-        native: Compute the incremental step with the native kernel (`model.native`; None = whenever it is
+        native: Compute the incremental step with the native kernel (`gmt.model.native`; None = whenever it is
             available and the model has vector observations); False keeps the torch step.
     """
 

@@ -2,7 +2,7 @@
 
 All episodes of every condition step in lockstep through the batched `PolicyEngine`, which is also what the
 server uses. Conditions: hold every goal; every ordered switch pair at mid-episode; cycling through the goals
-every N steps. Segments, their settle-in, the tolerance and success are `clients.segments`' (the definition the
+every N steps. Segments, their settle-in, the tolerance and success are `gmt.client.segments`' (the definition the
 remote runner uses too): an episode succeeds when it never terminates early and every segment's mean statistic
 after its settle-in of min(100, length // 4) steps lies within tolerance of its goal's dataset mean.
 
@@ -27,11 +27,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from clients.segments import achieved, measured_spans, tolerance, within
-from clients.statistics import get_statistic, signal_from_step
-from clients.tables import markdown_table
-from model.checkpoint import Checkpoint, Goal
-from model.engine import PolicyEngine
+from gmt.client.segments import achieved, measured_spans, tolerance, within
+from gmt.client.statistics import get_statistic, signal_from_step
+from gmt.client.tables import markdown_table
+from gmt.model.checkpoint import Checkpoint, Goal
+from gmt.model.engine import PolicyEngine
 
 __all__ = ["Condition", "ConditionResult", "EvalResult", "evaluate", "judge", "protocol", "tolerance"]
 
@@ -56,7 +56,7 @@ class Condition:
 
     @property
     def segments(self) -> list[tuple[int, int, int]]:
-        """(goal, start, end) of the measured steps of each segment (`clients.segments.measured_spans`)."""
+        """(goal, start, end) of the measured steps of each segment (`gmt.client.segments.measured_spans`)."""
         return measured_spans([self.goal_at(t) for t in range(self.steps)])
 
     def goal_at(self, step: int) -> int:

@@ -4,7 +4,7 @@ A Decision Transformer (a `GMT` with `return` conditioning) is steered by a retu
 Goal g's target is the mean episode return of g's trajectories in the training data (recorded in gmt.json at
 training time). The return-to-go starts at the first goal's target and drops by every reward received; when the
 schedule switches to goal b at step s, it becomes b's target minus the return already received, as the paper
-did. Episodes are judged exactly as GMT's (`model.evaluate.judge`: same conditions, seeds, segments and
+did. Episodes are judged exactly as GMT's (`gmt.model.evaluate.judge`: same conditions, seeds, segments and
 tolerances), so the two share one table.
 
 Every step recomputes each episode's window with the reference forward (no key/value cache: the engine serves
@@ -19,10 +19,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from clients.statistics import get_statistic, signal_from_step
-from model.checkpoint import Checkpoint
-from model.evaluate import Condition, EvalResult, judge, protocol
-from model.tokens import pad_left
+from gmt.client.statistics import get_statistic, signal_from_step
+from gmt.model.checkpoint import Checkpoint
+from gmt.model.evaluate import Condition, EvalResult, judge, protocol
+from gmt.model.tokens import pad_left
 
 
 def target_returns(ckpt: Checkpoint) -> np.ndarray:

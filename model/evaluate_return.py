@@ -15,7 +15,7 @@ against a tolerance:
   episode's return R(a) to part of an episode, the per-step one ignores that later bricks are worth more (an
   effect the paper notes in A.2.2).
 The return of a segment is the sum of its rewards, so the two parts of a switch episode add up to its return
-(the `return` statistic of `clients.statistics` is the same sum over a whole trajectory).
+(the `return` statistic of `gmt.client.statistics` is the same sum over a whole trajectory).
 
 JSON schema (`ReturnEvalResult.to_dict`): checkpoint, env_id, statistic, action_mode, seeds, episode_steps,
 switch_at, wall_time_s, goals [{id, name, mean, std, ...}], holds [{goal, returns, lengths, mean, std, sem}],
@@ -31,12 +31,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from clients.base import GoalInfo, ModelInfo
-from clients.envs import make_env
-from clients.tables import markdown_table
-from model.checkpoint import Checkpoint
-from model.engine import PolicyEngine
-from model.evaluate import play_lockstep
+from gmt.client.base import GoalInfo, ModelInfo
+from gmt.client.envs import make_env
+from gmt.client.tables import markdown_table
+from gmt.model.checkpoint import Checkpoint
+from gmt.model.engine import PolicyEngine
+from gmt.model.evaluate import play_lockstep
 
 SWITCH_AT = 300
 TOLERANCE = 0.2  # a switch's mean return within 20% of the expected return

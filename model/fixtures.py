@@ -8,11 +8,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from clients.spaces import space_to_dict
-from model.checkpoint import Checkpoint, Goal, save_checkpoint
-from model.config import GMTConfig
-from model.gmt import GMT
-from model.tokens import ActionCodec, ObsNormalizer
+from gmt.client.spaces import space_to_dict
+from gmt.model.checkpoint import Checkpoint, Goal, save_checkpoint
+from gmt.model.config import GMTConfig
+from gmt.model.gmt import GMT
+from gmt.model.tokens import ActionCodec, ObsNormalizer
 
 GOAL_NAMES = ("low", "medium", "high")
 
@@ -182,7 +182,7 @@ def random_behaviour(
     Returns:
         The snapshot's path stem.
     """
-    from model.data.behaviour import BehaviourMeta, save_behaviour
+    from gmt.model.data.behaviour import BehaviourMeta, save_behaviour
 
     torch.manual_seed(seed)
     n_in = 17 + (command is not None)

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from model.config import GMTConfig
+from gmt.model.config import GMTConfig
 
 
 class CausalSelfAttention(nn.Module):
@@ -272,7 +272,7 @@ class GMT(nn.Module):
         """One incremental step of a `window` model: only the newest tokens go through the network.
 
         The new tokens of each row are the action taken at the previous step (a dummy at timestep 0), the goal
-        and the state; their keys and values join the row's slot of `cache` (`model.kv_cache.KVCache`).
+        and the state; their keys and values join the row's slot of `cache` (`gmt.model.kv_cache.KVCache`).
 
         Args:
             prev_actions: [B, act_dim] (or [B] ids) action taken at timestep t - 1.

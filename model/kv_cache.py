@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from model.config import GMTConfig
+from gmt.model.config import GMTConfig
 
 
 class KVCache:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from model.config import MaskingMode
+from gmt.model.config import MaskingMode
 
 
 def mask_goals(

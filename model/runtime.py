@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from model.checkpoint import Checkpoint
-from model.context import Context, StoredContext
+from gmt.model.checkpoint import Checkpoint
+from gmt.model.context import Context, StoredContext
 
 
 class InvalidObservation(ValueError):
@@ -42,7 +42,7 @@ class RuntimeInfo:
 
 
 class PolicyRuntime(abc.ABC):
-    """A loaded checkpoint that answers acts for many sessions (see `model.engine.PolicyEngine`)."""
+    """A loaded checkpoint that answers acts for many sessions (see `gmt.model.engine.PolicyEngine`)."""
 
     ckpt: Checkpoint
 
@@ -108,8 +108,8 @@ def load_runtime(
     path: str | Path | Checkpoint, naive: bool = False, name: str | None = None
 ) -> PolicyRuntime:
     """The engine for a checkpoint: incremental for `window` models, recompute otherwise or when `naive`."""
-    from model.checkpoint import load_checkpoint
-    from model.engine import PolicyEngine
+    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.engine import PolicyEngine
 
     ckpt = path if isinstance(path, Checkpoint) else load_checkpoint(path, name=name)
     return PolicyEngine(ckpt, incremental=None if not naive else False)

@@ -13,17 +13,17 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from clients.spaces import space_to_dict
-from model.augment import augment_frames
-from model.calibrate import action_noise
-from model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
-from model.config import GMTConfig, TrainConfig
-from model.distributed import Parallel
-from model.engine import ACTION_MODES, CONTINUOUS_MODES
-from model.gmt import GMT
-from model.losses import gmt_loss, loss_counts
-from model.masking import mask_goals
-from model.tokens import ActionCodec, ObsNormalizer, WindowSampler
+from gmt.client.spaces import space_to_dict
+from gmt.model.augment import augment_frames
+from gmt.model.calibrate import action_noise
+from gmt.model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
+from gmt.model.config import GMTConfig, TrainConfig
+from gmt.model.distributed import Parallel
+from gmt.model.engine import ACTION_MODES, CONTINUOUS_MODES
+from gmt.model.gmt import GMT
+from gmt.model.losses import gmt_loss, loss_counts
+from gmt.model.masking import mask_goals
+from gmt.model.tokens import ActionCodec, ObsNormalizer, WindowSampler
 
 RESUME_DIR = "_resume"
 
@@ -131,7 +131,7 @@ def train(
     """Train a GMT on a relabelled dataset and write its checkpoint directory.
 
     Args:
-        dataset: An `OfflineDataset` (model.data.minari_io).
+        dataset: An `OfflineDataset` (`gmt.model.data.minari_io`).
         labels: Goal label per episode.
         goals: Goal table.
         out_dir: Checkpoint directory (created); `_resume/` inside holds the resumable state.
@@ -142,11 +142,11 @@ def train(
         resume: Continue from `out_dir/_resume` when it exists.
         progress: Show a progress bar.
 
-    Continuous-action checkpoints are calibrated at the end (`model.calibrate.action_noise`). A model with
+    Continuous-action checkpoints are calibrated at the end (`gmt.model.calibrate.action_noise`). A model with
     `return` conditioning is a Decision Transformer: returns-to-go replace the goal tokens, there is no masking
     and no next-goal loss, and gmt.json records each goal's mean episode return (its evaluation targets).
 
-    Under `torchrun` every process calls this; each trains on its share of every batch (`model.distributed`)
+    Under `torchrun` every process calls this; each trains on its share of every batch (`gmt.model.distributed`)
     and only rank 0 writes the checkpoint, which the other processes get as None.
     """
     out = Path(out_dir)

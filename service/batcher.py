@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.context import Context
-from model.runtime import PolicyRuntime
-from service import units
-from service.errors import Unavailable
+from gmt.model.context import Context
+from gmt.model.runtime import PolicyRuntime
+from gmt.service import units
+from gmt.service.errors import Unavailable
 
 log = logging.getLogger("gmt.batcher")
 
@@ -116,7 +116,7 @@ class MicroBatcher:
         Raises the item's own error (an engine `StepFailed`) when its row alone failed.
 
         Cancelling the caller before the batch runs drops the request. Once it runs, its change is past its point
-        of no return (`service.units`): the core lets it finish and store its answer.
+        of no return (`gmt.service.units`): the core lets it finish and store its answer.
         """
         if self._task is None or self._task.done():
             raise RuntimeError("batcher is not running")

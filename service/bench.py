@@ -13,7 +13,7 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
 - `cluster`: wrk's REST load through `gmt cluster` (nginx, two replicas, Redis with Sentinel): errors, latency,
   each replica's memory.
-- `failover`: the Redis primary of `gmt cluster` killed under load (`service.failover`): {sessions, killed,
+- `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.service.failover`): {sessions, killed,
   promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
 - `store`: {stores: {memory | redis: {rest, rest_batch, rest_1_session}}, redis_vs_memory: {rest, rest_batch,
@@ -46,10 +46,10 @@ def default_size_checkpoint(directory: Path, K: int = 20, attention: str = "wind
     """A random-weight checkpoint of the default training size with HalfCheetah-v5 shapes."""
     import torch
 
-    from model.checkpoint import save_checkpoint
-    from model.config import GMTConfig
-    from model.fixtures import tiny_checkpoint
-    from model.gmt import GMT
+    from gmt.model.checkpoint import save_checkpoint
+    from gmt.model.config import GMTConfig
+    from gmt.model.fixtures import tiny_checkpoint
+    from gmt.model.gmt import GMT
 
     ckpt = tiny_checkpoint(calibrated=True)
     torch.manual_seed(0)
@@ -72,7 +72,7 @@ def bench_engine(Ks=(10, 20, 50, 100), batches=(1, 64), steps: int = 60) -> list
     """ms per act step on the incremental and the recompute path, after a full history of warm-up."""
     import torch
 
-    from model.engine import PolicyEngine
+    from gmt.model.engine import PolicyEngine
 
     torch.set_num_threads(1)
     rows = []
@@ -279,6 +279,7 @@ end
 def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict:
     """Run in a separate process: one concurrent caller per session (unary Act or one Control stream each)."""
     import grpc
+
     from gmt.v1 import policy_pb2 as pb
     from gmt.v1 import policy_pb2_grpc
 
@@ -332,7 +333,7 @@ def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict
 
 def _grpc_in_process(target: str, sids: list[str], seconds: float, mode: str) -> dict:
     code = (
-        "import json,sys; from service.bench import grpc_client; "
+        "import json,sys; from gmt.service.bench import grpc_client; "
         "a=json.loads(sys.argv[1]); print(json.dumps(grpc_client(a['t'], a['s'], a['d'], a['m'])))"
     )
     arg = json.dumps({"t": target, "s": sids, "d": seconds, "m": mode})
@@ -377,7 +378,7 @@ def bench_serving(
 # ----- store ------------------------------------------------------------------------------------------------
 def _redis_server() -> tuple[subprocess.Popen, str]:
     """A private redis-server on a free loopback port (no persistence): (process, URL)."""
-    from service.cluster import free_port
+    from gmt.service.cluster import free_port
 
     port = free_port()
     proc = subprocess.Popen(
@@ -441,7 +442,7 @@ def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0)
     Memory: each replica's RSS after start, with `sessions` live sessions after the load, after they all
     closed, and after a second wave of as many sessions acted again (slots are reused, so it should not grow).
     """
-    from service import cluster
+    from gmt.service import cluster
 
     run_dir = Path(tempfile.mkdtemp(prefix="gmt-cluster-"))
     c = cluster.up(
@@ -481,10 +482,10 @@ def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0)
 def bench_failover(checkpoint: Path, sessions: int = 64, steps: int = 20) -> dict:
     """The Redis primary of a `gmt cluster` killed (SIGKILL) while `sessions` sessions act as fast as they can
     (REST, gRPC unary and Control streams in turn): time to resume, retried answers by kind, sessions lost, and
-    sessions whose actions differ from an uninterrupted twin's (`service.failover`)."""
+    sessions whose actions differ from an uninterrupted twin's (`gmt.service.failover`)."""
     import httpx
 
-    from service import cluster, failover
+    from gmt.service import cluster, failover
 
     run_dir = Path(tempfile.mkdtemp(prefix="gmt-failover-"))
     c = cluster.up(
@@ -530,8 +531,8 @@ def bench_training(steps: int = 20) -> dict:
     """Optimiser steps/s of the default model and batch (K = 20, batch 64) on one thread, and GFLOP/s."""
     import torch
 
-    from model.config import GMTConfig
-    from model.gmt import GMT
+    from gmt.model.config import GMTConfig
+    from gmt.model.gmt import GMT
 
     torch.set_num_threads(1)
     cfg = GMTConfig(obs_shape=(OBS_DIM,), act_dim=ACT_DIM, discrete_actions=False, n_goals=4)
@@ -561,14 +562,14 @@ def bench_training(steps: int = 20) -> dict:
 
 
 def start_ray_serve(checkpoint: Path, path: str) -> tuple[subprocess.Popen, str]:
-    """`service.bench_ray` in its own process on a free loopback port; returns (process, base URL)."""
+    """`gmt.service.bench_ray` in its own process on a free loopback port; returns (process, base URL)."""
     import socket
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.bench_ray", str(checkpoint), str(port), path],
+        [sys.executable, "-m", "gmt.service.bench_ray", str(checkpoint), str(port), path],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
@@ -672,7 +673,7 @@ def machine() -> dict:
         cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    from model import native
+    from gmt.model import native
 
     return {
         "cpu": cpu,

@@ -2,7 +2,7 @@
 
 Run as its own process by `gmt bench` (the `bench` extra installs Ray):
 
-    python -m service.bench_ray CHECKPOINT PORT {recompute,incremental}
+    python -m gmt.service.bench_ray CHECKPOINT PORT {recompute,incremental}
 
 It serves `POST /sessions` ({"goal", "seed"} -> {"session_id"}) and `POST /sessions/{id}/act`
 ({"observation"} -> {"action"}) on 127.0.0.1:PORT through Ray Serve's HTTP proxy, prints `READY` once requests
@@ -31,8 +31,8 @@ class GMTDeployment:
     def __init__(self, checkpoint: str, path: str) -> None:
         import torch
 
-        from model.checkpoint import load_checkpoint
-        from model.engine import PolicyEngine
+        from gmt.model.checkpoint import load_checkpoint
+        from gmt.model.engine import PolicyEngine
 
         torch.set_num_threads(1)  # as `gmt serve`'s default inference_threads
         self.engine = PolicyEngine(load_checkpoint(checkpoint), incremental=path == "incremental")

@@ -18,8 +18,8 @@ from typing import Any
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from clients.cli_support import fail
-from clients.extras import MissingExtra, missing
+from gmt.client.cli_support import fail
+from gmt.client.extras import MissingExtra, missing
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class Entry:
         help: The line `gmt --help` shows (the command's docstring starts with it; a test checks).
         extra: The extra it needs at all (None: the base install), checked before its module is imported;
             without it the command says which extra to install. Sub-commands with needs of their own check
-            them when run (`clients.cli_support.needs`).
+            them when run (`gmt.client.cli_support.needs`).
     """
 
     name: str
@@ -73,39 +73,39 @@ def _stub(entry: Entry, error: MissingExtra) -> TyperCommand:
 COMMANDS = (
     Entry(
         "data",
-        "model.data.cli:app",
+        "gmt.model.data.cli:app",
         "Offline datasets: behaviour agents, collection, statistics and goal relabelling.",
     ),
     Entry(
         "train",
-        "model.cli:train_command",
+        "gmt.model.cli:train_command",
         "Train a Goal-Masked Transformer and write a checkpoint directory (safetensors + gmt.json).",
     ),
     Entry(
         "eval",
-        "model.cli:eval_command",
+        "gmt.model.cli:eval_command",
         "Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.",
     ),
     Entry(
         "serve",
-        "service.serve_cli:serve_command",
+        "gmt.service.serve_cli:serve_command",
         "Serve every checkpoint under checkpoints/ over REST (OpenAPI at /docs) and gRPC.",
         "serve",
     ),
     Entry(
         "cluster",
-        "service.cluster:app",
+        "gmt.service.cluster:app",
         "The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
         "serve",
     ),
     Entry(
         "run",
-        "clients.cli:run_command",
+        "gmt.client.cli:run_command",
         "Drive an agent remotely: send observations, apply actions, report each goal segment.",
     ),
     Entry(
         "bench",
-        "service.cli:bench_command",
+        "gmt.service.cli:bench_command",
         "Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.",
         "serve",
     ),
@@ -163,7 +163,7 @@ def version() -> None:
     from importlib.metadata import PackageNotFoundError
     from importlib.metadata import version as v
 
-    from clients.extras import extras
+    from gmt.client.extras import extras
 
     for pkg in ("gmt-service", "torch", "gymnasium", "mujoco", "fastapi", "grpcio"):
         try:
@@ -195,7 +195,7 @@ def bench_command(
     """
     import json
 
-    from service.bench import run, to_markdown
+    from gmt.service.bench import run, to_markdown
 
     result = run(
         checkpoint,
@@ -220,7 +220,7 @@ def main() -> None:
     try:
         app()
     except Exception as e:
-        checkpoint = sys.modules.get("model.checkpoint")  # loaded only by commands that read checkpoints
+        checkpoint = sys.modules.get("gmt.model.checkpoint")  # loaded only by commands that read checkpoints
         if checkpoint is not None and isinstance(e, checkpoint.CheckpointError):
             typer.echo(f"error: {e}", err=True)
             raise SystemExit(1) from None

@@ -456,7 +456,7 @@ def up(
             pids[name] = _spawn(name, [redis_exe, str(conf.resolve()), "--sentinel"], run_dir)
 
         exe = Path(sys.executable).parent / "gmt"
-        gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"]
+        gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]
         ckpt = [a for c in checkpoints for a in ("--checkpoints", str(c))]
         replicas = []
         for name, (rest, grpc_) in zip(REPLICAS, gmt_ports, strict=True):

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from model.checkpoint import Goal
-from model.context import Context
-from model.runtime import InvalidObservation, StepFailed
-from service.batcher import MicroBatcher
-from service.errors import (
+from gmt.model.checkpoint import Goal
+from gmt.model.context import Context
+from gmt.model.runtime import InvalidObservation, StepFailed
+from gmt.service.batcher import MicroBatcher
+from gmt.service.errors import (
     AlreadyExists,
     FailedPrecondition,
     InvalidArgument,
@@ -28,12 +28,12 @@ from service.errors import (
     ServiceError,
     Unavailable,
 )
-from service.metrics import Metrics
-from service.observations import MAX_ABS_VALUE, to_array
-from service.registry import LoadedModel, ModelRegistry
-from service.sessions import Clock, MemorySessionStore, Session, SessionStore
-from service.settings import Settings
-from service.units import point_of_no_return, run_whole
+from gmt.service.metrics import Metrics
+from gmt.service.observations import MAX_ABS_VALUE, to_array
+from gmt.service.registry import LoadedModel, ModelRegistry
+from gmt.service.sessions import Clock, MemorySessionStore, Session, SessionStore
+from gmt.service.settings import Settings
+from gmt.service.units import point_of_no_return, run_whole
 
 log = logging.getLogger("gmt.core")
 
@@ -183,7 +183,7 @@ class Core:
             )
         if self.store is None:
             if s.redis_url:
-                from service.redis_store import store_for
+                from gmt.service.redis_store import store_for
 
                 self.store = store_for(s, self.clock)
                 await self.store.ping()

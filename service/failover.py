@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cluster import Cluster
+from gmt.service.cluster import Cluster
 
 KINDS = ("rest", "grpc", "stream")
 
@@ -146,8 +146,8 @@ def _same(got: list[np.ndarray], want: list[np.ndarray]) -> bool:
 def twin_actions(checkpoint: Path, episodes: list[Episode]) -> list[list[np.ndarray]]:
     """Each episode's actions as an uninterrupted session (same goal, seed and observations) takes them, computed
     by an engine of its own over `checkpoint`."""
-    from model.checkpoint import load_checkpoint
-    from model.engine import PolicyEngine
+    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.engine import PolicyEngine
 
     engine = PolicyEngine(load_checkpoint(checkpoint))
     out = []
@@ -183,7 +183,7 @@ class _Actor:
             if e.kind == "rest":
                 return await self._rest(e, t)
             if e.kind == "grpc":
-                from clients.grpc import act_from_proto, act_request
+                from gmt.client.grpc import act_from_proto, act_request
 
                 r = await self.stub.Act(
                     act_request(e.session_id, e.observations[t], t),
@@ -227,9 +227,9 @@ class _Actor:
 
     async def _stream(self, e: Episode, t: int) -> np.ndarray:
         import grpc
-        from gmt.v1 import policy_pb2 as pb
 
-        from clients.grpc import act_from_proto, act_request
+        from gmt.client.grpc import act_from_proto, act_request
+        from gmt.v1 import policy_pb2 as pb
 
         call = self.streams.get(e.session_id)
         if call is None:
@@ -347,6 +347,7 @@ def run_drill(
     """
     import grpc
     import httpx
+
     from gmt.v1 import policy_pb2_grpc
 
     rng = np.random.default_rng(seed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import resource
 from dataclasses import dataclass
 
-from service.settings import Settings
+from gmt.service.settings import Settings
 
 FD_RESERVE = 128  # the process's own descriptors (~25), the Redis pool (64), files, and a margin
 UNLIMITED_FDS = 1 << 20  # what an RLIM_INFINITY soft limit counts as

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from service.errors import InvalidArgument
+from gmt.service.errors import InvalidArgument
 
 DTYPES = (
     "bool",

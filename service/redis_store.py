@@ -30,8 +30,8 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 
-from service import session_codec
-from service.errors import (
+from gmt.service import session_codec
+from gmt.service.errors import (
     Aborted,
     AlreadyExists,
     Internal,
@@ -41,8 +41,8 @@ from service.errors import (
     SessionExpired,
     Unavailable,
 )
-from service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
-from service.settings import Settings
+from gmt.service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
+from gmt.service.settings import Settings
 
 TOMBSTONE_TTL_S = 86_400
 
@@ -97,7 +97,7 @@ class RedisSessionStore(SessionStore):
 
     Args:
         url: Redis URL, e.g. redis://localhost:6379/0 or redis+sentinel://h1:26379,h2:26379/mymaster
-            (`service.redis_connect`).
+            (`gmt.service.redis_connect`).
         idle_timeout_s: Sessions unused for longer expire.
         max_sessions: Live sessions allowed at once, counted over all replicas.
         clock: Wall-clock seconds; replicas must agree, so use real time outside tests.
@@ -120,7 +120,7 @@ class RedisSessionStore(SessionStore):
         super().__init__(idle_timeout_s, max_sessions, clock)
         import redis.asyncio as aioredis  # optional dependency: only needed with --redis-url
 
-        from service import redis_connect
+        from gmt.service import redis_connect
 
         self._errors = (aioredis.RedisError, OSError)
         # A bounded pool that makes callers wait for a free connection (the default pool answered "Too many

@@ -6,9 +6,9 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from model.checkpoint import META, Checkpoint, CheckpointError, load_checkpoint
-from model.runtime import PolicyRuntime, load_runtime
-from service.errors import InvalidArgument, NotFound, Unavailable
+from gmt.model.checkpoint import META, Checkpoint, CheckpointError, load_checkpoint
+from gmt.model.runtime import PolicyRuntime, load_runtime
+from gmt.service.errors import InvalidArgument, NotFound, Unavailable
 
 log = logging.getLogger("gmt.registry")
 

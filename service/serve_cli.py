@@ -1,4 +1,4 @@
-"""`gmt serve`: REST and gRPC in one process. Its options are the fields of `service.settings.Settings`; a flag
+"""`gmt serve`: REST and gRPC in one process. Its options are the fields of `gmt.service.settings.Settings`; a flag
 that is given overrides the `GMT_*` environment variable, one that is not leaves it (or the default)."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from typing import Any
 
 import typer
 
-from clients.cli_support import settings_flags, with_flags
-from service.settings import Settings
+from gmt.client.cli_support import settings_flags, with_flags
+from gmt.service.settings import Settings
 
 SERVE_FLAGS = settings_flags(
     Settings,
@@ -24,9 +24,9 @@ def serve_command(**flags: Any) -> None:
 
     from pydantic import ValidationError
 
-    from service import logs
-    from service.errors import Unavailable
-    from service.server import serve
+    from gmt.service import logs
+    from gmt.service.errors import Unavailable
+    from gmt.service.server import serve
 
     try:
         settings = Settings(**{k: v for k, v in flags.items() if v is not None and v != [] and v != ()})

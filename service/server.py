@@ -12,12 +12,12 @@ import time
 
 import uvicorn
 
-from service.core import Core
-from service.grpc.server import GrpcServer
-from service.limits import connection_caps
-from service.rest.app import create_app
-from service.rest.protocol import ConnectionGuard, GuardedHttpProtocol
-from service.settings import Settings
+from gmt.service.core import Core
+from gmt.service.grpc.server import GrpcServer
+from gmt.service.limits import connection_caps
+from gmt.service.rest.app import create_app
+from gmt.service.rest.protocol import ConnectionGuard, GuardedHttpProtocol
+from gmt.service.settings import Settings
 
 log = logging.getLogger("gmt.server")
 
@@ -61,7 +61,7 @@ class Server:
         if core is None:
             store = None
             if settings.redis_url:  # built here with every store setting (Core builds one from the URL alone)
-                from service.redis_store import store_for
+                from gmt.service.redis_store import store_for
 
                 store = store_for(settings, time.time)
             core = Core(settings, store=store)

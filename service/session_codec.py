@@ -24,8 +24,8 @@ import sys
 import numpy as np
 import orjson
 
-from model.context import Context, StoredContext
-from service.sessions import Session
+from gmt.model.context import Context, StoredContext
+from gmt.service.sessions import Session
 
 FORMAT_VERSION = 3
 _ARRAYS = ("goals", "blend_to", "blend_w", "states", "actions")

@@ -11,8 +11,8 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from model.context import Context, StoredContext
-from service.errors import AlreadyExists, NotFound, ResourceExhausted, SessionExpired
+from gmt.model.context import Context, StoredContext
+from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, SessionExpired
 
 Clock = Callable[[], float]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"

@@ -116,7 +116,7 @@ class Settings(BaseSettings):
     @classmethod
     def _valid_store_url(cls, v: str | None) -> str | None:
         if v is not None:
-            from service.redis_connect import parse_redis_url
+            from gmt.service.redis_connect import parse_redis_url
 
             parse_redis_url(v)  # a ValueError naming the problem
         return v

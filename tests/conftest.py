@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from model.fixtures import tiny_checkpoint
+from gmt.model.fixtures import tiny_checkpoint
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -25,10 +25,12 @@ def tiny_ckpt_dir(tmp_path):
 
 @pytest.fixture
 def imports_of():
-    """imports_of("a", "b.c") -> the top-level packages a fresh interpreter has loaded after importing them."""
+    """imports_of("a", "b.c") -> the packages a fresh interpreter has loaded after importing them: top-level
+    names, and this project's as `gmt.<package>` (e.g. {"numpy", "gmt", "gmt.client"})."""
 
     def run(*modules: str) -> set[str]:
-        code = f"import json, sys\nimport {', '.join(modules)}\nprint(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}})))"
+        names = "{'.'.join(m.split('.')[: 2 if m.startswith('gmt.') else 1]) for m in sys.modules}"
+        code = f"import json, sys\nimport {', '.join(modules)}\nprint(json.dumps(sorted({names})))"
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
         return set(json.loads(out))
 

@@ -16,8 +16,8 @@ import pytest
 from typer.main import get_command
 from typer.testing import CliRunner
 
-from clients.extras import missing
-from service.cli import COMMANDS, app
+from gmt.client.extras import missing
+from gmt.service.cli import COMMANDS, app
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -74,10 +74,10 @@ def test_version_prints_the_installed_versions():
 
 
 def test_entry_point_imports_no_command_module(imports_of):
-    assert not imports_of("service.cli") & {
+    assert not imports_of("gmt.service.cli") & {
         "torch",
         "numpy",
-        "model",
+        "gmt.model",
         "pydantic_settings",
         "grpc",
         "gymnasium",
@@ -93,9 +93,9 @@ def _params(path: str) -> dict:
 @pytest.mark.parametrize(
     "command, config, skipped",
     [
-        ("train", "model.config:TrainConfig", {"extra"}),
-        ("train", "model.config:GMTConfig", {"obs_shape", "act_dim", "discrete_actions", "n_goals"}),
-        ("run", "clients.runner:RunConfig", {"transport", "schedule", "goal"}),
+        ("train", "gmt.model.config:TrainConfig", {"extra"}),
+        ("train", "gmt.model.config:GMTConfig", {"obs_shape", "act_dim", "discrete_actions", "n_goals"}),
+        ("run", "gmt.client.runner:RunConfig", {"transport", "schedule", "goal"}),
     ],
 )
 def test_every_flag_default_is_the_config_default(command, config, skipped):
@@ -113,7 +113,7 @@ def test_every_flag_default_is_the_config_default(command, config, skipped):
 
 
 def test_every_serve_flag_shows_the_settings_default():
-    from service.settings import Settings
+    from gmt.service.settings import Settings
 
     params = _params("serve")
     for name, info in Settings.model_fields.items():
@@ -225,7 +225,7 @@ def test_a_bad_plan_target_is_refused_before_collecting(tmp_path, item, message)
 
 
 def test_a_plan_target_reaches_only_its_levels_plan(tmp_path, monkeypatch):
-    import model.data.collect as collect_module
+    import gmt.model.data.collect as collect_module
 
     seen = []
     monkeypatch.setattr(collect_module, "collect", lambda cfg: seen.append(cfg) or _raise_exit())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from clients.extras import distributions, extras
+from gmt.client.extras import distributions, extras
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA_AND_TRAINING = {
@@ -43,6 +43,10 @@ def test_the_torch_version_is_written_only_in_the_constraints():
 
 def test_serving_imports_nothing_of_the_data_or_training_stack(imports_of):
     loaded = imports_of(
-        "service.server", "service.serve_cli", "service.redis_store", "model.engine", "model.checkpoint"
+        "gmt.service.server",
+        "gmt.service.serve_cli",
+        "gmt.service.redis_store",
+        "gmt.model.engine",
+        "gmt.model.checkpoint",
     )
     assert "torch" in loaded and not loaded & DATA_AND_TRAINING

@@ -26,9 +26,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clients.segments import achieved, held_windows, measured_spans, tolerance, within  # noqa: E402
-from model.data.behaviour import load_behaviour  # noqa: E402
-from model.evaluate import protocol  # noqa: E402
+from gmt.client.segments import achieved, held_windows, measured_spans, tolerance, within  # noqa: E402
+from gmt.model.data.behaviour import load_behaviour  # noqa: E402
+from gmt.model.evaluate import protocol  # noqa: E402
 
 
 def main() -> None:

@@ -2,7 +2,7 @@
 
 A GMT learns its transitions (braking from a sprint, speeding up from a walk) from the data's episodes that start
 in another level's states (`gmt data collect --pool-start`). This measures those episodes, and the ones started
-at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `clients.segments`),
+at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `gmt.client.segments`),
 against the tolerance of the goal their episode is labelled with, and multiplies the shares along each
 multi-switch schedule (the first segment from rest, every later one from another level's states). A schedule the
 data itself passes in a few episodes of 15 asks a GMT for transitions faster than any it was shown. The last
@@ -24,13 +24,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clients.segments import achieved, held_windows, settle_in, tolerance, within  # noqa: E402
-from clients.statistics import get_statistic  # noqa: E402
-from clients.tables import markdown_table  # noqa: E402
-from model.data.minari_io import load_dataset  # noqa: E402
-from model.data.relabel import relabel  # noqa: E402
-from model.data.settle import episode_metadata, pool_started  # noqa: E402
-from model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
+from gmt.client.segments import achieved, held_windows, settle_in, tolerance, within  # noqa: E402
+from gmt.client.statistics import get_statistic  # noqa: E402
+from gmt.client.tables import markdown_table  # noqa: E402
+from gmt.model.data.minari_io import load_dataset  # noqa: E402
+from gmt.model.data.relabel import relabel  # noqa: E402
+from gmt.model.data.settle import episode_metadata, pool_started  # noqa: E402
+from gmt.model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
 STEPS = 1000  # the protocol's episode length
 

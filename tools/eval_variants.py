@@ -8,7 +8,7 @@ need the same protocol with one thing changed:
   context at a state another level visited. If the model failed because of its old-goal context, this passes.
   Like the server's reset it also restarts the session's step, so the sampled action noise after a switch
   repeats the episode's first steps' draws.
-- `--cap X`: the largest action-noise standard deviation `sample` adds (`model.engine.SAMPLE_STD_CAP`, 0.1),
+- `--cap X`: the largest action-noise standard deviation `sample` adds (`gmt.model.engine.SAMPLE_STD_CAP`, 0.1),
   to see whether the capped noise, not the model, sets a goal's speed.
 
 It also prints, per hold, the share of its 150-step windows from step 200 on that are within the goal's
@@ -33,10 +33,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import model.engine as engine_module  # noqa: E402
-import model.evaluate as evaluate_module  # noqa: E402
-from clients.segments import held_windows, tolerance, within  # noqa: E402
-from model.checkpoint import load_checkpoint  # noqa: E402
+import gmt.model.engine as engine_module  # noqa: E402
+import gmt.model.evaluate as evaluate_module  # noqa: E402
+from gmt.client.segments import held_windows, tolerance, within  # noqa: E402
+from gmt.model.checkpoint import load_checkpoint  # noqa: E402
 
 
 class RestartAtSwitch(engine_module.PolicyEngine):

@@ -17,9 +17,9 @@ import sys
 
 import numpy as np
 
-from clients.base import PolicyClient
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
+from gmt.client.base import PolicyClient
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
 
 
 def drive(client: PolicyClient, model: str | None, steps: int, seed: int) -> np.ndarray:

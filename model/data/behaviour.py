@@ -3,10 +3,10 @@
 A behaviour snapshot is the deterministic mean network of a PPO actor plus its state-independent log-std and
 the observation normalisation it was trained with. Loading needs only torch and safetensors.
 
-A commanded snapshot (`model.data.train_commanded`) is one speed-conditioned actor with a fixed command: its
+A commanded snapshot (`gmt.model.data.train_commanded`) is one speed-conditioned actor with a fixed command: its
 network reads the observation with the commanded speed appended (`extra["command"]`), so several levels can
 share one actor, and each level's episodes still have one goal. A governed snapshot (`extra["governor"]`, a
-`model.data.governor.GovernorConfig`) also steers that command every step so the mean speed holds the level's
+`gmt.model.data.governor.GovernorConfig`) also steers that command every step so the mean speed holds the level's
 target; it keeps per-episode state, so whoever rolls it out calls `start_episode()` at every reset.
 """
 
@@ -88,7 +88,7 @@ class BehaviourPolicy(nn.Module):
         self.command = None if command is None else float(command)
         self.governor = None
         if meta.extra.get("governor") is not None:
-            from model.data.governor import GovernorConfig, SpeedGovernor
+            from gmt.model.data.governor import GovernorConfig, SpeedGovernor
 
             if self.command is None:
                 raise ValueError("a governed snapshot needs extra.command (its target speed)")
@@ -158,8 +158,8 @@ def load_behaviour(path: str | Path, action_space):
     path = Path(path).with_suffix("")
     meta = BehaviourMeta(**json.loads(Path(f"{path}.json").read_text()))
     state = load_file(f"{path}.safetensors")
-    if "gait" in meta.extra:  # a scripted gait (`model.data.gait`): its only tensor is the action noise
-        from model.data.gait import GaitPolicy
+    if "gait" in meta.extra:  # a scripted gait (`gmt.model.data.gait`): its only tensor is the action noise
+        from gmt.model.data.gait import GaitPolicy
 
         if set(state) != {"log_std"}:
             raise ValueError(f"{path}.safetensors: a gait snapshot holds log_std only, got {sorted(state)}")

@@ -3,7 +3,7 @@
 A tracking agent moves the paddle under the ball (FIRE launches a new ball); weaker levels of it react late
 (`lag`), aim badly (`jitter`) and press random buttons (`random_prob`); a uniform-random policy is the lowest
 level. Every level is rolled out in the preprocessed environment a checkpoint will declare (`Preprocessing`:
-Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `clients.envs` applies), and the
+Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.client.envs` applies), and the
 frames are stored as uint8 in a Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a
 trajectory and of any segment is a plain sum.
 
@@ -15,7 +15,7 @@ and hits and misses were recorded against ``ball_x - paddle_x`` at the moment of
 1 <= ball_x - paddle_x <= 17 bounced back, every one at <= -5 or >= 21 was missed, so the paddle's centre is
 at ``ball_x - PADDLE_OFFSET`` with ``PADDLE_OFFSET = 8`` (docs/breakout-data.md has the numbers).
 
-    .venv/bin/python -m model.data.breakout            # writes gmt/breakout/mixed-v0 into the data root
+    .venv/bin/python -m gmt.model.data.breakout            # writes gmt/breakout/mixed-v0 into the data root
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from clients.envs import atari_env
-from model.data.collect import CollectResult
-from model.data.minari_io import Episode, data_root, write_dataset
+from gmt.client.envs import atari_env
+from gmt.model.data.collect import CollectResult
+from gmt.model.data.minari_io import Episode, data_root, write_dataset
 
 ENV_ID = "ALE/Breakout-v5"
 DATASET_ID = "gmt/breakout/mixed-v0"
@@ -472,7 +472,7 @@ def collect_breakout(cfg: CollectConfig | None = None, progress: bool = True) ->
             if cfg.max_burst is not None
             else ""
         )
-        + f"Observations: {json.dumps(cfg.preprocessing.to_dict())}. Written by `python -m model.data.breakout`."
+        + f"Observations: {json.dumps(cfg.preprocessing.to_dict())}. Written by `python -m gmt.model.data.breakout`."
     )
     path = write_dataset(
         cfg.dataset_id,
@@ -608,7 +608,7 @@ def _parse_episodes(items: list[str] | None) -> dict[str, int] | None:
 def main(argv: list[str] | None = None) -> int:
     """Command line: collect (default) or measure the levels."""
     p = argparse.ArgumentParser(
-        prog="python -m model.data.breakout",
+        prog="python -m gmt.model.data.breakout",
         description="Scripted Breakout agents (RAM) at several skill levels into a Minari dataset.",
     )
     default_episodes = " ".join(f"{k}={v}" for k, v in DEFAULT_EPISODES.items())

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from clients.cli_support import needs
+from gmt.client.cli_support import needs
 
 app = typer.Typer(help="Offline datasets: behaviour agents, collection, statistics and goal relabelling.")
 
@@ -85,7 +85,7 @@ def behaviour(
     ),
 ) -> None:
     """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
-    from model.data.train_behaviour import (
+    from gmt.model.data.train_behaviour import (
         BehaviourTrainConfig,
         remeasure_all,
         select_levels,
@@ -172,7 +172,7 @@ def commanded(
     import shlex
     import sys
 
-    from model.data.train_commanded import (
+    from gmt.model.data.train_commanded import (
         CommandedConfig,
         resume_source,
         select_commanded,
@@ -254,9 +254,9 @@ def govern(
     import shlex
     import sys
 
-    from model.data.behaviour import BEHAVIOUR_DIR, env_slug
-    from model.data.governor import GovernorConfig, write_governed
-    from model.data.minari_io import x_velocity_obs_index
+    from gmt.model.data.behaviour import BEHAVIOUR_DIR, env_slug
+    from gmt.model.data.governor import GovernorConfig, write_governed
+    from gmt.model.data.minari_io import x_velocity_obs_index
 
     vx = x_velocity_obs_index(env)
     if vx is None:
@@ -295,8 +295,8 @@ def gait(
     import shlex
     import sys
 
-    from model.data.behaviour import BEHAVIOUR_DIR
-    from model.data.gait import GaitConfig, write_levels
+    from gmt.model.data.behaviour import BEHAVIOUR_DIR
+    from gmt.model.data.gait import GaitConfig, write_levels
 
     try:
         data = json.loads(params.read_text())
@@ -359,7 +359,7 @@ def refine(
     """Fine-tune one level with a target-speed reward from other levels' states (needs the `train` extra)."""
     import time
 
-    from model.data.refine_behaviour import RefineConfig, command_line, refine, write_provenance
+    from gmt.model.data.refine_behaviour import RefineConfig, command_line, refine, write_provenance
 
     cfg = RefineConfig(
         env_id=env, level=level, target_speed=target_speed, timesteps=timesteps, learning_rate=learning_rate,
@@ -434,12 +434,12 @@ def collect(
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
 
-    For ALE/Breakout-v5 the behaviour is scripted agents reading the game's RAM (`model.data.breakout`; more
-    options: `python -m model.data.breakout --help`).
+    For ALE/Breakout-v5 the behaviour is scripted agents reading the game's RAM (`gmt.model.data.breakout`; more
+    options: `python -m gmt.model.data.breakout --help`).
     """
     if env.startswith("ALE/Breakout"):
-        from model.data.breakout import DEFAULT_EPISODES
-        from model.data.breakout import main as collect_breakout
+        from gmt.model.data.breakout import DEFAULT_EPISODES
+        from gmt.model.data.breakout import main as collect_breakout
 
         argv = ["--seed", str(seed)]
         argv += ["--out-id", out_id] if out_id else []
@@ -448,8 +448,8 @@ def collect(
         if episodes_per_level:
             argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in DEFAULT_EPISODES)]
         raise typer.Exit(collect_breakout(argv))
-    from model.data.collect import CollectConfig, collect
-    from model.data.plan import PlanConfig, parse_plan
+    from gmt.model.data.collect import CollectConfig, collect
+    from gmt.model.data.plan import PlanConfig, parse_plan
 
     rest = {}
     for item in plan_from_rest or []:
@@ -537,10 +537,10 @@ def settle(
     """Keep every rest-started episode and the pool-started ones inside their goal's tolerance over SPAN.
 
     Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
-    reach their goal too slowly for a multi-switch segment (`model.data.settle`).
+    reach their goal too slowly for a multi-switch segment (`gmt.model.data.settle`).
     """
-    from clients.tables import text_table
-    from model.data.settle import SettleConfig, settle_filter
+    from gmt.client.tables import text_table
+    from gmt.model.data.settle import SettleConfig, settle_filter
 
     start, _, end = span.partition(":")
     try:
@@ -582,9 +582,9 @@ def settle(
 
 
 def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):
-    from model.data.minari_io import load_dataset
-    from model.data.relabel import relabel
-    from model.data.statistics import MissingInfoError, per_trajectory
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.model.data.relabel import relabel
+    from gmt.model.data.statistics import MissingInfoError, per_trajectory
 
     ds = load_dataset(dataset, data_dir)
     try:
@@ -606,7 +606,7 @@ def describe(
     plot: Path = typer.Option(None, help="Save a histogram of the statistic coloured by goal here."),
 ) -> None:
     """Print size, silhouette scores, chosen k and the goal table of a dataset."""
-    from model.data.relabel import separation
+    from gmt.model.data.relabel import separation
 
     ds, table = _relabel(dataset, statistic, k, seed, data_dir)
     typer.echo(f"{ds.dataset_id} ({ds.env_id}): {len(ds.episodes)} episodes, {ds.n_transitions} transitions")
@@ -617,7 +617,7 @@ def describe(
         pairs = ", ".join(f"{i}-{i + 1}: {s:.1f}" for i, s in enumerate(seps))
         typer.echo(f"\nneighbour separation (mean gap / larger std): {pairs}")
     if plot:
-        from model.data.plots import plot_goals
+        from gmt.model.data.plots import plot_goals
 
         plot_goals(table, plot, title=f"{ds.dataset_id}: {statistic}")
         typer.echo(f"saved {plot}")
@@ -643,7 +643,7 @@ def relabel(
 @app.command()
 def statistics() -> None:
     """List the registered per-trajectory statistics."""
-    from clients.statistics import get_statistic, list_statistics
+    from gmt.client.statistics import get_statistic, list_statistics
 
     for name in list_statistics():
         s = get_statistic(name)

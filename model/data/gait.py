@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
-from model.data.behaviour import BehaviourMeta
+from gmt.model.data.behaviour import BehaviourMeta
 
 ENV_ID = "Ant-v5"
 # Ant-v5 observation (positions without x, y first): [0] torso z, [1:5] torso quaternion (w, x, y, z),
@@ -274,8 +274,8 @@ def write_levels(
 
     import gymnasium as gym
 
-    from model.data.behaviour import save_behaviour
-    from model.data.rollout import measure
+    from gmt.model.data.behaviour import save_behaviour
+    from gmt.model.data.rollout import measure
 
     if not freqs:
         raise ValueError("name at least one level")
@@ -308,7 +308,7 @@ def write_levels(
         command,
         "```",
         "",
-        "Each level is `model.data.gait.GaitPolicy`: one stride (a phase oscillator's joint targets tracked by PD "
+        "Each level is `gmt.model.data.gait.GaitPolicy`: one stride (a phase oscillator's joint targets tracked by PD "
         "control, heading held by feedback) at its own frequency, with Gaussian action noise of std "
         f"{noise_std:g}. Speeds are the mean and standard deviation over {episodes} noisy episodes (reset seeds "
         f"{seed}+) of the per-episode mean `x_velocity` (m/s).",

@@ -1,6 +1,6 @@
 """A speed governor: an outer loop that steers a commanded actor's command so its mean speed holds a target.
 
-A speed-commanded actor (`model.data.train_commanded`) holds its command only on average: measured on Hopper, its
+A speed-commanded actor (`gmt.model.data.train_commanded`) holds its command only on average: measured on Hopper, its
 slow gait's speed over 150-step windows wanders by ~0.1 m/s, about the protocol's whole tolerance, and after a
 sprint it brakes over ~100 steps. A GMT imitates both. The governor closes the loop that PPO left open: every
 step it reads the x-velocity from the observation and sets the actor's command to
@@ -32,7 +32,7 @@ class GovernorConfig:
 
     Attributes:
         vx_index: Index of the x-velocity in the environment's observation vector
-            (`model.data.minari_io.x_velocity_obs_index`).
+            (`gmt.model.data.minari_io.x_velocity_obs_index`).
         command_range: (lo, hi): the commands the actor was trained on; every command is clipped into it.
         window: Steps of speed averaged by the proportional term.
         kp: Proportional gain on (target - window mean speed).
@@ -112,7 +112,7 @@ def write_governed(
     Returns:
         The written level paths (without suffix).
     """
-    from model.data.behaviour import BehaviourMeta, save_behaviour
+    from gmt.model.data.behaviour import BehaviourMeta, save_behaviour
 
     source = Path(source).with_suffix("")
     meta = json.loads(Path(f"{source}.json").read_text())
@@ -142,7 +142,7 @@ def write_governed(
         written.append(out_dir / level)
     (out_dir / "GOVERNED_WITH.md").write_text(
         f"# Governed levels\n\nWritten by:\n\n```bash\n{command}\n```\n\nActor: `{source}` (train step "
-        f"{meta.get('train_step')}). Levels: {targets}. Governor (`model.data.governor.GovernorConfig`): "
+        f"{meta.get('train_step')}). Levels: {targets}. Governor (`gmt.model.data.governor.GovernorConfig`): "
         f"`{cfg.to_json()}`.\n"
     )
     return written

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.data.relabel import GoalTable
+from gmt.model.data.relabel import GoalTable
 
 
 def plot_goals(table: GoalTable, path: str | Path, title: str = "") -> None:

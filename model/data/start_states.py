@@ -110,7 +110,7 @@ class CheckpointPolicy:
     DAgger does for imitation.
 
     Args:
-        engine: A `model.engine.PolicyEngine` over the checkpoint.
+        engine: A `gmt.model.engine.PolicyEngine` over the checkpoint.
         goal: The goal id held for every episode.
         seed: First seed of the sampled action noise (one more per episode).
     """

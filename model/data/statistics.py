@@ -1,10 +1,10 @@
-"""Per-trajectory statistics of offline datasets; the statistics themselves are `clients.statistics`."""
+"""Per-trajectory statistics of offline datasets; the statistics themselves are `gmt.client.statistics`."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from clients.statistics import (
+from gmt.client.statistics import (
     MissingInfoError,
     Statistic,
     aggregate,
@@ -16,7 +16,7 @@ from clients.statistics import (
     register_statistic,
     signal_from_step,
 )
-from model.data.minari_io import OfflineDataset
+from gmt.model.data.minari_io import OfflineDataset
 
 __all__ = [
     "MissingInfoError",

@@ -7,15 +7,15 @@ import math
 from dataclasses import asdict
 
 import numpy as np
-from gmt.v1 import policy_pb2 as pb
 
-from service.core import ActResult, GoalRef, ModelView, SessionView
-from service.errors import InvalidArgument, ServiceError
-from service.observations import decode_tensor
+from gmt.service.core import ActResult, GoalRef, ModelView, SessionView
+from gmt.service.errors import InvalidArgument, ServiceError
+from gmt.service.observations import decode_tensor
+from gmt.v1 import policy_pb2 as pb
 
 
 def space(d: dict) -> pb.Space:
-    """A space dict (clients.spaces) as a message; null (infinite) bounds become +-inf."""
+    """A space dict (`gmt.client.spaces`) as a message; null (infinite) bounds become +-inf."""
 
     def bounds(values: list | None, inf: float) -> list[float]:
         return [inf if v is None else float(v) for v in (values or [])]

@@ -6,15 +6,15 @@ import inspect
 import secrets
 
 import grpc
-from gmt.v1 import policy_pb2, policy_pb2_grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service.core import Core
-from service.errors import Unauthenticated
-from service.grpc.servicer import PolicyServicer, Undecodable
-from service.limits import connection_caps
-from service.settings import Settings
+from gmt.service.core import Core
+from gmt.service.errors import Unauthenticated
+from gmt.service.grpc.servicer import PolicyServicer, Undecodable
+from gmt.service.limits import connection_caps
+from gmt.service.settings import Settings
+from gmt.v1 import policy_pb2, policy_pb2_grpc
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
 OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")

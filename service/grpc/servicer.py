@@ -9,14 +9,14 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TypeVar
 
 import grpc
+
+from gmt.service.core import Core
+from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
+from gmt.service.grpc import convert
+from gmt.service.memory import Trimmer
+from gmt.service.observations import check_act_items
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
-
-from service.core import Core
-from service.errors import DeadlineExceeded, InvalidArgument, ServiceError
-from service.grpc import convert
-from service.memory import Trimmer
-from service.observations import check_act_items
 
 T = TypeVar("T")
 log = logging.getLogger("gmt.grpc")

@@ -17,11 +17,11 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.core import Core
-from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from service.rest import openapi
-from service.rest.routes import act_answer, api, public, session_header
-from service.settings import Settings
+from gmt.service.core import Core
+from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
+from gmt.service.rest import openapi
+from gmt.service.rest.routes import act_answer, api, public, session_header
+from gmt.service.settings import Settings
 
 log = logging.getLogger("gmt.rest")
 HTTP_CODES = {
@@ -323,7 +323,7 @@ class _App(FastAPI):
         return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings.token)), self.replica_id)
 
     def openapi(self) -> dict:
-        """The document for the loaded models and the auth setting (`service.rest.openapi`), built once the
+        """The document for the loaded models and the auth setting (`gmt.service.rest.openapi`), built once the
         models are loaded."""
         if self.openapi_schema is None:
             core = getattr(self.state, "core", None)

@@ -27,8 +27,8 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.core import MAX_BLEND_STEPS, Core, ModelView
-from service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
+from gmt.service.core import MAX_BLEND_STEPS, Core, ModelView
+from gmt.service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
 
 BEARER = "bearerAuth"
 OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token

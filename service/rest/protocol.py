@@ -10,7 +10,7 @@ exhaust the process's descriptors, for gRPC and Redis too. Here:
 - its body must arrive within `body_timeout_s` of its headers, else the same;
 - at most `max_connections` connections are open: a new one past it closes the oldest connection that has no
   request in progress (one still sending its headers, or an idle keep-alive one), or, when every connection has a
-  request in progress, the new one. The cap is kept below the descriptor limit (`service.limits`), so that
+  request in progress, the new one. The cap is kept below the descriptor limit (`gmt.service.limits`), so that
   accept() never fails for lack of descriptors.
 """
 
@@ -23,7 +23,7 @@ from typing import Any, Literal
 import orjson
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from service.metrics import Metrics
+from gmt.service.metrics import Metrics
 
 log = logging.getLogger("gmt.rest")
 Phase = Literal["idle", "headers", "body", "busy"]

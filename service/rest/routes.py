@@ -10,10 +10,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
-from service.core import MAX_ID_LENGTH, Core
-from service.errors import ServiceError
-from service.observations import check_act_items, decode_base64, decode_tensor
-from service.rest import schemas as S
+from gmt.service.core import MAX_ID_LENGTH, Core
+from gmt.service.errors import ServiceError
+from gmt.service.observations import check_act_items, decode_base64, decode_tensor
+from gmt.service.rest import schemas as S
 
 SESSION_HEADER = "X-Session-Id"
 _ERRORS = {

@@ -1,7 +1,7 @@
 """JSON bodies of the REST API (pydantic v2), as DESIGN.md section 6 fixes them.
 
 Request bodies are validated strictly: a number is never read from a string or a boolean, so that the server
-accepts exactly what its OpenAPI schema (`service.rest.openapi`) admits. Integers may be written as integral
+accepts exactly what its OpenAPI schema (`gmt.service.rest.openapi`) admits. Integers may be written as integral
 JSON numbers (`2.0`), which JSON Schema counts as integers too.
 """
 
@@ -12,9 +12,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, StrictStr, field_validator
 
-from service.core import MAX_BLEND_STEPS, ActResult, ModelView, SessionView
-from service.errors import ServiceError
-from service.observations import MAX_ACT_ITEMS
+from gmt.service.core import MAX_BLEND_STEPS, ActResult, ModelView, SessionView
+from gmt.service.errors import ServiceError
+from gmt.service.observations import MAX_ACT_ITEMS
 
 
 def _integral(v: object) -> object:

@@ -1,4 +1,4 @@
-"""Real servers for the client tests: `service.server.Server` (REST + gRPC) on loopback port 0, in a thread."""
+"""Real servers for the client tests: `gmt.service.server.Server` (REST + gRPC) on loopback port 0, in a thread."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from model.fixtures import tiny_checkpoint
-from service.server import Server
-from service.settings import Settings
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.service.server import Server
+from gmt.service.settings import Settings
 
 
 class LiveServer:

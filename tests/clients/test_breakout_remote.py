@@ -7,10 +7,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
-from clients.runner import RunConfig, run
-from model.fixtures import tiny_checkpoint
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
+from gmt.client.runner import RunConfig, run
+from gmt.model.fixtures import tiny_checkpoint
 
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")  # AtariPreprocessing

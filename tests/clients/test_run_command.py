@@ -7,8 +7,8 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from clients.envs import VIDEO_SIZE
-from service.cli import app
+from gmt.client.envs import VIDEO_SIZE
+from gmt.service.cli import app
 
 runner = CliRunner()
 

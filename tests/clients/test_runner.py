@@ -1,4 +1,4 @@
-"""`clients.runner` driving HalfCheetah-v5 episodes through a real server over REST, gRPC and the stream."""
+"""`gmt.client.runner` driving HalfCheetah-v5 episodes through a real server over REST, gRPC and the stream."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from clients.envs import SpaceMismatch
-from clients.errors import NotFound
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
-from clients.runner import RunConfig, StatusLine, parse_goal, parse_schedule, run
-from clients.segments import SETTLE_MAX, runs, settle_in
+from gmt.client.envs import SpaceMismatch
+from gmt.client.errors import NotFound
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
+from gmt.client.runner import RunConfig, StatusLine, parse_goal, parse_schedule, run
+from gmt.client.segments import SETTLE_MAX, runs, settle_in
 
 STEPS = 60
 SCHEDULE = "high@20,1@40"  # goal 0 (low) from the start, 2 (high) from step 20, 1 (medium) from step 40

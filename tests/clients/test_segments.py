@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clients.base import GoalInfo
-from clients.segments import (
+from gmt.client.base import GoalInfo
+from gmt.client.segments import (
     achieved,
     held_windows,
     measure,
@@ -16,16 +16,16 @@ from clients.segments import (
     tolerance,
     within,
 )
-from clients.tables import markdown_table, text_table
+from gmt.client.tables import markdown_table, text_table
 
 
 def test_eval_uses_the_same_definitions_as_the_runner():
-    import model.eval_plot
-    import model.evaluate
+    import gmt.model.eval_plot
+    import gmt.model.evaluate
 
-    assert model.evaluate.tolerance is tolerance
-    assert model.eval_plot.moving_average is moving_average
-    hold = model.evaluate.protocol(2, steps=400, multi_every=(150,))
+    assert gmt.model.evaluate.tolerance is tolerance
+    assert gmt.model.eval_plot.moving_average is moving_average
+    hold = gmt.model.evaluate.protocol(2, steps=400, multi_every=(150,))
     for c in hold:
         goals = [c.goal_at(t) for t in range(400)]
         assert c.segments == measured_spans(goals)
@@ -51,7 +51,7 @@ def test_achieved_and_within_ignore_steps_after_an_early_end():
 
 
 def test_measure_reads_any_goal_table():
-    from model.checkpoint import Goal
+    from gmt.model.checkpoint import Goal
 
     signal = np.r_[np.zeros(40), np.full(40, 2.0)]
     for row in (GoalInfo, Goal):
@@ -79,7 +79,7 @@ def test_a_summed_statistic_is_summed_over_each_whole_segment_and_not_judged():
 
 
 def text_table_of(segs):
-    from clients.segments import table
+    from gmt.client.segments import table
 
     return table(segs, "return")
 

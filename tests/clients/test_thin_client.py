@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from clients.extras import distributions
+from gmt.client.extras import distributions
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "scikit-learn", "minari", "stable-baselines3", "safetensors", "mujoco", "matplotlib")
@@ -20,9 +20,14 @@ HEAVY = ("torch", "scikit-learn", "minari", "stable-baselines3", "safetensors", 
 
 def test_clients_import_neither_torch_nor_model(imports_of):
     loaded = imports_of(
-        "clients.rest", "clients.grpc", "clients.runner", "clients.envs", "clients.segments", "clients.cli"
+        "gmt.client.rest",
+        "gmt.client.grpc",
+        "gmt.client.runner",
+        "gmt.client.envs",
+        "gmt.client.segments",
+        "gmt.client.cli",
     )
-    assert "torch" not in loaded and "model" not in loaded
+    assert "torch" not in loaded and "gmt.model" not in loaded
     assert not loaded & {"sklearn", "minari", "safetensors", "stable_baselines3", "mujoco", "matplotlib"}
 
 

@@ -10,9 +10,9 @@ import httpx
 import numpy as np
 import pytest
 
-from clients import base
-from clients.base import PolicyClient
-from clients.errors import (
+from gmt.client import base
+from gmt.client.base import PolicyClient
+from gmt.client.errors import (
     AlreadyExists,
     ConnectionFailed,
     DeadlineExceeded,
@@ -22,9 +22,9 @@ from clients.errors import (
     ServiceError,
     Unavailable,
 )
-from clients.grpc import GrpcClient, StreamSession
-from clients.rest import RestClient
-from service.observations import MAX_ACT_ITEMS
+from gmt.client.grpc import GrpcClient, StreamSession
+from gmt.client.rest import RestClient
+from gmt.service.observations import MAX_ACT_ITEMS
 
 TRANSPORTS = ["rest", "grpc", "grpc-stream"]
 OBS = np.linspace(-1, 1, 17)

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from model.augment import augment_frames
+from gmt.model.augment import augment_frames
 
 
 def _dot(B=3, T=2, C=4, H=16, W=16, y=8, x=8):

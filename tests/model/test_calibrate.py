@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from model.calibrate import action_noise
-from model.fixtures import tiny_checkpoint
-from model.tokens import WindowSampler
+from gmt.model.calibrate import action_noise
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.model.tokens import WindowSampler
 
 
 def _zero_action_head(model):

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from model.distributed import Parallel, resolve_device
-from model.losses import gmt_loss, loss_counts
+from gmt.model.distributed import Parallel, resolve_device
+from gmt.model.losses import gmt_loss, loss_counts
 
 
 def test_auto_picks_the_cpu_without_a_gpu_and_cuda_without_one_is_a_clear_error():

@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint
-from model.config import GMTConfig, TrainConfig
-from model.engine import PolicyEngine
-from model.evaluate import protocol
-from model.evaluate_dt import evaluate_dt, returns_to_go, target_returns
-from model.fixtures import SyntheticDataset
-from model.losses import gmt_loss
-from model.tokens import WindowSampler
-from model.train import build_sampler, train
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.config import GMTConfig, TrainConfig
+from gmt.model.engine import PolicyEngine
+from gmt.model.evaluate import protocol
+from gmt.model.evaluate_dt import evaluate_dt, returns_to_go, target_returns
+from gmt.model.fixtures import SyntheticDataset
+from gmt.model.losses import gmt_loss
+from gmt.model.tokens import WindowSampler
+from gmt.model.train import build_sampler, train
 
 SMALL = {
     "context_length": 4,

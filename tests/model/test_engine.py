@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint
-from model.engine import SAMPLE_STD_CAP, InvalidObservation, PolicyEngine, StepFailed, normals
-from model.fixtures import tiny_checkpoint
-from model.tokens import WindowSampler
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.engine import SAMPLE_STD_CAP, InvalidObservation, PolicyEngine, StepFailed, normals
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.model.tokens import WindowSampler
 
 
 def _episode(rng, T, obs_dim=17, act_dim=6):

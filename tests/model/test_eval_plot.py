@@ -5,7 +5,7 @@ import warnings
 import matplotlib
 import numpy as np
 
-from model.eval_plot import SMOOTH, _band
+from gmt.model.eval_plot import SMOOTH, _band
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

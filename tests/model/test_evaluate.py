@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from model.checkpoint import Goal
-from model.evaluate import evaluate, protocol, tolerance
-from model.fixtures import tiny_checkpoint
+from gmt.model.checkpoint import Goal
+from gmt.model.evaluate import evaluate, protocol, tolerance
+from gmt.model.fixtures import tiny_checkpoint
 
 
 def test_protocol_has_every_hold_switch_and_multi_switch():
@@ -52,7 +52,7 @@ def test_evaluate_runs_lockstep_and_judges_segments(tmp_path):
             assert bool(cr.success[e]) == ok
     # Same seeds, same hold goal: identical episodes whichever condition they belong to.
     assert np.array_equal(result.results[0].signal[:, :20], result.results[2].signal[:, :20])
-    from model.eval_plot import plot_eval
+    from gmt.model.eval_plot import plot_eval
 
     png = plot_eval(result, tmp_path / "eval.png")
     assert png.stat().st_size > 10_000

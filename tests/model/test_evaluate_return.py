@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from model.evaluate_return import (
+from gmt.model.evaluate_return import (
     evaluate_returns,
     expected_return,
     expected_return_per_step,
     return_protocol,
     switch_goals,
 )
-from model.fixtures import tiny_checkpoint
+from gmt.model.fixtures import tiny_checkpoint
 
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")
@@ -77,7 +77,7 @@ def test_the_per_step_expectation_agrees_with_the_papers_formula_for_full_length
 
 
 def test_gmt_eval_uses_the_game_protocol_for_return_goals(tmp_path):
-    from service.cli import app
+    from gmt.service.cli import app
 
     _ckpt(tmp_path / "ckpt")
     out = tmp_path / "eval.json"

@@ -3,9 +3,9 @@
 import pytest
 import torch
 
-from model.config import GMTConfig
-from model.gmt import GMT
-from model.masking import mask_goals
+from gmt.model.config import GMTConfig
+from gmt.model.gmt import GMT
+from gmt.model.masking import mask_goals
 
 
 def _cfg(**kw):

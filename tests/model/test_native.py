@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from model.config import GMTConfig
-from model.engine import PolicyEngine
-from model.fixtures import tiny_checkpoint
-from model.gmt import GMT
-from model.kv_cache import KVCache
-from model.native import NativeStep, load
+from gmt.model.config import GMTConfig
+from gmt.model.engine import PolicyEngine
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.model.gmt import GMT
+from gmt.model.kv_cache import KVCache
+from gmt.model.native import NativeStep, load
 
 if shutil.which(os.environ.get("CC", "cc")) is None:  # pragma: no cover - CI has a C compiler
     pytest.skip("no C compiler: the engine uses the torch step", allow_module_level=True)
@@ -100,7 +100,7 @@ def test_native_and_torch_kernels_agree_in_the_engine():
 
 
 def test_native_sampling_noise_is_the_numpy_construction():
-    from model import engine, native
+    from gmt.model import engine, native
 
     seed = np.array([0, 7, 2**63 + 5, 2**64 - 1], np.uint64)
     step = np.array([0, 1, 999, 2**40])
@@ -129,7 +129,7 @@ def test_discrete_window_model_acts_alike_on_both_kernels():
 def test_a_session_rebuilt_from_its_stored_form_continues_bit_for_bit(move_at):
     """A session moved to another engine (its cache replayed from the stored steps) acts exactly as the
     same session left in place, early (history shorter than the receptive field) and late (longer)."""
-    from service.bench import default_size_checkpoint
+    from gmt.service.bench import default_size_checkpoint
 
     ckpt = default_size_checkpoint(None, K=5)  # 3 x 128: wide enough that a last-bit difference shows
     stay, src, dst = PolicyEngine(ckpt), PolicyEngine(ckpt), PolicyEngine(ckpt)
@@ -156,7 +156,7 @@ def test_the_pool_grows_safely_while_acts_run_in_another_thread():
     arrays in use (the engine lock orders them); before the lock the native step wrote into freed arrays."""
     import threading
 
-    from service.bench import default_size_checkpoint
+    from gmt.service.bench import default_size_checkpoint
 
     engine = PolicyEngine(default_size_checkpoint(None, K=20), n_slots=16)
     ctxs = [engine.new_context(1, seed=i) for i in range(16)]
@@ -207,7 +207,7 @@ def test_a_corrupt_stored_context_is_refused_not_embedded(field, value):
 
 def test_the_library_cache_key_names_the_cpus_features(monkeypatch):
     """A build for one CPU (-march=native) is never handed to a CPU with other features from a shared cache."""
-    import model.native as native
+    import gmt.model.native as native
 
     monkeypatch.setattr(native, "_cpu_features", lambda: "avx2 fma sse4_2")
     here = native.library_key("cc")
@@ -218,7 +218,7 @@ def test_the_library_cache_key_names_the_cpus_features(monkeypatch):
 
 
 def test_the_cpu_features_are_read_from_this_machine():
-    import model.native as native
+    import gmt.model.native as native
 
     feats = native._cpu_features()
     if os.path.exists("/proc/cpuinfo") and "flags" in open("/proc/cpuinfo").read():

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import META, WEIGHTS, CheckpointError, load_checkpoint, state_dicts_equal
-from model.config import TrainConfig
-from model.fixtures import SyntheticDataset, _Episode
-from model.losses import gmt_loss
-from model.train import RESUME_DIR, build_sampler, model_config_for, train
+from gmt.model.checkpoint import META, WEIGHTS, CheckpointError, load_checkpoint, state_dicts_equal
+from gmt.model.config import TrainConfig
+from gmt.model.fixtures import SyntheticDataset, _Episode
+from gmt.model.losses import gmt_loss
+from gmt.model.train import RESUME_DIR, build_sampler, model_config_for, train
 
 SMALL = {"context_length": 4, "n_layer": 1, "n_head": 1, "n_embd": 32}
 
@@ -42,7 +42,7 @@ def _eval_loss(ckpt, ds):
 def test_short_training_lowers_the_loss(tmp_path):
     ds = SyntheticDataset()
     cfg = model_config_for(ds, 3, **SMALL)
-    from model.gmt import GMT
+    from gmt.model.gmt import GMT
 
     torch.manual_seed(0)
     untrained = type("C", (), {"model": GMT(cfg).eval(), "config": cfg})()
@@ -143,7 +143,7 @@ def test_window_model_trains_on_longer_sequences_and_records_its_span(tmp_path):
     assert _tc().sequence_steps(cfg) == 2 * cfg.context_length  # the window default: 2K
     with pytest.raises(ValueError, match="exactly K"):
         _tc(sequence_length=9).sequence_steps(model_config_for(ds, 3, **SMALL))
-    from model.gmt import GMT
+    from gmt.model.gmt import GMT
 
     torch.manual_seed(0)
     untrained = type("C", (), {"model": GMT(cfg).eval(), "config": cfg})()

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from model.data.minari_io import Episode, write_dataset
-from model.fixtures import SyntheticDataset
+from gmt.model.data.minari_io import Episode, write_dataset
+from gmt.model.fixtures import SyntheticDataset
 
 BIN = Path(sys.executable).parent
 

@@ -11,12 +11,12 @@ import grpc
 import httpx
 import numpy as np
 import pytest
-from gmt.v1 import policy_pb2_grpc
 from service_harness import OBS_DIM, FakeClock, RunningServer, make_settings
 
-from model.checkpoint import load_checkpoint
-from model.engine import PolicyEngine
-from model.fixtures import tiny_checkpoint
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.engine import PolicyEngine
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.v1 import policy_pb2_grpc
 
 
 @pytest.fixture(scope="session")

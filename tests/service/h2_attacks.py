@@ -29,6 +29,7 @@ import h2.config
 import h2.connection
 import h2.events
 import h2.exceptions
+
 from gmt.v1 import policy_pb2 as pb
 
 CONTROL = "/gmt.v1.PolicyService/Control"

@@ -12,10 +12,10 @@ import threading
 import time
 from pathlib import Path
 
-from service.core import Core
-from service.redis_store import store_for
-from service.server import Server
-from service.settings import Settings
+from gmt.service.core import Core
+from gmt.service.redis_store import store_for
+from gmt.service.server import Server
+from gmt.service.settings import Settings
 
 OBS_DIM = 17
 
@@ -34,7 +34,7 @@ class FakeClock:
 
 
 class RunningServer:
-    """`service.server.Server` running its own event loop in a background thread."""
+    """`gmt.service.server.Server` running its own event loop in a background thread."""
 
     def __init__(self, settings: Settings, clock=None) -> None:
         self.settings = settings

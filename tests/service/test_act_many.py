@@ -7,11 +7,11 @@ import grpc
 import httpx
 import numpy as np
 import pytest
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.observations import MAX_ACT_ITEMS
+from gmt.service.observations import MAX_ACT_ITEMS
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 # (model, goal, seed, observation size) of the sessions each parity test steps together: a calibrated
 # (sampled, seeded) model, a deterministic one and a discrete one, all in one call.

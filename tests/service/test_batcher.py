@@ -6,7 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from service.batcher import MicroBatcher
+from gmt.service.batcher import MicroBatcher
 
 
 class RecordingEngine:
@@ -143,7 +143,7 @@ def test_a_failing_forward_fails_its_batch_only(pool):
 
 
 def test_a_crashed_batcher_fails_its_calls_as_unavailable_and_restarts(pool):
-    from service.errors import Unavailable
+    from gmt.service.errors import Unavailable
 
     engine = RecordingEngine()
 

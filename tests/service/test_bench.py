@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
-from model.fixtures import tiny_checkpoint
-from service.bench import bench_cluster, bench_engine, bench_serving
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.service.bench import bench_cluster, bench_engine, bench_serving
 
 
 @pytest.fixture(scope="module")

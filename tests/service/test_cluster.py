@@ -17,14 +17,14 @@ import grpc
 import httpx
 import numpy as np
 import pytest
+
+from gmt.client import base
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.service import cluster
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
-
-from clients import base
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
-from model.fixtures import tiny_checkpoint
-from service import cluster
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = "tiny-cheetah"

@@ -10,6 +10,7 @@ import json
 import grpc
 import numpy as np
 import pytest
+
 from gmt.v1 import policy_pb2 as pb
 
 N = 17

@@ -13,10 +13,10 @@ import time
 import numpy as np
 import pytest
 
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
-from model.fixtures import tiny_checkpoint
-from service import cluster, failover
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
+from gmt.model.fixtures import tiny_checkpoint
+from gmt.service import cluster, failover
 
 MODEL = "tiny-cheetah"
 GOALS = 3

@@ -16,10 +16,11 @@ import random
 import grpc
 import numpy as np
 import pytest
-from gmt.v1 import policy_pb2 as pb
 from google.protobuf.message import DecodeError
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from service_harness import OBS_DIM
+
+from gmt.v1 import policy_pb2 as pb
 
 SERVICE = pb.DESCRIPTOR.services_by_name["PolicyService"]
 MODEL = "tiny-gmt"

@@ -6,10 +6,11 @@ import grpc
 import httpx
 import numpy as np
 import pytest
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
+
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 
 def stub_for(server):
@@ -146,9 +147,9 @@ def test_a_bad_row_inside_a_batch_fails_only_its_own_request(make_server, tmp_pa
     """Three concurrent acts share one forward pass; the middle one passes validation (its normalised value is
     finite, 3e38, through a checkpoint whose first observation dimension has a vanishing spread) but its row
     overflows in the network: it alone fails, and its session stays where it was."""
-    from model.checkpoint import save_checkpoint
-    from model.engine import PolicyEngine
-    from model.fixtures import tiny_checkpoint
+    from gmt.model.checkpoint import save_checkpoint
+    from gmt.model.engine import PolicyEngine
+    from gmt.model.fixtures import tiny_checkpoint
 
     fragile = tiny_checkpoint()
     fragile.obs_norm.mean[0], fragile.obs_norm.std[0] = 0.0, 1e9 / 3e38  # x0 = 1e9 normalises to 3e38

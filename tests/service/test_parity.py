@@ -3,6 +3,7 @@
 import base64
 
 import numpy as np
+
 from gmt.v1 import policy_pb2 as pb
 
 
@@ -204,8 +205,8 @@ def test_discrete_model_answers_integer_actions(http, stub):
 
 
 def test_calibrated_model_samples_by_default_identically_over_rest_grpc_and_engine(ckpt_root, http, stub):
-    from model.checkpoint import load_checkpoint
-    from model.engine import PolicyEngine
+    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.engine import PolicyEngine
 
     assert http.get("/models/tiny-sampled").json()["action_modes"] == ["sample", "mean"]
     assert http.get("/models/tiny-gmt").json()["action_modes"] == ["mean"]

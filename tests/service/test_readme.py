@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from service_harness import RunningServer, make_settings
 
-from model.fixtures import tiny_checkpoint
+from gmt.model.fixtures import tiny_checkpoint
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.redis_connect import SentinelURL, parse_redis_url, redacted
-from service.settings import Settings
+from gmt.service.redis_connect import SentinelURL, parse_redis_url, redacted
+from gmt.service.settings import Settings
 
 
 @pytest.mark.parametrize(

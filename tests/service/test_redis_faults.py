@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, make_settings
 
-from model.checkpoint import load_checkpoint
-from model.engine import PolicyEngine
-from service import cluster, session_codec
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.engine import PolicyEngine
+from gmt.service import cluster, session_codec
 
 pytestmark = pytest.mark.skipif(
     shutil.which("redis-server") is None,

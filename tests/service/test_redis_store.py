@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
-from model.checkpoint import load_checkpoint
-from model.engine import PolicyEngine
-from service import session_codec
-from service.errors import Aborted, NotFound, ResourceExhausted, SessionExpired
-from service.sessions import Session
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.engine import PolicyEngine
+from gmt.service import session_codec
+from gmt.service.errors import Aborted, NotFound, ResourceExhausted, SessionExpired
+from gmt.service.sessions import Session
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_codec_refuses_foreign_and_broken_data(cartpole):
 
 
 def test_redis_store_semantics(redis_clean, engine, clock):
-    from service.redis_store import RedisSessionStore
+    from gmt.service.redis_store import RedisSessionStore
 
     def new(sid: str, goal: int) -> Session:
         return Session(sid, "tiny-gmt", engine.new_context(goal, key=sid), clock(), clock())

@@ -14,9 +14,10 @@ from concurrent.futures import ThreadPoolExecutor
 import grpc
 import numpy as np
 import pytest
+from service_harness import RunningServer, make_settings
+
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
-from service_harness import RunningServer, make_settings
 
 MODEL = "tiny-sampled"  # sampled actions: a step taken twice shows in every later action
 FORWARD_S = 0.01  # how long each forward pass takes here

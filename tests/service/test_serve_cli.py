@@ -8,7 +8,7 @@ from pathlib import Path
 import httpx
 from service_harness import ServeProcess
 
-from service.settings import Settings
+from gmt.service.settings import Settings
 
 
 def test_settings_from_environment_and_flags(monkeypatch, tmp_path):

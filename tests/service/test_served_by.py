@@ -8,14 +8,14 @@ import socket
 import grpc
 import httpx
 import pytest
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from pydantic import ValidationError
 from service_harness import make_settings
 
-from service.rest.app import create_app
-from service.settings import Settings
+from gmt.service.rest.app import create_app
+from gmt.service.settings import Settings
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 
 def test_replica_id_defaults_to_host_and_pid_and_comes_from_the_environment(monkeypatch):

@@ -9,6 +9,7 @@ import grpc
 import httpx
 import numpy as np
 import pytest
+
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

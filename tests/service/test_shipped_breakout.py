@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 from service_harness import RunningServer, make_settings
 
-from clients.grpc import GrpcClient
-from clients.rest import RestClient
-from clients.runner import RunConfig, run
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
+from gmt.client.runner import RunConfig, run
 
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")  # AtariPreprocessing

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, make_settings
 
-from model.checkpoint import load_checkpoint
-from model.evaluate import tolerance
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.evaluate import tolerance
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
 SHIPPED = sorted(

@@ -23,10 +23,11 @@ import grpc
 import httpx
 import numpy as np
 import pytest
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
 from service_harness import OBS_DIM, ServeProcess
+
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 N_REST = 6
 BATCH_WAIT_MS = 4000  # how long the in-flight acts wait in the batcher: the window for the signal

@@ -27,12 +27,13 @@ from pathlib import Path
 import grpc
 import httpx
 import pytest
-from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from service_harness import OBS_DIM, ServeProcess
+
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 ATTACKS = Path(__file__).with_name("h2_attacks.py")
 NOFILE = 1024

@@ -3,6 +3,7 @@
 import grpc
 import numpy as np
 import pytest
+
 from gmt.v1 import policy_pb2 as pb
 
 OBS = np.random.default_rng(11).normal(size=(3, 17)).astype(np.float32)

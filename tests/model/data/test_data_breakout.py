@@ -6,9 +6,9 @@ import pytest
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")
 
-from model.data import breakout as b  # noqa: E402
-from model.data.minari_io import load_dataset  # noqa: E402
-from model.data.statistics import get_statistic, per_trajectory  # noqa: E402
+from gmt.model.data import breakout as b  # noqa: E402
+from gmt.model.data.minari_io import load_dataset  # noqa: E402
+from gmt.model.data.statistics import get_statistic, per_trajectory  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -156,8 +156,8 @@ def test_main_collects_and_measures(tmp_path, capsys):
 def test_gmt_data_collect_dispatches_breakout_to_the_scripted_agents(tmp_path):
     from typer.testing import CliRunner
 
-    from model.data.minari_io import load_dataset
-    from service.cli import app
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.service.cli import app
 
     args = ["data", "collect", "--env", "ALE/Breakout-v5", "--episodes-per-level", "1", "--max-steps", "12"]
     r = CliRunner().invoke(app, [*args, "--data-dir", str(tmp_path), "--out-id", "t/breakout/cli-v0"])

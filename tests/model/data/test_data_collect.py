@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from model.data.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
-from model.data.minari_io import load_dataset
-from model.data.statistics import per_trajectory
-from model.fixtures import random_behaviour
+from gmt.model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from gmt.model.data.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
+from gmt.model.data.minari_io import load_dataset
+from gmt.model.data.statistics import per_trajectory
+from gmt.model.fixtures import random_behaviour
 
 ENV = "HalfCheetah-v5"
 
@@ -63,7 +63,7 @@ def test_exported_policy_matches_sb3():
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from model.data.train_behaviour import as_policy, export_actor
+    from gmt.model.data.train_behaviour import as_policy, export_actor
 
     venv = VecNormalize(DummyVecEnv([lambda: gym.make(ENV)]))
     model = PPO("MlpPolicy", venv, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu",
@@ -89,7 +89,7 @@ def test_saved_snapshot_round_trip(tmp_path):
 
 
 def test_stuck_step_finds_a_runner_that_stopped():
-    from model.data.rollout import stuck_step
+    from gmt.model.data.rollout import stuck_step
 
     ran_then_stopped = np.r_[np.full(50, 2.0), np.zeros(200)]
     assert stuck_step(ran_then_stopped) == 69
@@ -192,10 +192,10 @@ def test_snapshot_episodes_that_fall_are_replaced(tmp_path):
 
 
 def test_pool_starts_can_come_from_a_trained_models_own_states(tmp_path):
-    from model.data.collect import checkpoint_sources
-    from model.data.start_states import CheckpointPolicy, build_pool, start_from
-    from model.engine import PolicyEngine
-    from model.fixtures import tiny_checkpoint
+    from gmt.model.data.collect import checkpoint_sources
+    from gmt.model.data.start_states import CheckpointPolicy, build_pool, start_from
+    from gmt.model.engine import PolicyEngine
+    from gmt.model.fixtures import tiny_checkpoint
 
     beh, root = tmp_path / "behaviour", tmp_path / "d"
     fake_snapshot(beh, "fast", 1.8, 0)  # nearest the tiny model's goal 2 (means 0, 1, 2)

@@ -2,7 +2,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from model.data.minari_io import Episode, load_dataset, write_dataset
+from gmt.model.data.minari_io import Episode, load_dataset, write_dataset
 
 OBS = gym.spaces.Box(-np.inf, np.inf, (3,), np.float64)
 ACT = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)

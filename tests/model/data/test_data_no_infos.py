@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from model.data.minari_io import Episode, load_dataset, write_dataset, x_velocity_obs_index
+from gmt.model.data.minari_io import Episode, load_dataset, write_dataset, x_velocity_obs_index
 
 
 def _rollouts(env_id: str, speeds=(-1.0, -0.6, 0.6, 1.0), steps: int = 60) -> list[Episode]:

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from model.data.relabel import GoalTable, goal_names, relabel, separation
+from gmt.model.data.relabel import GoalTable, goal_names, relabel, separation
 
 MEANS = [0.0, 1.0, 3.0, 6.0]
 

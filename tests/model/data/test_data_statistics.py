@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from model.data.minari_io import Episode, OfflineDataset
-from model.data.statistics import (
+from gmt.model.data.minari_io import Episode, OfflineDataset
+from gmt.model.data.statistics import (
     MissingInfoError,
     aggregate,
     available_statistics,

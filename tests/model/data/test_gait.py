@@ -9,9 +9,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from model.data.behaviour import list_snapshots, load_behaviour, save_behaviour
-from model.data.collect import CollectConfig, collect
-from model.data.gait import (
+from gmt.model.data.behaviour import list_snapshots, load_behaviour, save_behaviour
+from gmt.model.data.collect import CollectConfig, collect
+from gmt.model.data.gait import (
     ENV_ID,
     JOINT_SPEEDS,
     JOINTS,
@@ -23,7 +23,7 @@ from model.data.gait import (
     match_phase,
     write_levels,
 )
-from model.data.minari_io import load_dataset
+from gmt.model.data.minari_io import load_dataset
 
 STRIDE = dict(
     hip_amp=0.4,
@@ -88,7 +88,7 @@ def test_each_legs_torque_reaches_its_own_actuators(env):
 
 def test_the_actuator_layout_matches_the_simulator(env):
     """Pushing each leg's hip and ankle actuators moves that leg's joints in the observation, and no other's."""
-    from model.data.gait import ACTUATORS
+    from gmt.model.data.gait import ACTUATORS
 
     def joints_after(action: np.ndarray) -> np.ndarray:
         env.reset(seed=0)
@@ -255,7 +255,7 @@ def test_the_speed_loop_moves_the_frequency_against_the_speed_error(env):
 def test_gmt_data_gait_refuses_bad_input_and_writes_measured_levels(tmp_path):
     from typer.testing import CliRunner
 
-    from service.cli import app
+    from gmt.service.cli import app
 
     runner = CliRunner()
     stride = tmp_path / "stride.json"

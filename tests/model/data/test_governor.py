@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from model.data.governor import GovernorConfig, SpeedGovernor, write_governed
-from model.data.rollout import rollout
-from model.data.train_commanded import CommandedConfig, SpeedCommand
+from gmt.model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from gmt.model.data.governor import GovernorConfig, SpeedGovernor, write_governed
+from gmt.model.data.rollout import rollout
+from gmt.model.data.train_commanded import CommandedConfig, SpeedCommand
 
 ENV = "Hopper-v5"
 VX = 5  # Hopper's x-velocity entry
@@ -130,7 +130,7 @@ def test_training_commands_can_be_drawn_from_a_range():
 
 
 def test_governed_levels_are_listed_slowest_target_first(tmp_path):
-    from model.data.behaviour import list_snapshots
+    from gmt.model.data.behaviour import list_snapshots
 
     source = _commanded_actor(tmp_path / "actor")
     cfg = GovernorConfig(VX, (0.5, 2.5))
