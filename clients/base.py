@@ -22,59 +22,20 @@ import abc
 import time
 import uuid
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
 from gmt.client.errors import ConnectionFailed, ServiceError
+from gmt.common.spec import GoalInfo as GoalInfo  # part of the client interface, as ModelInfo
+from gmt.common.spec import ModelInfo
 
 T = TypeVar("T")
 
 DEFAULT_TIMEOUT_S = 10.0
 DEFAULT_RETRIES = 3
 DEFAULT_BACKOFF_S = 0.2
-
-
-@dataclass(frozen=True)
-class GoalInfo:
-    """One row of a model's goal table (statistic of the goal's cluster of training trajectories)."""
-
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
-
-
-@dataclass(frozen=True)
-class ModelInfo:
-    """A served model: its environment, spaces (as `gmt.client.spaces.space_to_dict` dicts) and goals."""
-
-    name: str
-    env_id: str
-    observation_space: dict
-    action_space: dict
-    context_length: int
-    statistic: str
-    goals: list[GoalInfo] = field(default_factory=list)
-    preprocessing: dict | None = None  # the observation pipeline (Atari), None for raw observations
-    action_modes: list[str] = field(default_factory=list)  # accepted action modes, the default first
-
-    def goal(self, id_or_name: int | str) -> GoalInfo:
-        """The goal with this id or name.
-
-        Raises:
-            KeyError: no such goal.
-        """
-        for g in self.goals:
-            if g.id == id_or_name or g.name == id_or_name:
-                return g
-        raise KeyError(
-            f"model {self.name!r} has no goal {id_or_name!r}; goals: {[g.name for g in self.goals]}"
-        )
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,9 @@ from typing import Any
 import typer
 
 from gmt.client.base import DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
-from gmt.client.cli_support import dataclass_flags, field_docs, with_flags
-from gmt.client.extras import MissingExtra
 from gmt.client.runner import RunConfig
+from gmt.common.cli_support import dataclass_flags, field_docs, with_flags
+from gmt.common.extras import MissingExtra
 
 # Options from the configuration they fill (`RunConfig`) and the clients' defaults; goal and schedule are parsed.
 RUN_FLAGS = dataclass_flags(RunConfig, skip=("goal", "schedule", "transport"), names={"env_id": ("--env",)})
@@ -42,9 +42,9 @@ def run_command(
     """Drive an agent remotely: send observations, apply actions, report each goal segment."""
     import gymnasium as gym
 
-    from gmt.client.envs import SpaceMismatch
     from gmt.client.errors import ServiceError
     from gmt.client.runner import StatusLine, parse_goal, parse_schedule, run
+    from gmt.common.envs import SpaceMismatch
 
     if flags["video"] and flags["out"] is None:
         raise typer.BadParameter("--video needs --out DIR for the MP4 files", param_hint="--video")

@@ -17,8 +17,6 @@ from gmt.client.base import (
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
     ActResult,
-    GoalInfo,
-    ModelInfo,
     PolicyClient,
     Session,
     SessionInfo,
@@ -28,6 +26,7 @@ from gmt.client.base import (
     with_retries,
 )
 from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.common.spec import GoalInfo, ModelInfo
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc as pb_grpc
 
@@ -88,7 +87,7 @@ def _error(e: grpc.RpcError) -> ServiceError:
 
 # ----- messages <-> values ------------------------------------------------------------------------------------
 def space_from_proto(s: pb.Space) -> dict:
-    """A space dict in the shape of `gmt.client.spaces.space_to_dict` (infinite or absent bounds are None)."""
+    """A space dict in the shape of `gmt.common.spaces.space_to_dict` (infinite or absent bounds are None)."""
     if s.type == "discrete":
         return {"type": "discrete", "n": int(s.n), "shape": list(s.shape), "dtype": s.dtype or "int64"}
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.client.segments import MOVING_AVERAGE, Segment, moving_average
-from gmt.client.statistics import is_sum
+from gmt.common.segments import MOVING_AVERAGE, Segment, moving_average
+from gmt.common.statistics import is_sum
 
 
 def plot_episode(

@@ -14,8 +14,6 @@ from gmt.client.base import (
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
     ActResult,
-    GoalInfo,
-    ModelInfo,
     PolicyClient,
     Session,
     SessionInfo,
@@ -25,6 +23,7 @@ from gmt.client.base import (
     with_retries,
 )
 from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.common.spec import GoalInfo, ModelInfo
 
 
 def _is_connection_error(e: BaseException) -> bool:

@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from gmt.client.base import ModelInfo, PolicyClient, Session
-from gmt.client.extras import require_module
-from gmt.client.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
-from gmt.client.statistics import signal_from_step
 from gmt.client.trace import Trace
+from gmt.common.extras import require_module
+from gmt.common.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
+from gmt.common.statistics import signal_from_step
 
 if TYPE_CHECKING:
     import gymnasium as gym
@@ -250,7 +250,7 @@ def run(
         ServiceError: the server answered with an error.
         MissingExtra: the environment or the plots need an extra that is not installed.
     """
-    from gmt.client.envs import make_env
+    from gmt.common.envs import make_env
 
     if cfg.video and cfg.out is None:
         raise ValueError("video needs an output folder (out)")

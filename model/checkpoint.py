@@ -35,7 +35,7 @@ class Checkpoint:
         name: Model name (the directory name by default).
         model: The network, in eval mode.
         env_id: Gymnasium environment id.
-        observation_space: `gmt.client.spaces.space_to_dict` of the observation space.
+        observation_space: `gmt.common.spaces.space_to_dict` of the observation space.
         action_space: Same for the action space.
         obs_norm: State normalisation from the training dataset.
         action_codec: Action scaling to and from [-1, 1].

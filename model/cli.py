@@ -10,7 +10,7 @@ from typing import Any
 
 import typer
 
-from gmt.client.cli_support import dataclass_flags, needs, pick, with_flags
+from gmt.common.cli_support import dataclass_flags, needs, pick, with_flags
 from gmt.model.config import GMTConfig, TrainConfig
 
 # The options of `gmt train` are the fields of the configurations it fills: defaults and help cannot drift.

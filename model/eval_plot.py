@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.client.segments import moving_average
+from gmt.common.segments import moving_average
 from gmt.model.evaluate import EvalResult
 
 SMOOTH = 25  # steps of the trailing mean drawn per episode before the mean and std over seeds

@@ -27,9 +27,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from gmt.client.segments import achieved, measured_spans, tolerance, within
-from gmt.client.statistics import get_statistic, signal_from_step
-from gmt.client.tables import markdown_table
+from gmt.common.segments import achieved, measured_spans, tolerance, within
+from gmt.common.statistics import get_statistic, signal_from_step
+from gmt.common.tables import markdown_table
 from gmt.model.checkpoint import Checkpoint, Goal
 from gmt.model.engine import PolicyEngine
 
@@ -56,7 +56,7 @@ class Condition:
 
     @property
     def segments(self) -> list[tuple[int, int, int]]:
-        """(goal, start, end) of the measured steps of each segment (`gmt.client.segments.measured_spans`)."""
+        """(goal, start, end) of the measured steps of each segment (`gmt.common.segments.measured_spans`)."""
         return measured_spans([self.goal_at(t) for t in range(self.steps)])
 
     def goal_at(self, step: int) -> int:

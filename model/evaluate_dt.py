@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from gmt.client.statistics import get_statistic, signal_from_step
+from gmt.common.statistics import get_statistic, signal_from_step
 from gmt.model.checkpoint import Checkpoint
 from gmt.model.evaluate import Condition, EvalResult, judge, protocol
 from gmt.model.tokens import pad_left

@@ -31,9 +31,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from gmt.client.base import GoalInfo, ModelInfo
-from gmt.client.envs import make_env
-from gmt.client.tables import markdown_table
+from gmt.common.envs import make_env
+from gmt.common.spec import GoalInfo, ModelInfo
+from gmt.common.tables import markdown_table
 from gmt.model.checkpoint import Checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.evaluate import play_lockstep

@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from gmt.client.spaces import space_to_dict
+from gmt.common.spaces import space_to_dict
 from gmt.model.checkpoint import Checkpoint, Goal, save_checkpoint
 from gmt.model.config import GMTConfig
 from gmt.model.gmt import GMT

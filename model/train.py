@@ -13,7 +13,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from gmt.client.spaces import space_to_dict
+from gmt.common.spaces import space_to_dict
 from gmt.model.augment import augment_frames
 from gmt.model.calibrate import action_noise
 from gmt.model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint

@@ -18,8 +18,8 @@ from typing import Any
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from gmt.client.cli_support import fail
-from gmt.client.extras import MissingExtra, missing
+from gmt.common.cli_support import fail
+from gmt.common.extras import MissingExtra, missing
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class Entry:
         help: The line `gmt --help` shows (the command's docstring starts with it; a test checks).
         extra: The extra it needs at all (None: the base install), checked before its module is imported;
             without it the command says which extra to install. Sub-commands with needs of their own check
-            them when run (`gmt.client.cli_support.needs`).
+            them when run (`gmt.common.cli_support.needs`).
     """
 
     name: str
@@ -163,7 +163,7 @@ def version() -> None:
     from importlib.metadata import PackageNotFoundError
     from importlib.metadata import version as v
 
-    from gmt.client.extras import extras
+    from gmt.common.extras import extras
 
     for pkg in ("gmt-service", "torch", "gymnasium", "mujoco", "fastapi", "grpcio"):
         try:

@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from gmt.client.cli_support import settings_flags, with_flags
+from gmt.common.cli_support import settings_flags, with_flags
 from gmt.service.settings import Settings
 
 SERVE_FLAGS = settings_flags(

@@ -16,7 +16,7 @@ import pytest
 from typer.main import get_command
 from typer.testing import CliRunner
 
-from gmt.client.extras import missing
+from gmt.common.extras import missing
 from gmt.service.cli import COMMANDS, app
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from gmt.client.extras import distributions, extras
+from gmt.common.extras import distributions, extras
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA_AND_TRAINING = {

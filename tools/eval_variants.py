@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gmt.model.engine as engine_module  # noqa: E402
 import gmt.model.evaluate as evaluate_module  # noqa: E402
-from gmt.client.segments import held_windows, tolerance, within  # noqa: E402
+from gmt.common.segments import held_windows, tolerance, within  # noqa: E402
 from gmt.model.checkpoint import load_checkpoint  # noqa: E402
 
 

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from behaviour_protocol import hold_mean  # noqa: E402
 
-from gmt.client.segments import tolerance, within  # noqa: E402
+from gmt.common.segments import tolerance, within  # noqa: E402
 from gmt.model.data.behaviour import load_behaviour  # noqa: E402
 from gmt.model.data.train_commanded import cycle_schedule, play_schedule  # noqa: E402
 

@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gmt.client.tables import markdown_table  # noqa: E402
+from gmt.common.tables import markdown_table  # noqa: E402
 from gmt.model.checkpoint import load_checkpoint  # noqa: E402
 from gmt.model.evaluate import Condition, evaluate  # noqa: E402
 

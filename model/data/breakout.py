@@ -32,7 +32,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from gmt.client.envs import atari_env
+from gmt.common.envs import atari_env
 from gmt.model.data.collect import CollectResult
 from gmt.model.data.minari_io import Episode, data_root, write_dataset
 

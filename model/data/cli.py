@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from gmt.client.cli_support import needs
+from gmt.common.cli_support import needs
 
 app = typer.Typer(help="Offline datasets: behaviour agents, collection, statistics and goal relabelling.")
 
@@ -539,7 +539,7 @@ def settle(
     Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
     reach their goal too slowly for a multi-switch segment (`gmt.model.data.settle`).
     """
-    from gmt.client.tables import text_table
+    from gmt.common.tables import text_table
     from gmt.model.data.settle import SettleConfig, settle_filter
 
     start, _, end = span.partition(":")
@@ -643,7 +643,7 @@ def relabel(
 @app.command()
 def statistics() -> None:
     """List the registered per-trajectory statistics."""
-    from gmt.client.statistics import get_statistic, list_statistics
+    from gmt.common.statistics import get_statistic, list_statistics
 
     for name in list_statistics():
         s = get_statistic(name)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.client.tables import text_table
+from gmt.common.tables import text_table
 
 GOAL_NAMES = {
     1: ["all"],

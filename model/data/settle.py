@@ -7,7 +7,7 @@ from a sprint inside the slow goal's tolerance within 50 steps in only ~57% of i
 (`tools/data_transients.py`), and a GMT imitating the average of the rest brakes too late for a goal switched
 every 200 steps. This writes a new dataset that keeps every episode started at rest and a pool-started episode
 only when its per-step statistic over `span` (default [50, 200): a segment of a 200-step cycle after its
-settle-in, `gmt.client.segments.settle_in`) is within its goal's tolerance (`gmt.client.segments.tolerance`), the goals
+settle-in, `gmt.common.segments.settle_in`) is within its goal's tolerance (`gmt.common.segments.tolerance`), the goals
 relabelled over the whole source dataset as `gmt train` relabels them.
 
 It is a choice of demonstrations, in the same spirit as dropping falls at collection: the model only sees
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.client.segments import achieved, tolerance, within
+from gmt.common.segments import achieved, tolerance, within
 from gmt.model.data.minari_io import fingerprint, load_dataset, resolve, write_dataset
 from gmt.model.data.relabel import GoalTable, relabel
 from gmt.model.data.statistics import check_dataset

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gmt.client.statistics import (
+from gmt.common.statistics import (
     MissingInfoError,
     Statistic,
     aggregate,

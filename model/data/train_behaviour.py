@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from gmt.client.tables import markdown_table
+from gmt.common.tables import markdown_table
 from gmt.model.data.behaviour import (
     BEHAVIOUR_DIR,
     BehaviourMeta,

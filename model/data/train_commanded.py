@@ -24,7 +24,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from gmt.client.tables import markdown_table
+from gmt.common.tables import markdown_table
 from gmt.model.data.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
 from gmt.model.data.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
 from gmt.model.data.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo

@@ -7,7 +7,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from gmt.client.envs import VIDEO_SIZE
+from gmt.common.envs import VIDEO_SIZE
 from gmt.service.cli import app
 
 runner = CliRunner()

@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from gmt.client.envs import SpaceMismatch
 from gmt.client.errors import NotFound
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
 from gmt.client.runner import RunConfig, StatusLine, parse_goal, parse_schedule, run
-from gmt.client.segments import SETTLE_MAX, runs, settle_in
+from gmt.common.envs import SpaceMismatch
+from gmt.common.segments import SETTLE_MAX, runs, settle_in
 
 STEPS = 60
 SCHEDULE = "high@20,1@40"  # goal 0 (low) from the start, 2 (high) from step 20, 1 (medium) from step 40

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from gmt.client.extras import distributions
+from gmt.common.extras import distributions
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "scikit-learn", "minari", "stable-baselines3", "safetensors", "mujoco", "matplotlib")
@@ -45,7 +45,7 @@ def thin_venv(tmp_path_factory) -> Path:
     src.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, src / name)
-    for name in ("clients", "model", "service", "proto"):
+    for name in ("clients", "common", "model", "service", "proto"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
     subprocess.run(

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gmt.client.base import GoalInfo
-from gmt.client.segments import (
+from gmt.common.segments import (
     achieved,
     held_windows,
     measure,
@@ -16,7 +15,8 @@ from gmt.client.segments import (
     tolerance,
     within,
 )
-from gmt.client.tables import markdown_table, text_table
+from gmt.common.spec import GoalInfo
+from gmt.common.tables import markdown_table, text_table
 
 
 def test_eval_uses_the_same_definitions_as_the_runner():
@@ -79,7 +79,7 @@ def test_a_summed_statistic_is_summed_over_each_whole_segment_and_not_judged():
 
 
 def text_table_of(segs):
-    from gmt.client.segments import table
+    from gmt.common.segments import table
 
     return table(segs, "return")
 

@@ -21,8 +21,8 @@ from typing import Protocol
 
 import numpy as np
 
-from gmt.client.statistics import is_sum
-from gmt.client.tables import text_table
+from gmt.common.statistics import is_sum
+from gmt.common.tables import text_table
 
 SETTLE_MAX = 100
 MOVING_AVERAGE = 50  # steps of the trailing mean shown live by `gmt run` and drawn in its plots

@@ -12,8 +12,8 @@ from collections.abc import Callable
 
 import gymnasium as gym
 
-from gmt.client.base import ModelInfo
-from gmt.client.extras import MissingExtra, require_module
+from gmt.common.extras import MissingExtra, require_module
+from gmt.common.spec import ModelInfo
 
 VIDEO_SIZE = (480, 320)  # width, height of rendered MuJoCo frames
 
@@ -142,7 +142,7 @@ def make_env(
 
 def check_spaces(spec: ModelInfo, env: gym.Env, env_id: str) -> None:
     """Raise `SpaceMismatch`, naming both sides, when `env`'s spaces differ from the model's."""
-    from gmt.client.spaces import space_to_dict, spaces_match
+    from gmt.common.spaces import space_to_dict, spaces_match
 
     problems = []
     for what, model_space, env_space in (

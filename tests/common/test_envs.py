@@ -5,8 +5,8 @@ from __future__ import annotations
 import gymnasium as gym
 import pytest
 
-from gmt.client.base import ModelInfo
-from gmt.client.envs import SpaceMismatch, describe_space, make_env
+from gmt.common.envs import SpaceMismatch, describe_space, make_env
+from gmt.common.spec import ModelInfo
 
 PONG_ACTIONS = {"type": "discrete", "n": 6, "shape": []}
 PONG_FRAMES = {"type": "box", "shape": [210, 160, 3], "dtype": "uint8", "low": None, "high": None}

@@ -19,7 +19,7 @@ from typing import Any, Literal, Optional, Union
 
 import typer
 
-from gmt.client.extras import MissingExtra, require
+from gmt.common.extras import MissingExtra, require
 
 _ATTR = re.compile(r"^(\s*)(\w+):\s*(.*)$")
 
