@@ -106,7 +106,7 @@ eval-walker2d: $(VENV)/.installed-eval
 		--markdown checkpoints/walker2d-gmt/eval.md --plot checkpoints/walker2d-gmt/eval.png
 
 # The data and training behind checkpoints/ant-gmt (its PROVENANCE.md): ~4 min collection and ~35 min training on
-# one core each. The behaviour is the scripted gait of behaviour/ant (`gmt data gait`, model/data/gait.py).
+# one core each. The behaviour is the scripted gait of behaviour/ant (`gmt data gait`, datagen/gait.py).
 data-ant: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env Ant-v5 --no-random --episodes-per-level 150 --pool-start slow=0.5 \
 		--pool-start fast=0.5 --out-id gmt/ant/gait-0608-v0

@@ -12,8 +12,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from gmt.model.config import GMTConfig
-from gmt.model.data.relabel import Goal
 from gmt.model.gmt import GMT
+from gmt.model.goals import Goal
 from gmt.model.tokens import ActionCodec, ObsNormalizer
 
 FORMAT = "gmt-checkpoint"

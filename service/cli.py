@@ -73,7 +73,7 @@ def _stub(entry: Entry, error: MissingExtra) -> TyperCommand:
 COMMANDS = (
     Entry(
         "data",
-        "gmt.model.data.cli:app",
+        "gmt.datagen.cli:app",
         "Offline datasets: behaviour agents, collection, statistics and goal relabelling.",
     ),
     Entry(

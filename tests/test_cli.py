@@ -225,7 +225,7 @@ def test_a_bad_plan_target_is_refused_before_collecting(tmp_path, item, message)
 
 
 def test_a_plan_target_reaches_only_its_levels_plan(tmp_path, monkeypatch):
-    import gmt.model.data.collect as collect_module
+    import gmt.datagen.collect as collect_module
 
     seen = []
     monkeypatch.setattr(collect_module, "collect", lambda cfg: seen.append(cfg) or _raise_exit())

@@ -17,6 +17,7 @@ DATA_AND_TRAINING = {
     "matplotlib",
     "stable_baselines3",
     "tensorboard",
+    "gmt.datagen",
 }
 
 

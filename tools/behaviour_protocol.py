@@ -27,7 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gmt.common.segments import achieved, held_windows, measured_spans, tolerance, within  # noqa: E402
-from gmt.model.data.behaviour import load_behaviour  # noqa: E402
+from gmt.datagen.behaviour import load_behaviour  # noqa: E402
 from gmt.model.evaluate import protocol  # noqa: E402
 
 

@@ -27,9 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gmt.common.segments import achieved, held_windows, settle_in, tolerance, within  # noqa: E402
 from gmt.common.statistics import get_statistic  # noqa: E402
 from gmt.common.tables import markdown_table  # noqa: E402
+from gmt.datagen.settle import episode_metadata, pool_started  # noqa: E402
 from gmt.model.data.minari_io import load_dataset  # noqa: E402
 from gmt.model.data.relabel import relabel  # noqa: E402
-from gmt.model.data.settle import episode_metadata, pool_started  # noqa: E402
 from gmt.model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
 
 STEPS = 1000  # the protocol's episode length

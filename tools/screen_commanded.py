@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from behaviour_protocol import hold_mean  # noqa: E402
 
 from gmt.common.segments import tolerance, within  # noqa: E402
-from gmt.model.data.behaviour import load_behaviour  # noqa: E402
-from gmt.model.data.train_commanded import cycle_schedule, play_schedule  # noqa: E402
+from gmt.datagen.behaviour import load_behaviour  # noqa: E402
+from gmt.datagen.train_commanded import cycle_schedule, play_schedule  # noqa: E402
 
 
 def main() -> None:

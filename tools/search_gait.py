@@ -1,4 +1,4 @@
-"""Search the parameters of the scripted Ant gait (`gmt.model.data.gait`) with a simple evolution strategy.
+"""Search the parameters of the scripted Ant gait (`gmt.datagen.gait`) with a simple evolution strategy.
 
 Two stages, each a (5, 16) evolution strategy with log-rank weights over a 14-number parameter vector:
 
@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gmt.model.data.gait import GaitConfig, GaitPolicy, gait_meta, heading  # noqa: E402
+from gmt.datagen.gait import GaitConfig, GaitPolicy, gait_meta, heading  # noqa: E402
 
 DIM = 14
 POP, ELITE = 16, 5

@@ -21,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gmt.model.data.behaviour import load_behaviour  # noqa: E402
+from gmt.datagen.behaviour import load_behaviour  # noqa: E402
 
 
 def main() -> None:

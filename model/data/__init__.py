@@ -1,1 +1,4 @@
-"""Offline datasets: behaviour agents, collection, Minari I/O, statistics and goal relabelling."""
+"""Offline datasets as training reads them: Minari I/O, per-trajectory statistics and goal relabelling.
+
+Generating data (behaviour agents, collection) is `gmt.datagen`'s job.
+"""

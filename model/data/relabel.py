@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gmt.common.tables import text_table
+from gmt.model.goals import Goal
 
 GOAL_NAMES = {
     1: ["all"],
@@ -27,19 +28,6 @@ GOAL_NAMES = {
 def goal_names(k: int) -> list[str]:
     """Goal names by rank of mean statistic (goal-<id> beyond five goals)."""
     return GOAL_NAMES.get(k, [f"goal-{i}" for i in range(k)])
-
-
-@dataclass
-class Goal:
-    """One goal: a cluster of trajectories and the spread of their statistic."""
-
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
 
 
 @dataclass

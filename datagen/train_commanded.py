@@ -25,9 +25,9 @@ import numpy as np
 import torch
 
 from gmt.common.tables import markdown_table
-from gmt.model.data.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
-from gmt.model.data.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
-from gmt.model.data.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo
+from gmt.datagen.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
+from gmt.datagen.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
+from gmt.datagen.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo
 
 
 class SpeedCommand(gym.Wrapper):
@@ -52,7 +52,7 @@ class SpeedCommand(gym.Wrapper):
 
     With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
     instead of from `commands`: the agent then tracks any speed in between, which a governor
-    (`gmt.model.data.governor`) needs to steer it by a command other than the levels'.
+    (`gmt.datagen.governor`) needs to steer it by a command other than the levels'.
     """
 
     def __init__(
@@ -161,7 +161,7 @@ class CommandedConfig:
         preset: PPO hyperparameters (default: the environment's `train_behaviour` preset).
         ent_coef: Entropy bonus in place of the preset's (None: the preset's). Ant's preset has none, and its
             action std shrank from 0.37 to ~0.05 by 1M steps while its speed stayed ~0.5 m/s.
-        resume_from: Go on from this training step of `work_dir` (`gmt.model.data.ppo_state`): from its learner
+        resume_from: Go on from this training step of `work_dir` (`gmt.datagen.ppo_state`): from its learner
             file where one is kept, else warm-started from its actor-only snapshot; None: start afresh.
     """
 
@@ -500,7 +500,7 @@ Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
 One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
 (on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force with
 weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}, both on the mean
-x-velocity of the last {cfg.track_window} step(s) (`gmt.model.data.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
+x-velocity of the last {cfg.track_window} step(s) (`gmt.datagen.train_commanded.SpeedCommand`). Each level file is that actor with its command fixed. Every
 {cfg.eval_every} steps the actor was measured on every hold and every ordered switch (at step {cfg.switch_at}){cycle},
 {cfg.eval_seeds} stochastic episodes each; {choice}:
 

@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")
 
-from gmt.model.data import breakout as b  # noqa: E402
+from gmt.datagen import breakout as b  # noqa: E402
 from gmt.model.data.minari_io import load_dataset  # noqa: E402
 from gmt.model.data.statistics import get_statistic, per_trajectory  # noqa: E402
 

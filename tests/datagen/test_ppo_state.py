@@ -8,10 +8,10 @@ import pytest
 import torch
 from stable_baselines3.common.monitor import Monitor
 
-from gmt.model.data.behaviour import load_behaviour, save_behaviour
-from gmt.model.data.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
-from gmt.model.data.train_behaviour import PPOPreset, export_actor, make_ppo
-from gmt.model.data.train_commanded import CommandedConfig, SpeedCommand, train_commanded
+from gmt.datagen.behaviour import load_behaviour, save_behaviour
+from gmt.datagen.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
+from gmt.datagen.train_behaviour import PPOPreset, export_actor, make_ppo
+from gmt.datagen.train_commanded import CommandedConfig, SpeedCommand, train_commanded
 
 ENV = "Hopper-v5"
 TINY = PPOPreset(n_steps=64, batch_size=32, n_epochs=1, hidden_sizes=[8, 8], activation="tanh")
@@ -112,7 +112,7 @@ def test_a_commanded_run_resumes_from_its_learner_and_keeps_its_records(tmp_path
 def test_resuming_from_a_step_without_files_is_refused_before_training(tmp_path):
     from typer.testing import CliRunner
 
-    from gmt.model.data.cli import app
+    from gmt.datagen.cli import app
 
     work = tmp_path / "work"
     work.mkdir()

@@ -12,8 +12,9 @@ Each leg i's hip target is `hip_amp * sin(phase + hip_phase[i]) - yaw_gain * yaw
 At the start of an episode the phase is 0 from rest, and otherwise the phase whose targets best match the
 joints' angles and speeds (`match_phase`), so a pool-started episode does not jerk the legs to a new stride.
 
-A level is saved like any behaviour snapshot (`behaviour.save_behaviour`): `<level>.safetensors` holds the
-action-noise `log_std` only, and `<level>.json`'s `extra["gait"]` holds a `GaitConfig`.
+A level is saved like any behaviour snapshot (`behaviour.save_behaviour`), of kind `gait`: `<level>.safetensors`
+holds the action-noise `log_std` only, and `<level>.json`'s `extra["gait"]` holds a `GaitConfig`; `load_gait`
+reads it back (`behaviour.load_behaviour`).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 
-from gmt.model.data.behaviour import BehaviourMeta
+from gmt.datagen.behaviour import BehaviourMeta, register_kind, save_behaviour
 
 ENV_ID = "Ant-v5"
 # Ant-v5 observation (positions without x, y first): [0] torso z, [1:5] torso quaternion (w, x, y, z),
@@ -231,8 +232,17 @@ def gait_meta(level: str, cfg: GaitConfig, **measured) -> BehaviourMeta:
         obs_mean=[],
         obs_var=[],
         extra={"gait": asdict(cfg), **measured.pop("extra", {})},
+        kind="gait",
         **measured,
     )
+
+
+@register_kind("gait")
+def load_gait(path, meta: BehaviourMeta, state: dict[str, torch.Tensor], action_space) -> GaitPolicy:
+    """A `GaitPolicy` from a gait snapshot: its only tensor is the action noise's `log_std`."""
+    if set(state) != {"log_std"}:
+        raise ValueError(f"{path}.safetensors: a gait snapshot holds log_std only, got {sorted(state)}")
+    return GaitPolicy(meta, state["log_std"].numpy(), action_space.low, action_space.high)
 
 
 def gait_state(noise_std: float) -> dict[str, torch.Tensor]:
@@ -274,8 +284,7 @@ def write_levels(
 
     import gymnasium as gym
 
-    from gmt.model.data.behaviour import save_behaviour
-    from gmt.model.data.rollout import measure
+    from gmt.datagen.rollout import measure
 
     if not freqs:
         raise ValueError("name at least one level")
@@ -308,7 +317,7 @@ def write_levels(
         command,
         "```",
         "",
-        "Each level is `gmt.model.data.gait.GaitPolicy`: one stride (a phase oscillator's joint targets tracked by PD "
+        "Each level is `gmt.datagen.gait.GaitPolicy`: one stride (a phase oscillator's joint targets tracked by PD "
         "control, heading held by feedback) at its own frequency, with Gaussian action noise of std "
         f"{noise_std:g}. Speeds are the mean and standard deviation over {episodes} noisy episodes (reset seeds "
         f"{seed}+) of the per-episode mean `x_velocity` (m/s).",

@@ -1,6 +1,6 @@
 """A speed governor: an outer loop that steers a commanded actor's command so its mean speed holds a target.
 
-A speed-commanded actor (`gmt.model.data.train_commanded`) holds its command only on average: measured on Hopper, its
+A speed-commanded actor (`gmt.datagen.train_commanded`) holds its command only on average: measured on Hopper, its
 slow gait's speed over 150-step windows wanders by ~0.1 m/s, about the protocol's whole tolerance, and after a
 sprint it brakes over ~100 steps. A GMT imitates both. The governor closes the loop that PPO left open: every
 step it reads the x-velocity from the observation and sets the actor's command to
@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 from safetensors.torch import load_file
+
+from gmt.datagen.behaviour import BehaviourMeta, BehaviourPolicy, load_actor, register_kind, save_behaviour
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,64 @@ class SpeedGovernor:
         return command
 
 
+class GovernedPolicy:
+    """A commanded actor whose command a `SpeedGovernor` sets before every action (snapshots of kind `governed`).
+
+    Args:
+        actor: The commanded actor; its command is the level's target speed.
+        cfg: The governor's gains and limits.
+    """
+
+    def __init__(self, actor: BehaviourPolicy, cfg: GovernorConfig):
+        if actor.command is None:
+            raise ValueError("a governed snapshot needs extra.command (its target speed)")
+        self.actor = actor
+        self.governor = SpeedGovernor(cfg, actor.command)
+
+    def __getattr__(self, name: str):  # meta, normalise, low, high, ...: the actor's
+        return getattr(self.actor, name)
+
+    @property
+    def noise_scale(self) -> float:
+        """Multiplies the actor's Gaussian noise std."""
+        return self.actor.noise_scale
+
+    @noise_scale.setter
+    def noise_scale(self, value: float) -> None:
+        self.actor.noise_scale = value
+
+    @property
+    def command(self) -> float:
+        """The command the governor last gave the actor."""
+        return self.actor.command
+
+    @property
+    def target(self) -> float:
+        """The speed the level is asked to hold."""
+        return self.governor.target
+
+    @target.setter
+    def target(self, value: float) -> None:
+        self.governor.target = float(value)
+
+    def start_episode(self) -> None:
+        """Forget the governor's speeds and integral before an episode's first action."""
+        self.governor.reset()
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The actor's action under the command the governor sets for this observation (one at a time)."""
+        self.actor.command = self.governor.command(obs)
+        return self.actor.act(obs, rng)
+
+
+@register_kind("governed")
+def load_governed(path, meta: BehaviourMeta, state, action_space) -> GovernedPolicy:
+    """A `GovernedPolicy` from a governed snapshot: the actor's tensors, the governor in `extra["governor"]`."""
+    return GovernedPolicy(
+        load_actor(path, meta, state, action_space), GovernorConfig(**meta.extra["governor"])
+    )
+
+
 def write_governed(
     source: str | Path, targets: dict[str, float], cfg: GovernorConfig, out_dir: str | Path, command: str
 ) -> list[Path]:
@@ -112,8 +172,6 @@ def write_governed(
     Returns:
         The written level paths (without suffix).
     """
-    from gmt.model.data.behaviour import BehaviourMeta, save_behaviour
-
     source = Path(source).with_suffix("")
     meta = json.loads(Path(f"{source}.json").read_text())
     if meta.get("extra", {}).get("command") is None:
@@ -131,6 +189,7 @@ def write_governed(
     for level, speed in targets.items():
         m = BehaviourMeta(**meta)
         m.level, m.mean_speed, m.std_speed = level, None, None
+        m.kind = "governed"
         m.extra = {
             "command": float(speed),
             "target_speed": float(speed),
@@ -142,7 +201,7 @@ def write_governed(
         written.append(out_dir / level)
     (out_dir / "GOVERNED_WITH.md").write_text(
         f"# Governed levels\n\nWritten by:\n\n```bash\n{command}\n```\n\nActor: `{source}` (train step "
-        f"{meta.get('train_step')}). Levels: {targets}. Governor (`gmt.model.data.governor.GovernorConfig`): "
+        f"{meta.get('train_step')}). Levels: {targets}. Governor (`gmt.datagen.governor.GovernorConfig`): "
         f"`{cfg.to_json()}`.\n"
     )
     return written

@@ -15,7 +15,7 @@ and hits and misses were recorded against ``ball_x - paddle_x`` at the moment of
 1 <= ball_x - paddle_x <= 17 bounced back, every one at <= -5 or >= 21 was missed, so the paddle's centre is
 at ``ball_x - PADDLE_OFFSET`` with ``PADDLE_OFFSET = 8`` (docs/breakout-data.md has the numbers).
 
-    .venv/bin/python -m gmt.model.data.breakout            # writes gmt/breakout/mixed-v0 into the data root
+    .venv/bin/python -m gmt.datagen.breakout            # writes gmt/breakout/mixed-v0 into the data root
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 from gmt.common.envs import atari_env
-from gmt.model.data.collect import CollectResult
+from gmt.datagen.collect import CollectResult
 from gmt.model.data.minari_io import Episode, data_root, write_dataset
 
 ENV_ID = "ALE/Breakout-v5"
@@ -472,7 +472,7 @@ def collect_breakout(cfg: CollectConfig | None = None, progress: bool = True) ->
             if cfg.max_burst is not None
             else ""
         )
-        + f"Observations: {json.dumps(cfg.preprocessing.to_dict())}. Written by `python -m gmt.model.data.breakout`."
+        + f"Observations: {json.dumps(cfg.preprocessing.to_dict())}. Written by `python -m gmt.datagen.breakout`."
     )
     path = write_dataset(
         cfg.dataset_id,
@@ -608,7 +608,7 @@ def _parse_episodes(items: list[str] | None) -> dict[str, int] | None:
 def main(argv: list[str] | None = None) -> int:
     """Command line: collect (default) or measure the levels."""
     p = argparse.ArgumentParser(
-        prog="python -m gmt.model.data.breakout",
+        prog="python -m gmt.datagen.breakout",
         description="Scripted Breakout agents (RAM) at several skill levels into a Minari dataset.",
     )
     default_episodes = " ".join(f"{k}={v}" for k, v in DEFAULT_EPISODES.items())

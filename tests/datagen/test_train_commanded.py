@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from gmt.model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from gmt.model.data.train_commanded import CommandedConfig, SpeedCommand, cycle_schedule, play, play_schedule
+from gmt.datagen.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from gmt.datagen.train_commanded import CommandedConfig, SpeedCommand, cycle_schedule, play, play_schedule
 
 ENV = "Hopper-v5"
 
@@ -78,7 +78,7 @@ def test_a_ceiling_docks_the_reward_per_metre_of_torso_height_above_it():
 def test_an_entropy_bonus_overrides_only_the_presets_entropy():
     from dataclasses import replace
 
-    from gmt.model.data.train_behaviour import PRESETS
+    from gmt.datagen.train_behaviour import PRESETS
 
     cfg = CommandedConfig("Ant-v5", {"slow": 0.5, "fast": 1.0}, ent_coef=0.005)
     assert cfg.preset == replace(PRESETS["ant"], ent_coef=0.005)
@@ -202,7 +202,7 @@ def test_a_named_snapshot_is_exported_instead_of_the_best_scored(tmp_path):
 
     from typer.testing import CliRunner
 
-    from gmt.model.data.cli import app
+    from gmt.datagen.cli import app
 
     work, out = tmp_path / "work", tmp_path / "out"
     work.mkdir()

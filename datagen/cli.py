@@ -85,7 +85,7 @@ def behaviour(
     ),
 ) -> None:
     """Train a PPO behaviour agent and export snapshots at target speeds (needs the `train` extra)."""
-    from gmt.model.data.train_behaviour import (
+    from gmt.datagen.train_behaviour import (
         BehaviourTrainConfig,
         remeasure_all,
         select_levels,
@@ -172,7 +172,7 @@ def commanded(
     import shlex
     import sys
 
-    from gmt.model.data.train_commanded import (
+    from gmt.datagen.train_commanded import (
         CommandedConfig,
         resume_source,
         select_commanded,
@@ -254,8 +254,8 @@ def govern(
     import shlex
     import sys
 
-    from gmt.model.data.behaviour import BEHAVIOUR_DIR, env_slug
-    from gmt.model.data.governor import GovernorConfig, write_governed
+    from gmt.datagen.behaviour import BEHAVIOUR_DIR, env_slug
+    from gmt.datagen.governor import GovernorConfig, write_governed
     from gmt.model.data.minari_io import x_velocity_obs_index
 
     vx = x_velocity_obs_index(env)
@@ -290,13 +290,13 @@ def gait(
     episodes: int = typer.Option(10, help="Noisy episodes measured per level."),
     out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/ant/)."),
 ) -> None:
-    """Write scripted Ant gait levels (model/data/gait.py), each measured, collected like any snapshot."""
+    """Write scripted Ant gait levels (datagen/gait.py), each measured, collected like any snapshot."""
     import json
     import shlex
     import sys
 
-    from gmt.model.data.behaviour import BEHAVIOUR_DIR
-    from gmt.model.data.gait import GaitConfig, write_levels
+    from gmt.datagen.behaviour import BEHAVIOUR_DIR
+    from gmt.datagen.gait import GaitConfig, write_levels
 
     try:
         data = json.loads(params.read_text())
@@ -359,7 +359,7 @@ def refine(
     """Fine-tune one level with a target-speed reward from other levels' states (needs the `train` extra)."""
     import time
 
-    from gmt.model.data.refine_behaviour import RefineConfig, command_line, refine, write_provenance
+    from gmt.datagen.refine_behaviour import RefineConfig, command_line, refine, write_provenance
 
     cfg = RefineConfig(
         env_id=env, level=level, target_speed=target_speed, timesteps=timesteps, learning_rate=learning_rate,
@@ -411,7 +411,7 @@ def collect(
     plan: list[str] = typer.Option(
         None,
         help="LEVEL=C1,C2,...: plan the start of LEVEL's pool-started episodes in the simulator, choosing among "
-        "continuations of the commanded level at these commands (model/data/plan.py); repeat per level.",
+        "continuations of the commanded level at these commands (datagen/plan.py); repeat per level.",
     ),
     plan_candidates: int = typer.Option(12, help="Continuations simulated per planning decision."),
     plan_every: int = typer.Option(
@@ -434,12 +434,12 @@ def collect(
 ) -> None:
     """Roll out every behaviour snapshot and a random policy into a Minari dataset.
 
-    For ALE/Breakout-v5 the behaviour is scripted agents reading the game's RAM (`gmt.model.data.breakout`; more
-    options: `python -m gmt.model.data.breakout --help`).
+    For ALE/Breakout-v5 the behaviour is scripted agents reading the game's RAM (`gmt.datagen.breakout`; more
+    options: `python -m gmt.datagen.breakout --help`).
     """
     if env.startswith("ALE/Breakout"):
-        from gmt.model.data.breakout import DEFAULT_EPISODES
-        from gmt.model.data.breakout import main as collect_breakout
+        from gmt.datagen.breakout import DEFAULT_EPISODES
+        from gmt.datagen.breakout import main as collect_breakout
 
         argv = ["--seed", str(seed)]
         argv += ["--out-id", out_id] if out_id else []
@@ -448,8 +448,8 @@ def collect(
         if episodes_per_level:
             argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in DEFAULT_EPISODES)]
         raise typer.Exit(collect_breakout(argv))
-    from gmt.model.data.collect import CollectConfig, collect
-    from gmt.model.data.plan import PlanConfig, parse_plan
+    from gmt.datagen.collect import CollectConfig, collect
+    from gmt.datagen.plan import PlanConfig, parse_plan
 
     rest = {}
     for item in plan_from_rest or []:
@@ -537,10 +537,10 @@ def settle(
     """Keep every rest-started episode and the pool-started ones inside their goal's tolerance over SPAN.
 
     Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
-    reach their goal too slowly for a multi-switch segment (`gmt.model.data.settle`).
+    reach their goal too slowly for a multi-switch segment (`gmt.datagen.settle`).
     """
     from gmt.common.tables import text_table
-    from gmt.model.data.settle import SettleConfig, settle_filter
+    from gmt.datagen.settle import SettleConfig, settle_filter
 
     start, _, end = span.partition(":")
     try:

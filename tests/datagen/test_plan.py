@@ -1,4 +1,4 @@
-"""Receding-horizon selection over a commanded level's continuations (`gmt.model.data.plan`), and planned collection."""
+"""Receding-horizon selection over a commanded level's continuations (`gmt.datagen.plan`), and planned collection."""
 
 from types import SimpleNamespace
 
@@ -6,11 +6,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from gmt.model.data.collect import CollectConfig, collect
+from gmt.datagen.collect import CollectConfig, collect
+from gmt.datagen.fixtures import random_behaviour
+from gmt.datagen.plan import PlanConfig, PlannedPolicy, parse_plan
+from gmt.datagen.rollout import rollout
 from gmt.model.data.minari_io import load_dataset
-from gmt.model.data.plan import PlanConfig, PlannedPolicy, parse_plan
-from gmt.model.data.rollout import rollout
-from gmt.model.fixtures import random_behaviour
 
 ENV = "Hopper-v5"
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from gmt.model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from gmt.model.data.governor import GovernorConfig, SpeedGovernor, write_governed
-from gmt.model.data.rollout import rollout
-from gmt.model.data.train_commanded import CommandedConfig, SpeedCommand
+from gmt.datagen.behaviour import BehaviourMeta, BehaviourPolicy, load_behaviour, save_behaviour
+from gmt.datagen.governor import GovernedPolicy, GovernorConfig, SpeedGovernor, write_governed
+from gmt.datagen.rollout import rollout
+from gmt.datagen.train_commanded import CommandedConfig, SpeedCommand
 
 ENV = "Hopper-v5"
 VX = 5  # Hopper's x-velocity entry
@@ -88,7 +88,8 @@ def test_governed_levels_steer_the_actor_by_their_target(tmp_path):
     assert "gmt data govern ..." in (tmp_path / "levels" / "GOVERNED_WITH.md").read_text()
     slow = load_behaviour(tmp_path / "levels" / "slow", env.action_space)
     plain = load_behaviour(source, env.action_space)
-    assert slow.target == 1.0 and plain.target == 1.0 and plain.governor is None
+    assert isinstance(slow, GovernedPolicy) and isinstance(plain, BehaviourPolicy)
+    assert slow.target == 1.0 and plain.target == 1.0
     fast_obs = _obs(2.0)
     plain.command = 0.5  # the governor's first command at 2 m/s: 1.0 + (1.0 - 2.0), clipped to the floor
     np.testing.assert_allclose(slow.act(fast_obs), plain.act(fast_obs), rtol=1e-6)
@@ -130,7 +131,7 @@ def test_training_commands_can_be_drawn_from_a_range():
 
 
 def test_governed_levels_are_listed_slowest_target_first(tmp_path):
-    from gmt.model.data.behaviour import list_snapshots
+    from gmt.datagen.behaviour import list_snapshots
 
     source = _commanded_actor(tmp_path / "actor")
     cfg = GovernorConfig(VX, (0.5, 2.5))

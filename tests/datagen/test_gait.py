@@ -9,9 +9,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from gmt.model.data.behaviour import list_snapshots, load_behaviour, save_behaviour
-from gmt.model.data.collect import CollectConfig, collect
-from gmt.model.data.gait import (
+from gmt.datagen.behaviour import list_snapshots, load_behaviour, save_behaviour
+from gmt.datagen.collect import CollectConfig, collect
+from gmt.datagen.gait import (
     ENV_ID,
     JOINT_SPEEDS,
     JOINTS,
@@ -88,7 +88,7 @@ def test_each_legs_torque_reaches_its_own_actuators(env):
 
 def test_the_actuator_layout_matches_the_simulator(env):
     """Pushing each leg's hip and ankle actuators moves that leg's joints in the observation, and no other's."""
-    from gmt.model.data.gait import ACTUATORS
+    from gmt.datagen.gait import ACTUATORS
 
     def joints_after(action: np.ndarray) -> np.ndarray:
         env.reset(seed=0)

@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from gmt.model.data.behaviour import (
+from gmt.datagen.behaviour import (
     BEHAVIOUR_DIR,
     BehaviourPolicy,
     RandomPolicy,
@@ -35,10 +35,10 @@ from gmt.model.data.behaviour import (
     load_behaviour,
     save_behaviour,
 )
-from gmt.model.data.collect import DEFAULT_NOISE_SCALE
-from gmt.model.data.rollout import rollout
-from gmt.model.data.start_states import PoolStart, StatePool, build_pool
-from gmt.model.data.train_behaviour import PRESETS, PPOPreset, SpeedTent, actor_linears, actor_state
+from gmt.datagen.collect import DEFAULT_NOISE_SCALE
+from gmt.datagen.rollout import rollout
+from gmt.datagen.start_states import PoolStart, StatePool, build_pool
+from gmt.datagen.train_behaviour import PRESETS, PPOPreset, SpeedTent, actor_linears, actor_state
 
 NEVER_TERMINATES = {"halfcheetah", "swimmer"}  # tasks without a healthy-state termination
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from gmt.model.data.train_behaviour import actor_linears
+from gmt.datagen.train_behaviour import actor_linears
 
 FORMAT = 1
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gmt.model.data.cli import app
+from gmt.datagen.cli import app
+from gmt.datagen.settle import SettleConfig, settle_filter
 from gmt.model.data.minari_io import Episode, load_dataset, write_dataset
-from gmt.model.data.settle import SettleConfig, settle_filter
 
 STEPS = 240
 

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from gmt.model.data.behaviour import BehaviourMeta, load_behaviour, save_behaviour
-from gmt.model.data.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
+from gmt.datagen.behaviour import BehaviourMeta, load_behaviour, save_behaviour
+from gmt.datagen.collect import DEFAULT_NOISE_SCALE, CollectConfig, collect
+from gmt.datagen.fixtures import random_behaviour
 from gmt.model.data.minari_io import load_dataset
 from gmt.model.data.statistics import per_trajectory
-from gmt.model.fixtures import random_behaviour
 
 ENV = "HalfCheetah-v5"
 
@@ -63,7 +63,7 @@ def test_exported_policy_matches_sb3():
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from gmt.model.data.train_behaviour import as_policy, export_actor
+    from gmt.datagen.train_behaviour import as_policy, export_actor
 
     venv = VecNormalize(DummyVecEnv([lambda: gym.make(ENV)]))
     model = PPO("MlpPolicy", venv, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu",
@@ -89,7 +89,7 @@ def test_saved_snapshot_round_trip(tmp_path):
 
 
 def test_stuck_step_finds_a_runner_that_stopped():
-    from gmt.model.data.rollout import stuck_step
+    from gmt.datagen.rollout import stuck_step
 
     ran_then_stopped = np.r_[np.full(50, 2.0), np.zeros(200)]
     assert stuck_step(ran_then_stopped) == 69
@@ -192,8 +192,8 @@ def test_snapshot_episodes_that_fall_are_replaced(tmp_path):
 
 
 def test_pool_starts_can_come_from_a_trained_models_own_states(tmp_path):
-    from gmt.model.data.collect import checkpoint_sources
-    from gmt.model.data.start_states import CheckpointPolicy, build_pool, start_from
+    from gmt.datagen.collect import checkpoint_sources
+    from gmt.datagen.start_states import CheckpointPolicy, build_pool, start_from
     from gmt.model.engine import PolicyEngine
     from gmt.model.fixtures import tiny_checkpoint
 

@@ -7,8 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
+from gmt.datagen.start_states import start_from
 from gmt.model.data.minari_io import Episode
-from gmt.model.data.start_states import start_from
 
 
 class Policy(Protocol):

@@ -2,16 +2,16 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from gmt.model.data.behaviour import RandomPolicy, load_behaviour
-from gmt.model.data.refine_behaviour import (
+from gmt.datagen.behaviour import RandomPolicy, load_behaviour
+from gmt.datagen.fixtures import random_behaviour
+from gmt.datagen.refine_behaviour import (
     FixedObsNorm,
     RefineConfig,
     TargetSpeedReward,
     refine,
     write_provenance,
 )
-from gmt.model.data.start_states import PoolStart, build_pool, start_from
-from gmt.model.fixtures import random_behaviour
+from gmt.datagen.start_states import PoolStart, build_pool, start_from
 
 ENV = "HalfCheetah-v5"
 
@@ -97,7 +97,7 @@ def test_refine_starts_from_the_level_and_writes_a_snapshot_with_provenance(tmp_
 
 
 def test_speed_tent_pays_the_speed_up_to_the_target_and_charges_overshoot():
-    from gmt.model.data.train_behaviour import SpeedTent
+    from gmt.datagen.train_behaviour import SpeedTent
 
     action = np.full(3, 0.8, dtype=np.float32)
 
@@ -124,7 +124,7 @@ def test_refine_defaults_follow_the_task():
 
 
 def test_a_fall_is_a_failed_measurement():
-    from gmt.model.data.refine_behaviour import measure_refined
+    from gmt.datagen.refine_behaviour import measure_refined
 
     env = gym.make("Hopper-v5")
     pool = build_pool(env, {"random": RandomPolicy(env.action_space)}, episodes=1, seed=0, skip=2, every=2)
@@ -134,7 +134,7 @@ def test_a_fall_is_a_failed_measurement():
 
 
 def test_tracking_with_pool_starts_begins_from_the_other_levels_states(tmp_path):
-    from gmt.model.data.train_behaviour import BehaviourTrainConfig, other_levels_pool
+    from gmt.datagen.train_behaviour import BehaviourTrainConfig, other_levels_pool
 
     with pytest.raises(ValueError, match="needs track"):
         BehaviourTrainConfig(ENV, targets={"slow": 1.0}, pool_start=0.5)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from gmt.common.tables import markdown_table
-from gmt.model.data.behaviour import (
+from gmt.datagen.behaviour import (
     BEHAVIOUR_DIR,
     BehaviourMeta,
     BehaviourPolicy,
@@ -26,8 +26,8 @@ from gmt.model.data.behaviour import (
     load_behaviour,
     save_behaviour,
 )
-from gmt.model.data.rollout import measure, stuck_step
-from gmt.model.data.start_states import PoolStart, build_pool
+from gmt.datagen.rollout import measure, stuck_step
+from gmt.datagen.start_states import PoolStart, build_pool
 
 FASTEST = "max"
 
@@ -264,7 +264,7 @@ def level_score(record: dict, target: float | str, max_len: int) -> float:
 
 def measure_snapshot(cfg: BehaviourTrainConfig, step: int, env, work_dir: Path | None = None) -> dict:
     """The coarse measurement of the snapshot saved at `step` (deterministic: fixed seeds)."""
-    from gmt.model.data.behaviour import load_behaviour
+    from gmt.datagen.behaviour import load_behaviour
 
     policy = load_behaviour((work_dir or cfg.work_dir) / f"step_{step:08d}", env.action_space)
     return {**measure(env, policy, cfg.eval_episodes, 10_000), "step": step}
@@ -300,7 +300,7 @@ def train(cfg: BehaviourTrainConfig) -> list[dict]:
 
 def other_levels_pool(cfg: BehaviourTrainConfig, level: str):
     """States visited by the current snapshots in `cfg.out_dir` other than `level` (collect's noise)."""
-    from gmt.model.data.collect import DEFAULT_NOISE_SCALE
+    from gmt.datagen.collect import DEFAULT_NOISE_SCALE
 
     env = gym.make(cfg.env_id)
     others = {}
@@ -393,7 +393,7 @@ def _train_run(
 
 def _fine(cfg: BehaviourTrainConfig, work_dir: Path, records: list[dict], env) -> list[dict]:
     """`final_episodes`-episode measurements of the given snapshots, cached in the work dir."""
-    from gmt.model.data.behaviour import load_behaviour
+    from gmt.datagen.behaviour import load_behaviour
 
     cache_path = work_dir / f"fine_records_{cfg.final_episodes}.json"
     cache = {r["step"]: r for r in json.loads(cache_path.read_text())} if cache_path.exists() else {}
@@ -424,7 +424,7 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict] | dict[str, lis
         records: Coarse measurements of the snapshots: one list for the single run, or, with tracking, a list
             per level.
     """
-    from gmt.model.data.behaviour import load_behaviour
+    from gmt.datagen.behaviour import load_behaviour
 
     torch.set_num_threads(1)
     env = gym.make(cfg.env_id)

@@ -14,11 +14,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from gmt.model.data.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
+from gmt.datagen.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
+from gmt.datagen.plan import PlanConfig, PlannedPolicy
+from gmt.datagen.rollout import rollout, stuck_step
+from gmt.datagen.start_states import CheckpointPolicy, StatePool, build_pool
 from gmt.model.data.minari_io import Episode, check_dataset_id, write_dataset
-from gmt.model.data.plan import PlanConfig, PlannedPolicy
-from gmt.model.data.rollout import rollout, stuck_step
-from gmt.model.data.start_states import CheckpointPolicy, StatePool, build_pool
 
 RANDOM = "random"
 # Episodes per level by default: HalfCheetah feeds the model (~150k transitions per goal); the others are
@@ -33,7 +33,7 @@ DEFAULT_NOISE_SCALE = {"halfcheetah": 0.35}
 # its episodes show that, the other half start at rest. Hopper's two levels each start half their episodes from
 # the other's states (slow braking from a sprint, fast speeding up from a walk); falls are replaced (`drop_falls`).
 # The same for Walker2d, whose commanded agent brakes from a sprint in ~74% of its tries (falls are replaced), and
-# for Ant's scripted gait levels (`gmt.model.data.gait`), which pick up the stride where the other level left it.
+# for Ant's scripted gait levels (`gmt.datagen.gait`), which pick up the stride where the other level left it.
 DEFAULT_POOL_START = {
     "halfcheetah": {"slow": 0.5},
     "hopper": {"slow": 0.5, "fast": 0.5},

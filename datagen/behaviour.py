@@ -1,20 +1,28 @@
-"""Behaviour policies used to collect offline data: an exported MLP (safetensors + JSON) and a random policy.
+"""Behaviour policies used to collect offline data: snapshots (safetensors + JSON) of several kinds, and a random
+policy.
 
-A behaviour snapshot is the deterministic mean network of a PPO actor plus its state-independent log-std and
-the observation normalisation it was trained with. Loading needs only torch and safetensors.
+A snapshot says what kind it is (`BehaviourMeta.kind`), and each kind has a loader, registered with
+`register_kind`; `load_behaviour` calls the loader of the snapshot's kind. Kinds:
 
-A commanded snapshot (`gmt.model.data.train_commanded`) is one speed-conditioned actor with a fixed command: its
-network reads the observation with the commanded speed appended (`extra["command"]`), so several levels can
-share one actor, and each level's episodes still have one goal. A governed snapshot (`extra["governor"]`, a
-`gmt.model.data.governor.GovernorConfig`) also steers that command every step so the mean speed holds the level's
-target; it keeps per-episode state, so whoever rolls it out calls `start_episode()` at every reset.
+- `actor`: the deterministic mean network of a PPO actor plus its state-independent log-std and the observation
+  normalisation it was trained with (`BehaviourPolicy`, defined here). A commanded actor
+  (`gmt.datagen.train_commanded`) is one speed-conditioned actor with a fixed command: its network reads the
+  observation with the commanded speed appended (`extra["command"]`), so several levels can share one actor, and
+  each level's episodes still have one goal.
+- `gait`: a scripted gait (`gmt.datagen.gait`), whose only tensor is the action noise.
+- other kinds register themselves when their module is imported (e.g. `governed`: research/governor.py).
+
+A policy may keep per-episode state, so whoever rolls it out calls `start_episode()` at every reset.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from importlib import import_module
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,7 +30,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
-BEHAVIOUR_DIR = Path(__file__).resolve().parents[2] / "behaviour"
+BEHAVIOUR_DIR = Path(__file__).resolve().parents[1] / "behaviour"
 
 
 def env_slug(env_id: str) -> str:
@@ -47,8 +55,10 @@ class BehaviourMeta:
         std_speed: Standard deviation of the per-episode mean x-velocity.
         train_step: Environment steps of training when the snapshot was taken.
         extra: Free-form measurements (episodes used, mean return, mean length); `command` (m/s), when present,
-            is appended to every observation before the network reads it; `governor`, when present, is a
-            `GovernorConfig` whose loop sets that command each step to hold `command` as the target speed.
+            is appended to every observation before the network reads it; a kind may keep its own settings
+            here (`gait`: the `GaitConfig`).
+        kind: Which loader reads the snapshot (`register_kind`); None in snapshots written before kinds were
+            recorded, whose kind `snapshot_kind` reads from `extra`.
     """
 
     env_id: str
@@ -63,6 +73,7 @@ class BehaviourMeta:
     std_speed: float | None = None
     train_step: int | None = None
     extra: dict = field(default_factory=dict)
+    kind: str | None = None
 
 
 class BehaviourPolicy(nn.Module):
@@ -86,30 +97,18 @@ class BehaviourPolicy(nn.Module):
         self.noise_scale = 1.0  # multiplies the Gaussian noise std of `act`
         command = meta.extra.get("command")
         self.command = None if command is None else float(command)
-        self.governor = None
-        if meta.extra.get("governor") is not None:
-            from gmt.model.data.governor import GovernorConfig, SpeedGovernor
-
-            if self.command is None:
-                raise ValueError("a governed snapshot needs extra.command (its target speed)")
-            self.governor = SpeedGovernor(GovernorConfig(**meta.extra["governor"]), self.command)
 
     @property
     def target(self) -> float | None:
-        """The speed the level is asked for: the governor's target, else the command itself."""
-        return self.governor.target if self.governor is not None else self.command
+        """The speed the level is asked for: its command."""
+        return self.command
 
     @target.setter
     def target(self, value: float) -> None:
-        if self.governor is not None:
-            self.governor.target = float(value)
-        else:
-            self.command = float(value)
+        self.command = float(value)
 
     def start_episode(self) -> None:
-        """Forget per-episode state (the governor's speeds and integral) before an episode's first action."""
-        if self.governor is not None:
-            self.governor.reset()
+        """Nothing to forget: an actor keeps no per-episode state."""
 
     def normalise(self, obs: np.ndarray) -> torch.Tensor:
         """VecNormalize's observation transform (after appending the command, if any), float64 then float32."""
@@ -131,8 +130,6 @@ class BehaviourPolicy(nn.Module):
         Returns:
             float32 action(s) clipped to the action-space bounds.
         """
-        if self.governor is not None:
-            self.command = self.governor.command(obs)
         mean = self.mean_net(self.normalise(obs)).numpy()
         if rng is not None:
             std = self.log_std.exp().numpy() * self.noise_scale
@@ -141,29 +138,73 @@ class BehaviourPolicy(nn.Module):
 
 
 def save_behaviour(path: str | Path, state: dict[str, torch.Tensor], meta: BehaviourMeta) -> None:
-    """Write `<path>.safetensors` (mean network + log_std) and `<path>.json` (the metadata)."""
+    """Write `<path>.safetensors` (the kind's tensors) and `<path>.json` (the metadata, its kind recorded)."""
     path = Path(path).with_suffix("")
     path.parent.mkdir(parents=True, exist_ok=True)
     save_file({k: v.detach().float().contiguous() for k, v in state.items()}, f"{path}.safetensors")
+    meta = replace(meta, kind=snapshot_kind(meta))
     Path(f"{path}.json").write_text(json.dumps(asdict(meta), indent=1) + "\n")
 
 
+# (path without suffix, metadata, tensors, the environment's action space) -> a policy with `act(obs, rng)`,
+# `start_episode()`, `noise_scale` and `meta`.
+Loader = Callable[[Path, BehaviourMeta, dict[str, torch.Tensor], Any], Any]
+_LOADERS: dict[str, Loader] = {}
+# The modules of this package that define a kind, imported when a snapshot of that kind is first loaded (so
+# this module imports none of them).
+_KIND_MODULES = {"gait": "gmt.datagen.gait"}
+
+
+def register_kind(kind: str) -> Callable[[Loader], Loader]:
+    """Decorator: `loader` reads the snapshots of `kind` (a later registration replaces an earlier one)."""
+
+    def add(loader: Loader) -> Loader:
+        _LOADERS[kind] = loader
+        return loader
+
+    return add
+
+
+def snapshot_kind(meta: BehaviourMeta) -> str:
+    """The snapshot's kind: `meta.kind`, else (older snapshots) `gait` or `governed` by their `extra`, else
+    `actor`."""
+    if meta.kind:
+        return meta.kind
+    if "gait" in meta.extra:
+        return "gait"
+    if meta.extra.get("governor") is not None:
+        return "governed"
+    return "actor"
+
+
 def load_behaviour(path: str | Path, action_space):
-    """Load a snapshot written by `save_behaviour`: a `BehaviourPolicy`, or a `gait.GaitPolicy` for a gait.
+    """Load a snapshot written by `save_behaviour` with the loader of its kind.
 
     Args:
         path: The `.safetensors` file (or the same path without suffix).
         action_space: The environment's Box action space (its bounds clip the actions).
+
+    Raises:
+        ValueError: no loader is registered for the snapshot's kind, or its tensors do not fit it.
     """
     path = Path(path).with_suffix("")
     meta = BehaviourMeta(**json.loads(Path(f"{path}.json").read_text()))
-    state = load_file(f"{path}.safetensors")
-    if "gait" in meta.extra:  # a scripted gait (`gmt.model.data.gait`): its only tensor is the action noise
-        from gmt.model.data.gait import GaitPolicy
+    kind = snapshot_kind(meta)
+    if kind not in _LOADERS and kind in _KIND_MODULES:
+        import_module(_KIND_MODULES[kind])
+    if kind not in _LOADERS:
+        raise ValueError(
+            f"{path}: no loader for behaviour snapshots of kind {kind!r} (registered: {sorted(_LOADERS)}); "
+            "a kind defined outside gmt.datagen registers one when its module is imported"
+        )
+    return _LOADERS[kind](path, meta, load_file(f"{path}.safetensors"), action_space)
 
-        if set(state) != {"log_std"}:
-            raise ValueError(f"{path}.safetensors: a gait snapshot holds log_std only, got {sorted(state)}")
-        return GaitPolicy(meta, state["log_std"].numpy(), action_space.low, action_space.high)
+
+@register_kind("actor")
+def load_actor(
+    path: Path, meta: BehaviourMeta, state: dict[str, torch.Tensor], action_space
+) -> BehaviourPolicy:
+    """A `BehaviourPolicy` from an actor snapshot's tensors."""
     policy = BehaviourPolicy(
         meta, len(meta.obs_mean), action_space.shape[0], action_space.low, action_space.high
     )
@@ -181,7 +222,7 @@ def list_snapshots(env_id: str, behaviour_dir: str | Path | None = None) -> list
     if not files:
         raise FileNotFoundError(f"no behaviour snapshots in {folder}; train them with `gmt data behaviour`")
     metas = [json.loads(f.with_suffix(".json").read_text()) for f in files]
-    # A governed level has no measured speed yet; its target orders it.
+    # A level with no measured speed yet (e.g. a governed one) is ordered by its target.
     speeds = [m.get("mean_speed") or m.get("extra", {}).get("target_speed") or 0.0 for m in metas]
     return [f for _, f in sorted(zip(speeds, files, strict=True))]
 
