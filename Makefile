@@ -92,7 +92,7 @@ eval-hopper: $(VENV)/.installed-eval
 # The data and training behind checkpoints/walker2d-gmt (its PROVENANCE.md): ~31 min collection and ~31 min
 # training on one core each.
 data-walker2d: $(VENV)/.installed-data
-	$(BIN)/gmt data collect --env Walker2d-v5 --no-random --behaviour-dir behaviour/experiments/walker2d-10-16-1550k \
+	$(BIN)/gmt data collect --env Walker2d-v5 --no-random --behaviour-dir behaviour/walker2d-gmt \
 		--episodes-per-level 200 --plan slow=1.0,1.6,1.3,0.7 --plan fast=1.6,2.0,1.3 --plan-from-rest slow=1.1 \
 		--out-id gmt/walker2d/c1016b-rt11-v0
 

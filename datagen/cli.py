@@ -16,7 +16,8 @@ from gmt.common.cli_support import needs
 app = typer.Typer(help="Offline datasets: behaviour agents, collection, statistics and goal relabelling.")
 
 
-def _parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
+def parse_targets(targets: list[str] | None) -> dict[str, float | str] | None:
+    """LEVEL=SPEED or LEVEL=max options (repeated) as a dict (None when none is given)."""
     if not targets:
         return None
     out: dict[str, float | str] = {}
@@ -44,7 +45,8 @@ def _level_values(items: list[str] | None, value: str, hint: str) -> dict[str, f
     return out
 
 
-def _parse_range(text: str | None) -> tuple[float, float] | None:
+def parse_range(text: str | None) -> tuple[float, float] | None:
+    """A LO:HI option in m/s as (lo, hi) (None when not given)."""
     if text is None:
         return None
     lo, sep, hi = text.partition(":")
@@ -100,7 +102,7 @@ def behaviour(
         dense_steps=dense_steps,
         eval_episodes=eval_episodes,
         final_episodes=final_episodes,
-        targets=_parse_targets(target),
+        targets=parse_targets(target),
         seed=seed,
         out_dir=out_dir,
         track=track,
@@ -159,7 +161,7 @@ def commanded(
     snapshot: int = typer.Option(
         None,
         help="With --select-only: export this kept snapshot (its training step) instead of the best-scored one, "
-        "e.g. one chosen with tools/screen_commanded.py.",
+        "e.g. one chosen with research/screen_commanded.py.",
     ),
     resume_from: int = typer.Option(
         None,
@@ -180,7 +182,7 @@ def commanded(
         write_commanded_provenance,
     )
 
-    targets = _parse_targets(target) or {}
+    targets = parse_targets(target) or {}
     if any(v == "max" for v in targets.values()):
         raise typer.BadParameter("commanded levels need speeds in m/s, not max", param_hint="--target")
     try:
@@ -193,7 +195,7 @@ def commanded(
             track_weight=track_weight,
             overspeed_weight=overspeed_weight,
             track_window=track_window,
-            command_range=_parse_range(command_range),
+            command_range=parse_range(command_range),
             ent_coef=ent_coef,
             ceiling=ceiling,
             ceiling_weight=ceiling_weight,
@@ -234,51 +236,10 @@ def commanded(
 
 
 @app.command()
-@needs("data", "gmt data govern")
-def govern(
-    source: Path = typer.Argument(
-        ..., help="A commanded snapshot (.safetensors), e.g. WORK_DIR/step_01000000."
-    ),
-    env: str = typer.Option(
-        ..., help="Gymnasium id, e.g. Hopper-v5 (where the x-velocity sits in its observation)."
-    ),
-    target: list[str] = typer.Option(..., help="LEVEL=SPEED (m/s), slowest first; repeat."),
-    command_range: str = typer.Option(..., help="LO:HI (m/s): the commands the actor was trained on."),
-    window: int = typer.Option(20, help="Steps of speed averaged by the proportional term."),
-    kp: float = typer.Option(1.0, help="Proportional gain on (target - mean speed of the window)."),
-    ki: float = typer.Option(0.002, help="Per-step gain of the integral of (target - speed)."),
-    integral_limit: float = typer.Option(0.5, help="Bound on the integral term (m/s of command)."),
-    out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/<env>/)."),
-) -> None:
-    """Wrap a commanded actor in a speed governor: one level per target, collected like any snapshot."""
-    import shlex
-    import sys
-
-    from gmt.datagen.behaviour import BEHAVIOUR_DIR, env_slug
-    from gmt.datagen.governor import GovernorConfig, write_governed
-    from gmt.model.data.minari_io import x_velocity_obs_index
-
-    vx = x_velocity_obs_index(env)
-    if vx is None:
-        raise typer.BadParameter(f"no known x-velocity entry in {env}'s observation", param_hint="--env")
-    targets = _parse_targets(target) or {}
-    if any(v == "max" for v in targets.values()):
-        raise typer.BadParameter("governed levels need speeds in m/s, not max", param_hint="--target")
-    try:
-        cfg = GovernorConfig(vx, _parse_range(command_range), window, kp, ki, integral_limit)
-        out = out_dir or BEHAVIOUR_DIR / env_slug(env)
-        command = "gmt data govern " + " ".join(shlex.quote(a) for a in sys.argv[3:])
-        written = write_governed(source, targets, cfg, out, command)
-    except (ValueError, FileNotFoundError) as e:
-        raise typer.BadParameter(str(e)) from None
-    typer.echo(f"wrote {', '.join(str(p) for p in written)}")
-
-
-@app.command()
 @needs("data", "gmt data gait")
 def gait(
     params: Path = typer.Argument(
-        ..., help="A gait's parameters (JSON): `tools/search_gait.py`'s output or a bare GaitConfig."
+        ..., help="A gait's parameters (JSON): `research/search_gait.py`'s output or a bare GaitConfig."
     ),
     level: list[str] = typer.Option(
         None, help="LEVEL=HZ, one stride frequency per level; repeat (default: the search's slow and fast)."
@@ -520,65 +481,6 @@ def collect(
             f"  {name:<8} {lv['episodes']} episodes ({lv['pool_starts']} from pool states, {lv['planned']} planned, "
             f"{lv['stuck_dropped']} stuck and {lv['falls_dropped']} fallen ones replaced){speed}"
         )
-
-
-@app.command()
-@needs("data", "gmt data settle")
-def settle(
-    dataset: str = typer.Argument(..., help="Dataset id or path to filter."),
-    out_id: str = typer.Option(..., help="Minari id of the filtered dataset to write."),
-    span: str = typer.Option("50:200", help="START:END steps after an episode's start that are measured."),
-    tolerance_scale: float = typer.Option(1.0, help="Multiplier of each goal's tolerance."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic of the goals."),
-    k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
-    seed: int = typer.Option(0, help="Seed of the relabelling."),
-    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
-) -> None:
-    """Keep every rest-started episode and the pool-started ones inside their goal's tolerance over SPAN.
-
-    Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
-    reach their goal too slowly for a multi-switch segment (`gmt.datagen.settle`).
-    """
-    from gmt.common.tables import text_table
-    from gmt.datagen.settle import SettleConfig, settle_filter
-
-    start, _, end = span.partition(":")
-    try:
-        bounds = (int(start), int(end))
-        cfg = SettleConfig(dataset, out_id, bounds, tolerance_scale, statistic, k, seed, data_dir)
-    except ValueError as e:
-        raise typer.BadParameter(f"{e} (--span {span!r}, --out-id {out_id!r})") from None
-    res = settle_filter(cfg)
-
-    def fmt(x):
-        return "-" if x is None else f"{x:.3f}"
-
-    rows = [
-        (
-            r["goal"],
-            r["name"],
-            f"{r['mean']:.3f} +- {r['tolerance']:.3f}",
-            r["rest"],
-            f"{r['pool_kept']}/{r['pool']}",
-            fmt(r["pool_span_mean"]),
-            fmt(r["kept_span_mean"]),
-        )
-        for r in res.rows
-    ]
-    head = (
-        "id",
-        "name",
-        "goal band",
-        "rest",
-        "pool kept",
-        f"pool mean [{bounds[0]},{bounds[1]})",
-        "kept mean",
-    )
-    typer.echo(text_table(head, rows, align="<<>>>>>", rule=False))
-    typer.echo(
-        f"\nwrote {res.out_id} to {res.path}: {res.kept} of {res.total} episodes "
-        f"(source fingerprint {res.source_fingerprint[:8]}, new {res.fingerprint[:8]})"
-    )
 
 
 def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):

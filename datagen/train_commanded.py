@@ -52,7 +52,7 @@ class SpeedCommand(gym.Wrapper):
 
     With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
     instead of from `commands`: the agent then tracks any speed in between, which a governor
-    (`gmt.datagen.governor`) needs to steer it by a command other than the levels'.
+    (`research.governor`) needs to steer it by a command other than the levels'.
     """
 
     def __init__(

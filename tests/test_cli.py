@@ -244,3 +244,15 @@ def _raise_exit():
     import typer
 
     raise typer.Exit(0)
+
+
+def test_the_behaviour_folders_the_written_command_lines_collect_from_exist():
+    dirs = [
+        (where, m.group(1))
+        for where, line in _written_command_lines()
+        for m in [re.search(r"--behaviour-dir (\S+)", line)]
+        if m and not m.group(1).startswith("runs/")
+    ]
+    assert dirs, "no --behaviour-dir in the Makefile or a PROVENANCE.md"
+    for where, d in dirs:
+        assert any((ROOT / d).glob("*/*.safetensors")), f"{where}: {d} holds no behaviour snapshot"

@@ -229,3 +229,23 @@ def test_a_named_snapshot_is_exported_instead_of_the_best_scored(tmp_path):
     res = runner.invoke(app, [*base, "--select-only"])  # without a name, the best score wins
     assert res.exit_code == 0, res.output
     assert json.loads((out / "slow.json").read_text())["train_step"] == 200
+
+
+def test_training_commands_can_be_drawn_from_a_range():
+    env = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(0.5, 2.5))
+    assert env.observation_space.low[-1] == 0.5 and env.observation_space.high[-1] == 2.5
+    obs, _ = env.reset(seed=0)
+    seen = [env.command]
+    for _ in range(30):
+        obs, _, terminated, _, _ = env.step(np.zeros(3, np.float32))
+        assert obs[-1] == env.command
+        seen.append(env.command)
+        if terminated:
+            obs, _ = env.reset(seed=1)
+            seen.append(env.command)
+    assert all(0.5 <= c <= 2.5 for c in seen)
+    assert len(set(seen)) > 10 and not set(seen) <= {1.0, 2.2}  # anywhere in the range, not only the levels
+    with pytest.raises(ValueError, match="command_range"):
+        SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(2.0, 1.0))
+    with pytest.raises(ValueError, match="command_range"):
+        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, command_range=(1.2, 2.5))

@@ -6,29 +6,25 @@ own commands on the DESIGN.md protocol (15 seeds, holds, switches at 500, cycles
 judges it against the goal means of its collected data, with the GMT protocol's tolerance and settle-in.
 
 Usage:
-    python tools/behaviour_protocol.py --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
-    python tools/behaviour_protocol.py --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2  # goals: own holds
+    python -m research.behaviour_protocol --env Hopper-v5 --levels DIR/slow DIR/fast --goals 0.898 2.026
+    python -m research.behaviour_protocol --env Hopper-v5 --levels WORK/step_01200000 --commands 1.0 2.2  # goals: own holds
 
-Governed levels (`gmt data govern`) are played with their governor, the commands being its targets.
+Governed levels (`python -m research.governor levels`) are played with their governor, the commands being its targets.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import warnings
-from pathlib import Path
 from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gmt.common.segments import achieved, held_windows, measured_spans, tolerance, within  # noqa: E402
-from gmt.datagen.behaviour import load_behaviour  # noqa: E402
-from gmt.model.evaluate import protocol  # noqa: E402
+from gmt.common.segments import achieved, held_windows, measured_spans, tolerance, within
+from gmt.datagen.behaviour import load_behaviour
+from gmt.model.evaluate import protocol
 
 
 def main() -> None:

@@ -6,16 +6,15 @@ actually holds), on a cycle that starts from rest. This plays each snapshot's ho
 command, steps [100, 1000)) and its every-N cycle from rest (`--seeds` episodes), judges the cycle's segments
 against those held speeds with the GMT protocol's tolerance and settle-in (`play_schedule`), and flags snapshots whose two extreme
 goals' bands overlap (one speed would then pass both). Export the one you choose with
-`gmt data commanded ... --select-only --snapshot STEP`, then play it fully with `tools/behaviour_protocol.py`.
+`gmt data commanded ... --select-only --snapshot STEP`, then play it fully with `research/behaviour_protocol.py`.
 
 Usage:
-    python tools/screen_commanded.py --env Hopper-v5 --work-dir runs/behaviour/hopper-16-26 --commands 1.6 2.6
+    python -m research.screen_commanded --env Hopper-v5 --work-dir runs/behaviour/hopper-16-26 --commands 1.6 2.6
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -23,14 +22,10 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from behaviour_protocol import hold_mean  # noqa: E402
-
-from gmt.common.segments import tolerance, within  # noqa: E402
-from gmt.datagen.behaviour import load_behaviour  # noqa: E402
-from gmt.datagen.train_commanded import cycle_schedule, play_schedule  # noqa: E402
+from gmt.common.segments import tolerance, within
+from gmt.datagen.behaviour import load_behaviour
+from gmt.datagen.train_commanded import cycle_schedule, play_schedule
+from research.behaviour_protocol import hold_mean
 
 
 def main() -> None:

@@ -6,22 +6,19 @@ z-component (1: upright, below 0: on its back). On Ant-v5 every termination of t
 measured so far was a bounce out of the top of (0.2, 1.0), not a flip onto the back.
 
 Usage:
-    python tools/terminations.py --env Ant-v5 runs/behaviour/ant-05-10-s0/step_01500000 --commands 0.5 1.0
+    python -m research.terminations --env Ant-v5 runs/behaviour/ant-05-10-s0/step_01500000 --commands 0.5 1.0
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gmt.datagen.behaviour import load_behaviour  # noqa: E402
+from gmt.datagen.behaviour import load_behaviour
 
 
 def main() -> None:

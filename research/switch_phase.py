@@ -9,23 +9,19 @@ N, then `--from-goal` again) with the third segment's switch moved by each offse
 third segment's successes over 15 seeds (measured over [N/4, N) after its switch, as the protocol does).
 
 Usage:
-    python tools/switch_phase.py runs/exp/hopper-planned [--every 200] [--offsets -60 -45 ... 60]
+    python -m research.switch_phase runs/exp/hopper-planned [--every 200] [--offsets -60 -45 ... 60]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import warnings
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gmt.common.tables import markdown_table  # noqa: E402
-from gmt.model.checkpoint import load_checkpoint  # noqa: E402
-from gmt.model.evaluate import Condition, evaluate  # noqa: E402
+from gmt.common.tables import markdown_table
+from gmt.model.checkpoint import load_checkpoint
+from gmt.model.evaluate import Condition, evaluate
 
 
 def main() -> None:

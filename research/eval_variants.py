@@ -13,30 +13,27 @@ need the same protocol with one thing changed:
 
 It also prints, per hold, the share of its 150-step windows from step 200 on that are within the goal's
 tolerance: how steady the held gait is where a 200-step cycle would measure it, the model's counterpart of the
-last column of `tools/data_transients.py`.
+last column of `research/data_transients.py`.
 
 Usage:
-    python tools/eval_variants.py runs/exp/hopper-settled-t75 --restart --json docs/results/X.json
-    python tools/eval_variants.py runs/exp/hopper-settled-t75 --cap 0.25 --first-seed 15
+    python -m research.eval_variants runs/exp/hopper-settled-t75 --restart --json docs/results/X.json
+    python -m research.eval_variants runs/exp/hopper-settled-t75 --cap 0.25 --first-seed 15
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import gmt.model.engine as engine_module  # noqa: E402
-import gmt.model.evaluate as evaluate_module  # noqa: E402
-from gmt.common.segments import held_windows, tolerance, within  # noqa: E402
-from gmt.model.checkpoint import load_checkpoint  # noqa: E402
+import gmt.model.engine as engine_module
+import gmt.model.evaluate as evaluate_module
+from gmt.common.segments import held_windows, tolerance, within
+from gmt.model.checkpoint import load_checkpoint
 
 
 class RestartAtSwitch(engine_module.PolicyEngine):

@@ -4,7 +4,7 @@
 dataset shows each level braking or speeding up into its own speed; these episodes are all a GMT sees of a goal
 change. How quickly a behaviour agent settles varies from episode to episode: the commanded Hopper agent brakes
 from a sprint inside the slow goal's tolerance within 50 steps in only ~57% of its episodes
-(`tools/data_transients.py`), and a GMT imitating the average of the rest brakes too late for a goal switched
+(`research/data_transients.py`), and a GMT imitating the average of the rest brakes too late for a goal switched
 every 200 steps. This writes a new dataset that keeps every episode started at rest and a pool-started episode
 only when its per-step statistic over `span` (default [50, 200): a segment of a 200-step cycle after its
 settle-in, `gmt.common.segments.settle_in`) is within its goal's tolerance (`gmt.common.segments.tolerance`), the goals
@@ -13,6 +13,8 @@ relabelled over the whole source dataset as `gmt train` relabels them.
 It is a choice of demonstrations, in the same spirit as dropping falls at collection: the model only sees
 transitions the protocol would accept. The kept episodes keep their Minari episode metadata, plus their index in
 the source dataset.
+
+Research: no shipped dataset uses it. Run `python -m research.settle DATASET --out-id ID` (research/README.md).
 """
 
 from __future__ import annotations
@@ -21,8 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import typer
 
 from gmt.common.segments import achieved, tolerance, within
+from gmt.common.tables import text_table
 from gmt.model.data.minari_io import fingerprint, load_dataset, resolve, write_dataset
 from gmt.model.data.relabel import GoalTable, relabel
 from gmt.model.data.statistics import check_dataset
@@ -150,7 +154,7 @@ def settle_filter(cfg: SettleConfig) -> SettleResult:
     episodes = [ds.episodes[i] for i in idx]
     out_meta = [{**meta[i], "source_episode": int(i)} for i in idx]
     description = (
-        f"{cfg.source} (fingerprint {ds.fingerprint[:8]}) filtered by `gmt data settle`: every rest-started "
+        f"{cfg.source} (fingerprint {ds.fingerprint[:8]}) filtered by `python -m research.settle`: every rest-started "
         f"episode, and the pool-started ones whose {cfg.statistic} over steps [{a}, {b}) is within "
         f"{cfg.tolerance_scale} x their goal's tolerance; {len(idx)} of {len(ds.episodes)} episodes kept."
     )
@@ -163,7 +167,7 @@ def settle_filter(cfg: SettleConfig) -> SettleResult:
         cfg.data_dir,
         episode_metadata=out_meta,
         description=description,
-        algorithm_name="gmt data settle",
+        algorithm_name="python -m research.settle",
         overwrite=True,
     )
     return SettleResult(
@@ -176,3 +180,61 @@ def settle_filter(cfg: SettleConfig) -> SettleResult:
         kept=len(idx),
         total=len(ds.episodes),
     )
+
+
+def main(
+    dataset: str = typer.Argument(..., help="Dataset id or path to filter."),
+    out_id: str = typer.Option(..., help="Minari id of the filtered dataset to write."),
+    span: str = typer.Option("50:200", help="START:END steps after an episode's start that are measured."),
+    tolerance_scale: float = typer.Option(1.0, help="Multiplier of each goal's tolerance."),
+    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic of the goals."),
+    k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
+    seed: int = typer.Option(0, help="Seed of the relabelling."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Keep every rest-started episode and the pool-started ones inside their goal's tolerance over SPAN.
+
+    Pool-started episodes (`gmt data collect --pool-start`) are the data's goal changes; this drops those that
+    reach their goal too slowly for a multi-switch segment (`research.settle`).
+    """
+    start, _, end = span.partition(":")
+    try:
+        bounds = (int(start), int(end))
+        cfg = SettleConfig(dataset, out_id, bounds, tolerance_scale, statistic, k, seed, data_dir)
+    except ValueError as e:
+        raise typer.BadParameter(f"{e} (--span {span!r}, --out-id {out_id!r})") from None
+    res = settle_filter(cfg)
+
+    def fmt(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    rows = [
+        (
+            r["goal"],
+            r["name"],
+            f"{r['mean']:.3f} +- {r['tolerance']:.3f}",
+            r["rest"],
+            f"{r['pool_kept']}/{r['pool']}",
+            fmt(r["pool_span_mean"]),
+            fmt(r["kept_span_mean"]),
+        )
+        for r in res.rows
+    ]
+    head = (
+        "id",
+        "name",
+        "goal band",
+        "rest",
+        "pool kept",
+        f"pool mean [{bounds[0]},{bounds[1]})",
+        "kept mean",
+    )
+    typer.echo(text_table(head, rows, align="<<>>>>>", rule=False))
+    typer.echo(
+        f"\nwrote {res.out_id} to {res.path}: {res.kept} of {res.total} episodes "
+        f"(source fingerprint {res.source_fingerprint[:8]}, new {res.fingerprint[:8]})"
+    )
+
+
+if __name__ == "__main__":
+    typer.run(main)

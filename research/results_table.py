@@ -1,8 +1,8 @@
 """Build the comparison tables of docs/results.md from `gmt eval --json` files.
 
 Usage:
-    python tools/results_table.py ROW=PATH/eval.json [ROW=PATH/eval.json ...]
-    python tools/results_table.py --summary ROW=PATH/eval.json [...]
+    python -m research.results_table ROW=PATH/eval.json [ROW=PATH/eval.json ...]
+    python -m research.results_table --summary ROW=PATH/eval.json [...]
 
 The first form prints one markdown row per file: successes out of seeds for every hold, ordered switch pair and
 multi-switch. `--summary` prints one compact row per file (any task): the worst hold, the worst ordered switch
@@ -53,6 +53,9 @@ def summary(evals: list[tuple[str, dict]]) -> None:
 
 
 def main(args: list[str]) -> None:
+    if not args or "--help" in args or "-h" in args:
+        print(__doc__)
+        return
     compact = "--summary" in args
     rows = [a.split("=", 1) for a in args if a != "--summary"]
     evals = [(name, json.load(open(path))) for name, path in rows]

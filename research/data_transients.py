@@ -11,26 +11,22 @@ measured span, wherever in the episode it falls), so a level whose speed wanders
 there even when it settles quickly.
 
 Usage:
-    python tools/data_transients.py gmt/hopper/mixed-v0 [--k 2]
+    python -m research.data_transients gmt/hopper/mixed-v0 [--k 2]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gmt.common.segments import achieved, held_windows, settle_in, tolerance, within  # noqa: E402
-from gmt.common.statistics import get_statistic  # noqa: E402
-from gmt.common.tables import markdown_table  # noqa: E402
-from gmt.datagen.settle import episode_metadata, pool_started  # noqa: E402
-from gmt.model.data.minari_io import load_dataset  # noqa: E402
-from gmt.model.data.relabel import relabel  # noqa: E402
-from gmt.model.evaluate import MULTI_SWITCH_EVERY, protocol  # noqa: E402
+from gmt.common.segments import achieved, held_windows, settle_in, tolerance, within
+from gmt.common.statistics import get_statistic
+from gmt.common.tables import markdown_table
+from gmt.model.data.minari_io import load_dataset
+from gmt.model.data.relabel import relabel
+from gmt.model.evaluate import MULTI_SWITCH_EVERY, protocol
+from research.settle import episode_metadata, pool_started
 
 STEPS = 1000  # the protocol's episode length
 

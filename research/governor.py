@@ -13,19 +13,35 @@ command is clipped, so it does not wind up). The proportional term brakes or pus
 sees); the integral removes the actor's own bias and slow drift. The actor must have been trained on commands
 over the whole `command_range` (`gmt data commanded --command-range`), or a corrected command is one it never
 saw.
+
+Research: no shipped dataset uses it. Its snapshots are of kind `governed`, whose loader this module registers,
+so they are collected through this module (`python -m research.governor collect ...`; research/README.md).
 """
 
 from __future__ import annotations
 
 import json
+import shlex
+import sys
 from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import typer
 from safetensors.torch import load_file
 
-from gmt.datagen.behaviour import BehaviourMeta, BehaviourPolicy, load_actor, register_kind, save_behaviour
+from gmt.datagen.behaviour import (
+    BEHAVIOUR_DIR,
+    BehaviourMeta,
+    BehaviourPolicy,
+    env_slug,
+    load_actor,
+    register_kind,
+    save_behaviour,
+)
+from gmt.datagen.cli import parse_range, parse_targets
+from gmt.model.data.minari_io import x_velocity_obs_index
 
 
 @dataclass(frozen=True)
@@ -201,7 +217,58 @@ def write_governed(
         written.append(out_dir / level)
     (out_dir / "GOVERNED_WITH.md").write_text(
         f"# Governed levels\n\nWritten by:\n\n```bash\n{command}\n```\n\nActor: `{source}` (train step "
-        f"{meta.get('train_step')}). Levels: {targets}. Governor (`gmt.datagen.governor.GovernorConfig`): "
+        f"{meta.get('train_step')}). Levels: {targets}. Governor (`research.governor.GovernorConfig`): "
         f"`{cfg.to_json()}`.\n"
     )
     return written
+
+
+app = typer.Typer(
+    help="Speed-governed behaviour levels (research): write them, collect them.", add_completion=False
+)
+
+
+@app.command()
+def levels(
+    source: Path = typer.Argument(
+        ..., help="A commanded snapshot (.safetensors), e.g. WORK_DIR/step_01000000."
+    ),
+    env: str = typer.Option(
+        ..., help="Gymnasium id, e.g. Hopper-v5 (where the x-velocity sits in its observation)."
+    ),
+    target: list[str] = typer.Option(..., help="LEVEL=SPEED (m/s), slowest first; repeat."),
+    command_range: str = typer.Option(..., help="LO:HI (m/s): the commands the actor was trained on."),
+    window: int = typer.Option(20, help="Steps of speed averaged by the proportional term."),
+    kp: float = typer.Option(1.0, help="Proportional gain on (target - mean speed of the window)."),
+    ki: float = typer.Option(0.002, help="Per-step gain of the integral of (target - speed)."),
+    integral_limit: float = typer.Option(0.5, help="Bound on the integral term (m/s of command)."),
+    out_dir: Path = typer.Option(None, help="Where the levels go (default behaviour/<env>/)."),
+) -> None:
+    """Wrap a commanded actor in a speed governor: one level per target (collect them with `collect`)."""
+
+    vx = x_velocity_obs_index(env)
+    if vx is None:
+        raise typer.BadParameter(f"no known x-velocity entry in {env}'s observation", param_hint="--env")
+    targets = parse_targets(target) or {}
+    if any(v == "max" for v in targets.values()):
+        raise typer.BadParameter("governed levels need speeds in m/s, not max", param_hint="--target")
+    try:
+        cfg = GovernorConfig(vx, parse_range(command_range), window, kp, ki, integral_limit)
+        out = out_dir or BEHAVIOUR_DIR / env_slug(env)
+        command = "python -m research.governor levels " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+        written = write_governed(source, targets, cfg, out, command)
+    except (ValueError, FileNotFoundError) as e:
+        raise typer.BadParameter(str(e)) from None
+    typer.echo(f"wrote {', '.join(str(p) for p in written)}")
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def collect(ctx: typer.Context) -> None:
+    """`gmt data collect ARGS` with the `governed` kind registered: governed levels collected like any snapshot."""
+    from gmt.datagen.cli import app as data
+
+    data(["collect", *ctx.args], prog_name="python -m research.governor collect")
+
+
+if __name__ == "__main__":
+    app()

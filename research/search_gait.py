@@ -9,7 +9,7 @@ Two stages, each a (5, 16) evolution strategy with log-rank weights over a 14-nu
    speed swings, heading, torso height above 0.92 m (Ant-v5 ends an episode above 1.0 m) and falls.
 
 Usage:
-    python tools/search_gait.py --seed 0 --out runs/gait/search-s0.json
+    python -m research.search_gait --seed 0 --out runs/gait/search-s0.json
 
 The output is a `GaitConfig` (JSON, `freq` the fast level's) with the search's scores and command; `gmt data
 gait` turns it into behaviour levels. Each evaluation plays whole Ant-v5 episodes, so a stage-1 generation takes
@@ -28,9 +28,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gmt.datagen.gait import GaitConfig, GaitPolicy, gait_meta, heading  # noqa: E402
+from gmt.datagen.gait import GaitConfig, GaitPolicy, gait_meta, heading
 
 DIM = 14
 POP, ELITE = 16, 5
@@ -151,7 +149,7 @@ def main() -> None:
         "slow_freq": unpack(x2).freq - args.slow_offset,
         "speed_score": s1,
         "levels_score": s2,
-        "command": "python tools/search_gait.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "command": "python -m research.search_gait " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -1,4 +1,4 @@
-"""The speed governor around a commanded actor, governed snapshots, and commands drawn from a range in training."""
+"""The speed governor around a commanded actor (research/governor.py) and governed snapshots."""
 
 import json
 
@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from gmt.datagen.behaviour import BehaviourMeta, BehaviourPolicy, load_behaviour, save_behaviour
-from gmt.datagen.governor import GovernedPolicy, GovernorConfig, SpeedGovernor, write_governed
 from gmt.datagen.rollout import rollout
-from gmt.datagen.train_commanded import CommandedConfig, SpeedCommand
+from research.governor import GovernedPolicy, GovernorConfig, SpeedGovernor, write_governed
 
 ENV = "Hopper-v5"
 VX = 5  # Hopper's x-velocity entry
@@ -80,12 +79,12 @@ def test_governed_levels_steer_the_actor_by_their_target(tmp_path):
     source = _commanded_actor(tmp_path / "actor")
     cfg = GovernorConfig(VX, (0.5, 2.5), window=5, kp=1.0, ki=0.01)
     written = write_governed(
-        source, {"slow": 1.0, "fast": 2.0}, cfg, tmp_path / "levels", "gmt data govern ..."
+        source, {"slow": 1.0, "fast": 2.0}, cfg, tmp_path / "levels", "python -m research.governor levels ..."
     )
     assert [p.name for p in written] == ["slow", "fast"]
     meta = json.loads((tmp_path / "levels" / "fast.json").read_text())
     assert meta["extra"]["command"] == 2.0 and meta["extra"]["governor"] == cfg.to_json()
-    assert "gmt data govern ..." in (tmp_path / "levels" / "GOVERNED_WITH.md").read_text()
+    assert "python -m research.governor levels ..." in (tmp_path / "levels" / "GOVERNED_WITH.md").read_text()
     slow = load_behaviour(tmp_path / "levels" / "slow", env.action_space)
     plain = load_behaviour(source, env.action_space)
     assert isinstance(slow, GovernedPolicy) and isinstance(plain, BehaviourPolicy)
@@ -110,26 +109,6 @@ def test_governed_levels_steer_the_actor_by_their_target(tmp_path):
         write_governed(tmp_path / "uncommanded", {"slow": 1.0}, cfg, tmp_path / "bad", "")
 
 
-def test_training_commands_can_be_drawn_from_a_range():
-    env = SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(0.5, 2.5))
-    assert env.observation_space.low[-1] == 0.5 and env.observation_space.high[-1] == 2.5
-    obs, _ = env.reset(seed=0)
-    seen = [env.command]
-    for _ in range(30):
-        obs, _, terminated, _, _ = env.step(np.zeros(3, np.float32))
-        assert obs[-1] == env.command
-        seen.append(env.command)
-        if terminated:
-            obs, _ = env.reset(seed=1)
-            seen.append(env.command)
-    assert all(0.5 <= c <= 2.5 for c in seen)
-    assert len(set(seen)) > 10 and not set(seen) <= {1.0, 2.2}  # anywhere in the range, not only the levels
-    with pytest.raises(ValueError, match="command_range"):
-        SpeedCommand(gym.make(ENV), [1.0, 2.2], switch_prob=1.0, seed=0, command_range=(2.0, 1.0))
-    with pytest.raises(ValueError, match="command_range"):
-        CommandedConfig(ENV, {"slow": 1.0, "fast": 2.2}, command_range=(1.2, 2.5))
-
-
 def test_governed_levels_are_listed_slowest_target_first(tmp_path):
     from gmt.datagen.behaviour import list_snapshots
 
@@ -137,3 +116,21 @@ def test_governed_levels_are_listed_slowest_target_first(tmp_path):
     cfg = GovernorConfig(VX, (0.5, 2.5))
     write_governed(source, {"walk": 1.0, "amble": 1.5, "run": 2.0}, cfg, tmp_path / "hopper", "")
     assert [p.stem for p in list_snapshots(ENV, tmp_path)] == ["walk", "amble", "run"]
+
+
+def test_governed_levels_are_collected_through_the_research_module(tmp_path):
+    from typer.testing import CliRunner
+
+    from gmt.model.data.minari_io import load_dataset
+    from research.governor import app
+
+    source = _commanded_actor(tmp_path / "actor")
+    write_governed(
+        source, {"slow": 1.0, "fast": 2.0}, GovernorConfig(VX, (0.5, 2.5)), tmp_path / "beh" / "hopper", ""
+    )
+    args = ["collect", "--env", ENV, "--no-random", "--behaviour-dir", str(tmp_path / "beh"), "--episodes-per-level",
+            "2", "--max-steps", "20", "--keep-falls", "--keep-stuck", "--out-id", "t/hopper/governed-v0", "--data-dir", str(tmp_path / "data")]  # fmt: skip
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    episodes = load_dataset("t/hopper/governed-v0", tmp_path / "data").episodes
+    assert len(episodes) == 4

@@ -1,13 +1,13 @@
-"""`gmt data settle`: pool-started episodes that reach their goal too slowly are dropped, the rest kept as they were."""
+"""`research.settle`: pool-started episodes that reach their goal too slowly are dropped, the rest kept as they were."""
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import typer
 from typer.testing import CliRunner
 
-from gmt.datagen.cli import app
-from gmt.datagen.settle import SettleConfig, settle_filter
 from gmt.model.data.minari_io import Episode, load_dataset, write_dataset
+from research.settle import SettleConfig, main, settle_filter
 
 STEPS = 240
 
@@ -115,11 +115,13 @@ def test_the_config_refuses_bad_spans_scales_and_ids(out_id, span, scale):
 
 def test_the_cli_prints_what_it_kept_and_refuses_a_bad_span(source):
     root, _, _ = source
-    args = ["settle", "t/hopper/src-v0", "--out-id", "t/hopper/cli-v0", "--data-dir", str(root), "--k", "2"]
+    app = typer.Typer()
+    app.command()(main)  # as `python -m research.settle` runs it
+    args = ["t/hopper/src-v0", "--out-id", "t/hopper/cli-v0", "--data-dir", str(root), "--k", "2"]
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 0, r.output
     assert "3/6" in r.output and "23 of 26 episodes" in r.output
-    r = CliRunner().invoke(app, [*args[:4], "--span", "200:50", *args[4:]])
+    r = CliRunner().invoke(app, [*args[:3], "--span", "200:50", *args[3:]])
     assert r.exit_code != 0 and "span" in r.output
-    r = CliRunner().invoke(app, [*args[:2], "--out-id", "t/hopper/x-0.5-v0", *args[4:]])
+    r = CliRunner().invoke(app, [*args[:1], "--out-id", "t/hopper/x-0.5-v0", *args[3:]])
     assert r.exit_code != 0 and "Malformed dataset ID" in r.output
