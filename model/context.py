@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from gmt.model.engine import SessionPool
+    from gmt.model.pool import SessionPool
 
 STORED_FORMAT_VERSION = 2
 ARRAY_KINDS = "biuf"

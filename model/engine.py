@@ -1,91 +1,59 @@
 """Batched inference over many sessions: one forward pass answers a batch, with no loop over sessions.
 
-Every session's state lives in one slot of a `SessionPool`: its goal state, its last `history_steps` steps in a
-ring, and (for `window` models) its key/value cache. An act gathers the batch's slots, runs either
+Every session's state lives in one slot of a `SessionPool` (`gmt.model.pool`): its goal state, its last
+`history_steps` steps in a ring, and (for `window` models) its key/value cache. An act checks the observations,
+gathers the batch's slots, runs the network over them (`gmt.model.predict`: the incremental path of `window`
+models or the reference recompute), chooses every row's action at once (`gmt.model.sampling`) and commits the rows
+that succeeded. `gmt serve --naive` uses the recompute path one request at a time as the exactness oracle.
 
-- the **incremental** path (`window` models): only the newest tokens of each session, the action taken at the
-  previous step, the goal and the state, go through the network, attending over the key/value cache; or
-- the **recompute** path (the reference, and the only exact path for `full` models): the whole history window
-  through the network, heads at the last position only,
-
-then samples actions for all rows at once and commits the rows that succeeded. Both paths give the same actions
-(fp32, to rounding); `gmt serve --naive` uses the recompute path one request at a time as the exactness oracle.
+The engine owns the rules of what it is given: goal ids (`check_goal`), action modes (`check_mode`), blend lengths
+(`check_blend_steps`) and observations (`prepare_observation`); the service calls these and maps their errors.
 """
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import math
 import secrets
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from gmt.model import native as native_kernel
+from gmt.model import sampling
 from gmt.model.checkpoint import Checkpoint
 from gmt.model.context import Context, StoredContext
-from gmt.model.kv_cache import KVCache
-from gmt.model.runtime import InvalidObservation, PolicyRuntime, RuntimeInfo, StepFailed
+from gmt.model.pool import SessionPool
+from gmt.model.predict import Predictor
+from gmt.model.sampling import ACTION_MODES, CONTINUOUS_MODES, MODES
 
-__all__ = ["InvalidObservation", "PolicyEngine", "SessionPool", "StepFailed"]
-
-# Discrete actions, default first: `expert` (paper A.1.3: sample among the logits above their 0.6 quantile).
-ACTION_MODES = ("expert", "argmax", "sample")
-CONTINUOUS_MODES = ("sample", "mean")  # continuous actions of a calibrated checkpoint, default first
-MODES = ("argmax", "sample", "expert", "mean")  # index stored per slot
-# Largest action-noise std (model space, actions in [-1, 1]) that `sample` adds. Trained behaviour levels explore
-# with small noise (HalfCheetah: ~0.05) and sampling it reproduces their statistics; a uniform-random level's
-# spread (~0.55) is the behaviour itself, and reproducing it tipped HalfCheetah into poses that no running data
-# recovers from (6 of 15 switches out of the random goal failed uncapped; 0 of 15 capped at 0.1).
-SAMPLE_STD_CAP = 0.1
-EXPERT_QUANTILE = 0.6
-TORCH_ROW_MULTIPLE = 8  # the torch step runs batches padded to a multiple of this many rows (exactness)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+__all__ = ["EngineInfo", "InvalidObservation", "PolicyEngine", "StepFailed"]
 
 
-def _mix(x: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser on uint64 arrays (wrapping arithmetic)."""
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
+class InvalidObservation(ValueError):
+    """An observation has the wrong shape, dtype or non-finite values."""
 
 
-def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
-    """[B, n] uniforms in (0, 1), a pure function of (seed, step, stream): sampling needs no stored RNG state.
+class StepFailed(ArithmeticError):
+    """A step produced non-finite values; the session was left as it was before the step."""
 
-    Computed by the native library when it is available (one call instead of ~20 array operations; the same
-    bits), else here.
+
+@dataclass(frozen=True)
+class EngineInfo:
+    """What an engine tells about itself.
+
+    Attributes:
+        action_modes: Modes a session may choose, the default first.
+        history_steps: Steps of history that determine an action (and that a stored context keeps).
+        path: `incremental` (key/value cache, newest tokens only) or `recompute` (the reference forward).
+        kernel: What computes the incremental step: `native` (`model/native/gmt_step.c`) or `torch`.
     """
-    out = native_kernel.uniforms(seed, step, n, stream)
-    if out is not None:
-        return out
-    return numpy_uniforms(seed, step, n, stream)
 
-
-def numpy_uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray:
-    """`uniforms` in numpy."""
-    with np.errstate(over="ignore"):
-        key = _mix(
-            seed.astype(np.uint64) * _GOLDEN + _mix(step.astype(np.uint64) + np.uint64(stream) * _GOLDEN)
-        )
-        bits = _mix(key[:, None] + (np.arange(1, n + 1, dtype=np.uint64) * _GOLDEN)[None, :])
-    return ((bits >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0**53
-
-
-def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
-    """[B, n] standard normals from (seed, step) by Box-Muller (native when available, as `uniforms`)."""
-    out = native_kernel.normals(seed, step, n)
-    if out is not None:
-        return out
-    return numpy_normals(seed, step, n)
-
-
-def numpy_normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray:
-    """`normals` in numpy."""
-    u1, u2 = numpy_uniforms(seed, step, n, 1), numpy_uniforms(seed, step, n, 2)
-    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * math.pi * u2)
+    action_modes: tuple[str, ...]
+    history_steps: int
+    path: str
+    kernel: str = "torch"
 
 
 def _locked(method):
@@ -101,90 +69,7 @@ def _locked(method):
     return wrapper
 
 
-def _return_freed_memory() -> None:
-    """Ask glibc to give freed heap pages back to the OS (a no-op elsewhere): the pool's arrays were freed in
-    several malloc arenas (the event loop's and the inference threads'), which glibc otherwise keeps."""
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-class SessionPool:
-    """Arrays of every live session of one engine, indexed by slot; grows by doubling.
-
-    Attributes:
-        H: Steps of history kept per slot (a ring indexed by timestep mod H).
-        modes: Names of the mode indices stored in `mode`.
-        goal, step, blend_from, blend_steps, blend_done, mode, seed, version: [S] per-slot scalars.
-        h_goal, h_blend_to: [S, H] goal tokens; h_blend_w: [S, H] blend weights.
-        h_state: [S, H, *obs_shape] normalised states; h_action: [S, H, A] (or [S, H] ids) actions taken.
-        cache: the key/value cache (incremental path only).
-    """
-
-    SCALARS = ("goal", "step", "blend_from", "blend_steps", "blend_done", "mode", "seed", "version")
-
-    def __init__(self, engine: PolicyEngine, n_slots: int = 16) -> None:
-        cfg = engine.cfg
-        self.H = cfg.history_steps
-        self.modes = MODES
-        state_dtype = np.uint8 if cfg.is_image else np.float32
-        act_shape, act_dtype = ((), np.int64) if cfg.discrete_actions else ((cfg.act_dim,), np.float32)
-        self._layout = {
-            **{name: ((), np.uint64 if name == "seed" else np.int64) for name in self.SCALARS},
-            "h_goal": ((self.H,), np.int64),
-            "h_blend_to": ((self.H,), np.int64),
-            "h_blend_w": ((self.H,), np.float32),
-            "h_state": ((self.H, *cfg.obs_shape), state_dtype),
-            "h_action": ((self.H, *act_shape), act_dtype),
-        }
-        self._cfg, self._incremental, self._initial = cfg, engine.incremental, n_slots
-        self.generation = 0  # changes whenever the arrays are replaced (native code holds their addresses)
-        self._allocate_arrays(n_slots)
-        self.keys: dict[str, int] = {}
-
-    def _allocate_arrays(self, n_slots: int) -> None:
-        for name, (shape, dtype) in self._layout.items():
-            setattr(self, name, np.zeros((n_slots, *shape), dtype=dtype))
-        self.cache = KVCache(self._cfg, n_slots) if self._incremental else None
-        self.free = list(range(n_slots - 1, -1, -1))
-        self.generation += 1
-
-    @property
-    def n_slots(self) -> int:
-        """Slots allocated."""
-        return len(self.step)
-
-    @property
-    def live(self) -> int:
-        """Slots in use."""
-        return self.n_slots - len(self.free)
-
-    def allocate(self) -> int:
-        """A free slot, growing the pool when none is left."""
-        if not self.free:
-            n = self.n_slots
-            for name, (shape, dtype) in self._layout.items():
-                setattr(self, name, np.concatenate([getattr(self, name), np.zeros((n, *shape), dtype)]))
-            if self.cache is not None:
-                self.cache.grow(2 * n)
-            self.free = list(range(2 * n - 1, n - 1, -1))
-            self.generation += 1
-        return self.free.pop()
-
-    def release(self, slot: int) -> None:
-        """Return a slot to the free list; once no slot is in use, a grown pool shrinks back to its first size.
-
-        (Slots in use are never moved, so a pool cannot shrink while any is live: after a crowd has gone,
-        memory returns to the baseline.)
-        """
-        self.free.append(slot)
-        if not self.live and self.n_slots > self._initial:
-            self._allocate_arrays(self._initial)
-            _return_freed_memory()
-
-
-class PolicyEngine(PolicyRuntime):
+class PolicyEngine:
     """Answers batches of (context, observation) with actions; owns one loaded checkpoint.
 
     Args:
@@ -206,7 +91,7 @@ class PolicyEngine(PolicyRuntime):
         if checkpoint.config.conditioning != "goal":
             raise ValueError(
                 "this checkpoint is a Decision Transformer (return-to-go conditioning): it is a baseline for "
-                "`gmt eval`, which runs it with model.evaluate_dt; the engine serves goal-conditioned models"
+                "`gmt eval`, which runs it with gmt.model.evaluate_dt; the engine serves goal-conditioned models"
             )
         self.ckpt = checkpoint
         self.model = checkpoint.model.eval()
@@ -219,9 +104,8 @@ class PolicyEngine(PolicyRuntime):
         if incremental and not window:
             raise ValueError("the incremental path is exact only for attention='window' models")
         self.incremental = window if incremental is None else incremental
-        noise = None if self.discrete else checkpoint.action_noise  # [n_goals, A] std or None
-        # [n_goals, A] variance of the capped noise `sample` adds (interpolated during a blend).
-        self.noise_var = None if noise is None else np.minimum(noise, SAMPLE_STD_CAP).astype(np.float64) ** 2
+        # [n_goals, A] variance of the capped noise `sample` adds (interpolated during a blend), or None.
+        self.noise_var = sampling.noise_variance(None if self.discrete else checkpoint.action_noise)
         # Default first: expert for discrete actions (paper A.1.3); sample for calibrated continuous models (it
         # reproduces the goal statistics measured under the behaviour noise), else mean. A checkpoint may name
         # its own default.
@@ -237,9 +121,9 @@ class PolicyEngine(PolicyRuntime):
                 )
             self.action_modes = (default, *(m for m in self.action_modes if m != default))
         self._lock = threading.RLock()
-        self.pool = SessionPool(self, n_slots)
-        self._arange_h = np.arange(self.pool.H)
+        self.pool = SessionPool(self.cfg, self.incremental, n_slots)
         self._native = self._native_step(native) if self.incremental else None
+        self._predict = Predictor(self.model, self.pool, self.incremental, self._native)
 
     def _native_step(self, native: bool | None):
         """The native step for this model, or None (torch step). Raises if `native` is True and it cannot run."""
@@ -256,8 +140,9 @@ class PolicyEngine(PolicyRuntime):
             return None
         return native_kernel.NativeStep(self.model, lib)
 
-    def describe(self) -> RuntimeInfo:
-        return RuntimeInfo(
+    def describe(self) -> EngineInfo:
+        """Modes, history and compute path."""
+        return EngineInfo(
             action_modes=self.action_modes,
             history_steps=self.pool.H,
             path="incremental" if self.incremental else "recompute",
@@ -266,6 +151,7 @@ class PolicyEngine(PolicyRuntime):
 
     @property
     def default_action_mode(self) -> str:
+        """The mode of a session that does not choose one."""
         return self.action_modes[0]
 
     # ----- contexts -----------------------------------------------------------------------------------------
@@ -278,7 +164,8 @@ class PolicyEngine(PolicyRuntime):
         ):
             raise ValueError(f"goal {goal!r} is not a goal id of this model (0..{self.n_goals - 1})")
 
-    def _check_mode(self, action_mode: str | None) -> str:
+    def check_mode(self, action_mode: str | None) -> str:
+        """The action mode a session gets (its own, else the default). Raises ValueError for one this model lacks."""
         action_mode = action_mode or self.default_action_mode
         if action_mode not in self.action_modes:
             raise ValueError(
@@ -300,7 +187,7 @@ class PolicyEngine(PolicyRuntime):
         self, goal: int, action_mode: str | None = None, seed: int | None = None, key: str | None = None
     ) -> Context:
         self.check_goal(goal)
-        mode = self._check_mode(action_mode)
+        mode = self.check_mode(action_mode)
         if seed is None:
             seed = secrets.randbits(63)
         slot = self._slot_for(key)
@@ -378,107 +265,13 @@ class PolicyEngine(PolicyRuntime):
                 return Context(p, slot, key)
         self.check_goal(stored.goal)
         self.check_goal(stored.blend_from)
-        mode = self._check_mode(stored.action_mode)
-        n = stored.size
-        if n != min(stored.step, p.H) or len(stored.states) != n or len(stored.actions) != n:
-            raise ValueError(
-                f"stored context holds {n} steps; step {stored.step} needs {min(stored.step, p.H)}"
-            )
-        self._check_stored_tokens(stored, n)
+        mode = self.check_mode(stored.action_mode)
+        p.check_stored(stored)
         slot = self._slot_for(key)
-        for name in ("goal", "step", "blend_from", "blend_steps", "blend_done", "seed", "version"):
-            getattr(p, name)[slot] = getattr(stored, name)
-        p.mode[slot] = MODES.index(mode)
-        pos = np.arange(stored.step - n, stored.step) % p.H
-        p.h_goal[slot, pos] = stored.goals
-        p.h_blend_to[slot, pos] = stored.blend_to
-        p.h_blend_w[slot, pos] = stored.blend_w
-        p.h_state[slot, pos] = stored.states.reshape(n, *self.cfg.obs_shape)
-        p.h_action[slot, pos] = stored.actions
+        p.load(slot, stored, mode)
         if p.cache is not None:
-            self._rebuild_cache(slot)
+            self._predict.rebuild_cache(slot)
         return Context(p, slot, key)
-
-    def _check_stored_tokens(self, stored: StoredContext, n: int) -> None:
-        """Raise ValueError unless every stored id and weight is one the model can embed (a corrupt store record
-        must fail cleanly, never index outside a table)."""
-        goals, blend_to = np.asarray(stored.goals), np.asarray(stored.blend_to)
-        w = np.asarray(stored.blend_w, dtype=np.float64)
-        if goals.size != n or blend_to.size != n or w.size != n:
-            raise ValueError(f"stored context must hold {n} goals, blend targets and blend weights")
-        for name, ids in (("goals", goals), ("blend_to", blend_to)):
-            if ids.size and (ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() >= self.n_goals):
-                raise ValueError(f"stored {name} must be goal ids 0..{self.n_goals - 1}")
-        if w.size and not (np.isfinite(w).all() and w.min() >= 0.0 and w.max() <= 1.0):
-            raise ValueError("stored blend weights must be in [0, 1]")
-        if not 0 <= stored.step < 2**40:
-            raise ValueError(f"stored step {stored.step} is out of range")
-        if self.discrete:
-            a = np.asarray(stored.actions)
-            if a.size and (a.dtype.kind not in "iu" or a.min() < 0 or a.max() >= self.cfg.act_dim):
-                raise ValueError(f"stored actions must be action ids 0..{self.cfg.act_dim - 1}")
-        elif not np.isfinite(np.asarray(stored.actions, dtype=np.float64)).all():
-            raise ValueError("stored actions must be finite")
-
-    @torch.inference_mode()
-    def _rebuild_cache(self, slot: int) -> None:
-        """Recompute a slot's key/value cache from its history (a session adopted from a store).
-
-        With the native step the stored steps are replayed through it (the kernel that computed the cache in
-        the first place, so the session continues bit for bit); else by one reference forward over them.
-        """
-        p, cache = self.pool, self.pool.cache
-        sl = torch.tensor([slot])
-        cache.clear(sl)
-        t = int(p.step[slot])
-        n = min(t, p.H)
-        if n == 0:
-            return
-        if self._native is not None:
-            self._replay_cache(slot, t, n)
-            return
-        pos = np.arange(t - n, t) % p.H
-        kv: list = []
-        self.model(
-            torch.from_numpy(p.h_goal[slot, pos][None]),
-            torch.from_numpy(p.h_state[slot, pos][None]),
-            torch.from_numpy(p.h_action[slot, pos][None]),
-            torch.arange(t - n, t)[None],
-            torch.ones(1, n, dtype=torch.bool),
-            torch.from_numpy(p.h_blend_to[slot, pos][None]),
-            torch.from_numpy(p.h_blend_w[slot, pos][None]),
-            last_only=True,
-            kv_out=kv,
-        )
-        keep = min(n, self.K + 1) * 3  # tokens of the last K + 1 steps
-        tok = torch.arange(3 * (t - n), 3 * t)[-keep:]  # [keep] token indices
-        ring = tok % cache.width
-        for layer, (k, v) in enumerate(kv):
-            cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
-        cache.tok[slot, ring] = tok
-
-    def _replay_cache(self, slot: int, t: int, n: int) -> None:
-        """Run the stored steps t - n .. t - 1 of `slot` through the native step, oldest first.
-
-        The action before the oldest stored step is not stored: a zero stands in for it, which changes only
-        keys that no later step attends to (the stored history spans the receptive field).
-        """
-        p = self.pool
-        slots = np.array([slot])
-        for s in range(t - n, t):
-            pos = s % p.H
-            prev = p.h_action[slot, (s - 1) % p.H][None] if s > t - n else np.zeros_like(p.h_action[slot, :1])
-            w = p.h_blend_w[slot, pos : pos + 1]
-            self._native(
-                prev,
-                p.h_goal[slot, pos : pos + 1],
-                p.h_state[slot, pos : pos + 1],
-                np.array([s]),
-                p.cache,
-                slots,
-                p.h_blend_to[slot, pos : pos + 1],
-                w,
-            )
 
     # ----- observations -------------------------------------------------------------------------------------
     def prepare_observation(self, obs: np.ndarray | list) -> np.ndarray:
@@ -582,20 +375,15 @@ class PolicyEngine(PolicyRuntime):
         w = np.where(blending, (p.blend_done[slots] + 1) / np.maximum(p.blend_steps[slots], 1), 0.0).astype(
             np.float32
         )  # [B] weight of `goal` in the token
-        if self._native is not None:
-            pred = self._predict_native(slots, t, g, goal, w, states)
-        else:
-            with torch.inference_mode():
-                if self.incremental:
-                    pred = self._predict_incremental(slots, t, g, goal, w, states)
-                else:
-                    pred = self._predict_recompute(slots, t, g, goal, w, states)
-                pred = pred.float().numpy()  # [B, A]
+        pred = self._predict(slots, t, g, goal, w, states)  # [B, A]
         ok = np.isfinite(pred).all(axis=1)  # [B]
         every = bool(ok.all())
         if not every:
             pred = np.where(ok[:, None], pred, 0.0)
-        taken, env_actions = self._choose(pred, slots, t, g, goal, w)
+        taken = sampling.choose(
+            pred, p.mode[slots], p.seed[slots], t, g, goal, w, self.noise_var, self.discrete
+        )
+        env_actions = [int(a) for a in taken] if self.discrete else list(self.ckpt.action_codec.decode(taken))
         # Commit the rows that succeeded.
         if not every:
             slots, t, g, goal, w, states, taken, blending = (
@@ -611,95 +399,3 @@ class PolicyEngine(PolicyRuntime):
             done = slots[blending & (p.blend_done[slots] >= p.blend_steps[slots])]
             p.blend_from[done], p.blend_steps[done], p.blend_done[done] = p.goal[done], 0, 0
         return env_actions, ok
-
-    def _predict_native(self, slots, t, g, goal, w, states) -> np.ndarray:
-        """The incremental step by the native kernel: batch invariant by construction, so no lone-row or
-        slot-order handling. Returns [B, A] float32."""
-        p = self.pool
-        prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
-        prev[t == 0] = 0
-        blend = bool((w > 0).any())
-        return self._native(prev, g, states, t, p.cache, slots, goal if blend else None, w if blend else None)
-
-    def _predict_incremental(self, slots, t, g, goal, w, states) -> torch.Tensor:
-        n = len(slots)
-        if n % TORCH_ROW_MULTIPLE:
-            # The BLAS kernel behind a matrix product depends on its row count, and a row's last bit on the
-            # kernel: one row takes a GEMV path, and on AVX-512 here the rows past a multiple of 4 take another
-            # micro-kernel. Padding every batch to a multiple of 8 rows (repeats of the last row: same slot,
-            # same values) keeps batched == unbatched exact.
-            pad = np.concatenate([np.arange(n), np.full(-n % TORCH_ROW_MULTIPLE, n - 1)])
-            return self._predict_incremental(*[x[pad] for x in (slots, t, g, goal, w, states)])[:n]
-        if (
-            np.diff(slots) < 0
-        ).any():  # rows in slot order: consecutive slots are read from the cache as views
-            order = np.argsort(slots, kind="stable")
-            sorted_rows = [x[order] for x in (slots, t, g, goal, w, states)]
-            out = self._predict_incremental(*sorted_rows)
-            return out[torch.from_numpy(np.argsort(order))]
-        p = self.pool
-        prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
-        prev[t == 0] = 0
-        blend = bool((w > 0).any())
-        return self.model.step(
-            torch.from_numpy(prev),
-            torch.from_numpy(g),
-            torch.from_numpy(states),
-            torch.from_numpy(t),
-            p.cache,
-            torch.from_numpy(slots),
-            torch.from_numpy(goal) if blend else None,
-            torch.from_numpy(w) if blend else None,
-        )
-
-    def _predict_recompute(self, slots, t, g, goal, w, states) -> torch.Tensor:
-        p, H = self.pool, self.pool.H
-        idx = t[:, None] - H + 1 + self._arange_h[None, :]  # [B, H] timesteps of the window
-        valid = idx >= 0  # [B, H]
-        pos = idx % H
-        rows = slots[:, None]
-        goals, blend_to, blend_w = p.h_goal[rows, pos], p.h_blend_to[rows, pos], p.h_blend_w[rows, pos]
-        st, ac = p.h_state[rows, pos], p.h_action[rows, pos]  # [B, H, *obs], [B, H, A]
-        goals[:, -1], blend_to[:, -1], blend_w[:, -1], st[:, -1], ac[:, -1] = g, goal, w, states, 0
-        pad = ~valid
-        goals[pad], blend_to[pad], blend_w[pad], st[pad], ac[pad] = 0, 0, 0, 0, 0
-        blend = bool((blend_w > 0).any())
-        pred, _ = self.model(
-            torch.from_numpy(goals),
-            torch.from_numpy(st),
-            torch.from_numpy(ac),
-            torch.from_numpy(np.where(valid, idx, 0)),
-            torch.from_numpy(valid),
-            torch.from_numpy(blend_to) if blend else None,
-            torch.from_numpy(blend_w) if blend else None,
-            last_only=True,
-        )
-        return pred[:, 0]  # [B, A]
-
-    def _choose(self, pred: np.ndarray, slots, t, g, goal, w) -> tuple[np.ndarray, list]:
-        """Actions of every row at once: (model-space actions to store [B, A] or ids [B], env actions)."""
-        p = self.pool
-        mode = p.mode[slots]
-        seed = p.seed[slots]
-        if self.discrete:
-            z = pred.astype(np.float64)  # [B, n] logits
-            ids = z.argmax(axis=1)
-            stoch = mode != MODES.index("argmax")
-            if stoch.any():
-                expert = (mode == MODES.index("expert"))[:, None]
-                thr = np.quantile(z, EXPERT_QUANTILE, axis=1, keepdims=True)
-                z = np.where(expert & (z < thr), -math.inf, z)
-                prob = np.exp(z - z.max(axis=1, keepdims=True))
-                cdf = np.cumsum(prob / prob.sum(axis=1, keepdims=True), axis=1)
-                u = uniforms(seed, t, 1)  # [B, 1]
-                drawn = np.minimum((cdf < u).sum(axis=1), z.shape[1] - 1)
-                ids = np.where(stoch, drawn, ids)
-            return ids, [int(a) for a in ids]
-        a = pred
-        sample = mode == MODES.index("sample")
-        if sample.any():
-            var = (1.0 - w[:, None]) * self.noise_var[g] + w[:, None] * self.noise_var[goal]  # [B, A]
-            noise = np.sqrt(var) * normals(seed, t, a.shape[1])
-            a = np.where(sample[:, None], a + noise, a)
-        a = np.clip(a, -1.0, 1.0).astype(np.float32)  # [B, A]
-        return a, list(self.ckpt.action_codec.decode(a))

@@ -19,10 +19,10 @@ from gmt.model.calibrate import action_noise
 from gmt.model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from gmt.model.config import GMTConfig, TrainConfig
 from gmt.model.distributed import Parallel
-from gmt.model.engine import ACTION_MODES, CONTINUOUS_MODES
 from gmt.model.gmt import GMT
 from gmt.model.losses import gmt_loss, loss_counts
 from gmt.model.masking import mask_goals
+from gmt.model.sampling import ACTION_MODES, CONTINUOUS_MODES
 from gmt.model.tokens import ActionCodec, ObsNormalizer, WindowSampler
 
 RESUME_DIR = "_resume"

@@ -8,7 +8,7 @@ need the same protocol with one thing changed:
   context at a state another level visited. If the model failed because of its old-goal context, this passes.
   Like the server's reset it also restarts the session's step, so the sampled action noise after a switch
   repeats the episode's first steps' draws.
-- `--cap X`: the largest action-noise standard deviation `sample` adds (`gmt.model.engine.SAMPLE_STD_CAP`, 0.1),
+- `--cap X`: the largest action-noise standard deviation `sample` adds (`gmt.model.sampling.SAMPLE_STD_CAP`, 0.1),
   to see whether the capped noise, not the model, sets a goal's speed.
 
 It also prints, per hold, the share of its 150-step windows from step 200 on that are within the goal's
@@ -30,13 +30,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import gmt.model.engine as engine_module
 import gmt.model.evaluate as evaluate_module
+import gmt.model.sampling as sampling_module
 from gmt.common.segments import held_windows, tolerance, within
 from gmt.model.checkpoint import load_checkpoint
+from gmt.model.engine import PolicyEngine
 
 
-class RestartAtSwitch(engine_module.PolicyEngine):
+class RestartAtSwitch(PolicyEngine):
     """A `PolicyEngine` whose `set_goal` clears the context and starts it afresh with the new goal."""
 
     def set_goal(self, ctx, goal: int, blend_steps: int = 0) -> None:
@@ -48,14 +49,14 @@ def main() -> None:
     ap.add_argument("checkpoint", help="Checkpoint folder.")
     ap.add_argument("--restart", action="store_true", help="Clear the context at every goal switch.")
     ap.add_argument(
-        "--cap", type=float, default=engine_module.SAMPLE_STD_CAP, help="Cap of the sampled noise std."
+        "--cap", type=float, default=sampling_module.SAMPLE_STD_CAP, help="Cap of the sampled noise std."
     )
     ap.add_argument("--first-seed", type=int, default=0, help="Seeds first..first+14 (the protocol: 0).")
     ap.add_argument("--json", type=Path, help="Write the evaluation JSON (gmt eval's schema) here.")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     torch.set_num_threads(1)
-    engine_module.SAMPLE_STD_CAP = args.cap  # read when an engine is built
+    sampling_module.SAMPLE_STD_CAP = args.cap  # read when an engine is built
     if args.restart:
         evaluate_module.PolicyEngine = RestartAtSwitch
     judge, seen = evaluate_module.judge, {}

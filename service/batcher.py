@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gmt.model.context import Context
-from gmt.model.runtime import PolicyRuntime
+from gmt.model.engine import PolicyEngine
 from gmt.service import units
 from gmt.service.errors import Unavailable
 
@@ -53,7 +53,7 @@ class MicroBatcher:
 
     def __init__(
         self,
-        engine: PolicyRuntime,
+        engine: PolicyEngine,
         executor: Executor | None,
         max_batch: int,
         max_wait_s: float,

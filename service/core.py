@@ -18,7 +18,7 @@ import numpy as np
 
 from gmt.model.checkpoint import Goal
 from gmt.model.context import Context
-from gmt.model.runtime import InvalidObservation, StepFailed
+from gmt.model.engine import InvalidObservation, StepFailed
 from gmt.service.batcher import MicroBatcher
 from gmt.service.errors import (
     AlreadyExists,

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gmt.model.checkpoint import META, Checkpoint, CheckpointError, load_checkpoint
-from gmt.model.runtime import PolicyRuntime, load_runtime
+from gmt.model.engine import PolicyEngine
 from gmt.service.errors import InvalidArgument, NotFound, Unavailable
 
 log = logging.getLogger("gmt.registry")
@@ -24,6 +24,12 @@ def discover(paths: list[Path]) -> list[Path]:
     return found
 
 
+def engine_for(checkpoint: Checkpoint, naive: bool = False) -> PolicyEngine:
+    """The engine serving a checkpoint: incremental for `window` models, the reference recompute otherwise or when
+    `naive`."""
+    return PolicyEngine(checkpoint, incremental=False if naive else None)
+
+
 @dataclass
 class LoadedModel:
     """A checkpoint ready to serve.
@@ -32,13 +38,13 @@ class LoadedModel:
         name: Model name clients use (the checkpoint directory's name).
         path: Checkpoint directory.
         checkpoint: The loaded checkpoint.
-        engine: The runtime answering its acts (incremental for `window` models, recompute otherwise).
+        engine: The engine answering its acts (incremental for `window` models, recompute otherwise).
     """
 
     name: str
     path: Path
     checkpoint: Checkpoint
-    engine: PolicyRuntime
+    engine: PolicyEngine
 
 
 @dataclass
@@ -69,7 +75,7 @@ class ModelRegistry:
                 reg.errors[str(d)] = str(e)
                 log.error("checkpoint failed to load", extra={"path": str(d), "error": str(e)})
                 continue
-            engine = load_runtime(ckpt, naive=naive)
+            engine = engine_for(ckpt, naive)
             reg.models[name] = LoadedModel(name, d, ckpt, engine)
             log.info(
                 "model loaded",
@@ -90,7 +96,7 @@ class ModelRegistry:
         """A registry of already-loaded checkpoints (tests, notebooks)."""
         reg = cls()
         for c in checkpoints:
-            reg.models[c.name] = LoadedModel(c.name, Path("."), c, load_runtime(c, naive=naive))
+            reg.models[c.name] = LoadedModel(c.name, Path("."), c, engine_for(c, naive))
         return reg
 
     def get(self, name: str) -> LoadedModel:

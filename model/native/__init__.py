@@ -147,7 +147,7 @@ def load() -> ctypes.CDLL | None:
 
 
 def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray | None:
-    """`gmt.model.engine.uniforms` computed natively ([B, n] float64), or None without the library."""
+    """`gmt.model.sampling.uniforms` computed natively ([B, n] float64), or None without the library."""
     lib = load()
     if lib is None:
         return None
@@ -158,7 +158,7 @@ def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.
 
 
 def normals(seed: np.ndarray, step: np.ndarray, n: int) -> np.ndarray | None:
-    """`gmt.model.engine.normals` computed natively ([B, n] float64), or None without the library."""
+    """`gmt.model.sampling.normals` computed natively ([B, n] float64), or None without the library."""
     lib = load()
     if lib is None:
         return None
@@ -292,7 +292,7 @@ class NativeStep:
         self, pool, slots: np.ndarray, states: np.ndarray, noise_var: np.ndarray | None, sample_mode: int
     ):
         """`PolicyEngine._step` for continuous actions, in one native call: the step, the noise of `sample`
-        rows, clipping and the commit of the rows that succeeded to `pool` (a `gmt.model.engine.SessionPool`).
+        rows, clipping and the commit of the rows that succeeded to `pool` (a `gmt.model.pool.SessionPool`).
 
         Returns:
             (model-space actions [B, A] float32, ok [B] bool).

@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from gmt.model.checkpoint import load_checkpoint
-from gmt.model.engine import SAMPLE_STD_CAP, InvalidObservation, PolicyEngine, StepFailed, normals
+from gmt.model.engine import InvalidObservation, PolicyEngine, StepFailed
 from gmt.model.fixtures import tiny_checkpoint
+from gmt.model.sampling import SAMPLE_STD_CAP, normals
 from gmt.model.tokens import WindowSampler
 
 

@@ -100,15 +100,17 @@ def test_native_and_torch_kernels_agree_in_the_engine():
 
 
 def test_native_sampling_noise_is_the_numpy_construction():
-    from gmt.model import engine, native
+    from gmt.model import native, sampling
 
     seed = np.array([0, 7, 2**63 + 5, 2**64 - 1], np.uint64)
     step = np.array([0, 1, 999, 2**40])
     for stream in (0, 1, 2):
         assert np.array_equal(
-            native.uniforms(seed, step, 6, stream), engine.numpy_uniforms(seed, step, 6, stream)
+            native.uniforms(seed, step, 6, stream), sampling.numpy_uniforms(seed, step, 6, stream)
         )
-    np.testing.assert_allclose(native.normals(seed, step, 6), engine.numpy_normals(seed, step, 6), rtol=1e-12)
+    np.testing.assert_allclose(
+        native.normals(seed, step, 6), sampling.numpy_normals(seed, step, 6), rtol=1e-12
+    )
 
 
 def test_discrete_window_model_acts_alike_on_both_kernels():
