@@ -120,7 +120,7 @@ eval-ant: $(VENV)/.installed-eval
 	$(BIN)/gmt eval checkpoints/ant-gmt --seeds 15 --threads 1 --json checkpoints/ant-gmt/eval.json \
 		--markdown checkpoints/ant-gmt/eval.md --plot checkpoints/ant-gmt/eval.png
 
-# Figures as JSON (schema: service/bench.py; results: docs/performance.md): engine vs K, serving over every
+# Figures as JSON (schema: benchmarks/__init__.py; results: docs/performance.md): engine vs K, serving over every
 # transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
 bench: $(VENV)/.installed-bench
 	$(BIN)/gmt bench --out bench.json

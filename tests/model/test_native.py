@@ -131,7 +131,7 @@ def test_discrete_window_model_acts_alike_on_both_kernels():
 def test_a_session_rebuilt_from_its_stored_form_continues_bit_for_bit(move_at):
     """A session moved to another engine (its cache replayed from the stored steps) acts exactly as the
     same session left in place, early (history shorter than the receptive field) and late (longer)."""
-    from gmt.service.bench import default_size_checkpoint
+    from gmt.bench.harness import default_size_checkpoint
 
     ckpt = default_size_checkpoint(None, K=5)  # 3 x 128: wide enough that a last-bit difference shows
     stay, src, dst = PolicyEngine(ckpt), PolicyEngine(ckpt), PolicyEngine(ckpt)
@@ -158,7 +158,7 @@ def test_the_pool_grows_safely_while_acts_run_in_another_thread():
     arrays in use (the engine lock orders them); before the lock the native step wrote into freed arrays."""
     import threading
 
-    from gmt.service.bench import default_size_checkpoint
+    from gmt.bench.harness import default_size_checkpoint
 
     engine = PolicyEngine(default_size_checkpoint(None, K=20), n_slots=16)
     ctxs = [engine.new_context(1, seed=i) for i in range(16)]

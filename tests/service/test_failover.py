@@ -13,10 +13,11 @@ import time
 import numpy as np
 import pytest
 
+from gmt.bench import failover
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster, failover
+from gmt.service import cluster
 
 MODEL = "tiny-cheetah"
 GOALS = 3

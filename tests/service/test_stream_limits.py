@@ -32,7 +32,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
 from service_harness import OBS_DIM, ServeProcess
 
-from gmt.service.bench import rss_bytes
+from gmt.bench.harness import rss_bytes
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

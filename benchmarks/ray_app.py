@@ -2,7 +2,7 @@
 
 Run as its own process by `gmt bench` (the `bench` extra installs Ray):
 
-    python -m gmt.service.bench_ray CHECKPOINT PORT {recompute,incremental}
+    python -m gmt.bench.ray_app CHECKPOINT PORT {recompute,incremental}
 
 It serves `POST /sessions` ({"goal", "seed"} -> {"session_id"}) and `POST /sessions/{id}/act`
 ({"observation"} -> {"action"}) on 127.0.0.1:PORT through Ray Serve's HTTP proxy, prints `READY` once requests

@@ -7,6 +7,8 @@ have been applied (REST 502 / 503 / 409 `aborted`, gRPC UNAVAILABLE / ABORTED / 
 connection) is sent again, with the same step, every `retry_s`, for at most `act_deadline_s`; any other answer
 ends the episode. Sessions take turns in the three ways to act through nginx: REST `POST /sessions/{id}/act`,
 gRPC unary `Act`, and a gRPC `Control` stream.
+
+`bench_failover` is `gmt bench --sections failover`: the drill on a fresh `gmt cluster`, summarised.
 """
 
 from __future__ import annotations
@@ -14,7 +16,9 @@ from __future__ import annotations
 import asyncio
 import os
 import re
+import shutil
 import signal
+import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -402,3 +406,37 @@ def run_drill(
 
 def _failures(episodes: list[Episode]) -> dict[str, str]:
     return {e.session_id: e.failure for e in episodes if e.failure} or {"none": "still running"}
+
+
+def bench_failover(checkpoint: Path, sessions: int = 64, steps: int = 20) -> dict:
+    """The Redis primary of a `gmt cluster` killed (SIGKILL) while `sessions` sessions act as fast as they can
+    (REST, gRPC unary and Control streams in turn): time to resume, retried answers by kind, sessions lost, and
+    sessions whose actions differ from an uninterrupted twin's (the drill above)."""
+    import httpx
+
+    from gmt.service import cluster
+
+    run_dir = Path(tempfile.mkdtemp(prefix="gmt-failover-"))
+    c = cluster.up(
+        run_dir, rest_port=0, grpc_port=0, checkpoints=[checkpoint], serve_args=["--max-sessions", "4096"]
+    )
+    try:
+        name = httpx.get(f"{c.rest_url}/models", timeout=30).json()["models"][0]["name"]
+        spec = httpx.get(f"{c.rest_url}/models/{name}", timeout=30).json()
+        d = run_drill(
+            c,
+            name,
+            sessions=sessions,
+            obs_dim=int(np.prod(spec["observation_space"]["shape"])),
+            goals=len(spec["goals"]),
+            steps_before=steps,
+            steps_after=steps,
+        )
+    finally:
+        cluster.down(run_dir, quiet=True)
+        shutil.rmtree(run_dir, ignore_errors=True)
+    before = [a for e in d.episodes for a in e.answered if a <= d.killed_at]
+    first = min(s for e in d.episodes for s in e.sent)
+    out = d.summary(twin_actions(checkpoint, d.episodes))
+    out["acts_per_s_before_kill"] = round(len(before) / (d.killed_at - first), 1)
+    return out

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
+from gmt.bench.cluster import bench_cluster
+from gmt.bench.engine import bench_engine
+from gmt.bench.serving import bench_serving
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service.bench import bench_cluster, bench_engine, bench_serving
 
 
 @pytest.fixture(scope="module")

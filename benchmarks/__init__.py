@@ -1,0 +1,25 @@
+"""`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
+
+Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `cluster`,
+`failover`, `training`, `alternatives`.
+
+- `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
+  a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
+  `incremental` is the served path (the native kernel when it builds here), `incremental_torch` the same step
+  in torch operations.
+- `serving`: {model, servers: {naive | default: {rest | rest_batch | grpc_unary | grpc_stream: [{sessions,
+  acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
+  from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
+  observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
+- `cluster`: wrk's REST load through `gmt cluster` (nginx, two replicas, Redis with Sentinel): errors, latency,
+  each replica's memory.
+- `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.bench.failover`): {sessions, killed,
+  promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
+- `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
+- `store`: {stores: {memory | redis: {rest, rest_batch, rest_1_session}}, redis_vs_memory: {rest, rest_batch,
+  p50_1_session_added_ms}}: the same server with sessions in memory and in a local redis-server, same run.
+- `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
+
+One module per section (`engine`, `serving`, `store`, `cluster`, `failover`, `training`, `alternatives`), what
+they share in `harness`, the whole run in `run`, its tables in `report`, the command in `cli`.
+"""

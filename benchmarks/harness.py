@@ -1,0 +1,299 @@
+"""What every section of `gmt bench` uses: a random-weight checkpoint of the default size, `gmt serve` and
+redis-server in their own processes, resident memory, and the load generators (wrk with a Lua script for REST, a
+client process for gRPC).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+SESSIONS = (1, 16, 64, 256)
+OBS_DIM, ACT_DIM = 17, 6
+
+
+def default_size_checkpoint(directory: Path, K: int = 20, attention: str = "window", name: str = "bench-gmt"):
+    """A random-weight checkpoint of the default training size with HalfCheetah-v5 shapes."""
+    import torch
+
+    from gmt.model.checkpoint import save_checkpoint
+    from gmt.model.config import GMTConfig
+    from gmt.model.fixtures import tiny_checkpoint
+    from gmt.model.gmt import GMT
+
+    ckpt = tiny_checkpoint(calibrated=True)
+    torch.manual_seed(0)
+    cfg = GMTConfig(
+        obs_shape=(OBS_DIM,),
+        act_dim=ACT_DIM,
+        discrete_actions=False,
+        n_goals=3,
+        context_length=K,
+        attention=attention,
+    )
+    ckpt.model, ckpt.name = GMT(cfg).eval(), name
+    if directory is not None:
+        save_checkpoint(ckpt, directory)
+    return ckpt
+
+
+def start_server(
+    checkpoint: Path, naive: bool, max_batch: int = 256, extra: tuple[str, ...] = ()
+) -> tuple[subprocess.Popen, dict]:
+    """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record)."""
+    exe = Path(sys.executable).parent / "gmt"
+    args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
+    args += ["--log-level", "INFO", "--max-batch", str(max_batch), "--max-sessions", "4096"]
+    args += ["--naive"] if naive else []
+    args += list(extra)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env["GMT_LOG_LEVEL"] = "INFO"
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
+    for line in proc.stderr:
+        rec = json.loads(line) if line.startswith("{") else {}
+        if rec.get("msg") == "serving":
+            threading.Thread(target=lambda: [None for _ in proc.stderr], daemon=True).start()
+            return proc, rec
+    raise RuntimeError("gmt serve exited before serving")
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident memory of a process."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+# Counts wrk's error kinds separately, and every non-2xx answer by status with the first such body, so that an
+# error under load can be named (wrk copies the per-thread tables to `done` with thread:get).
+_WRK_DONE = """
+local threads = {}
+setup = function(thread) table.insert(threads, thread) end
+statuses = {}
+first_body = ""
+response = function(status, headers, body)
+  if status >= 300 then
+    statuses[status] = (statuses[status] or 0) + 1
+    if first_body == "" then first_body = body end
+  end
+end
+done = function(summary, latency, requests)
+  local e = summary.errors
+  local counts, body = {}, ""
+  for _, t in ipairs(threads) do
+    for k, v in pairs(t:get("statuses")) do table.insert(counts, string.format('"%d":%d', k, v)) end
+    if body == "" then body = t:get("first_body") end
+  end
+  body = string.gsub(string.sub(body, 1, 300), '[%c"\\\\]', " ")
+  io.write(string.format('WRK {"requests":%d,"duration_us":%d,"errors":%d,"non2xx":%d,"p50_us":%d,"p99_us":%d,' ..
+    '"error_kinds":{"connect":%d,"read":%d,"write":%d,"timeout":%d},"statuses":{%s},"first_error_body":"%s"}\\n',
+    summary.requests, summary.duration, e.connect + e.read + e.write + e.timeout, e.status,
+    latency:percentile(50), latency:percentile(99), e.connect, e.read, e.write, e.timeout,
+    table.concat(counts, ","), body))
+end
+"""
+
+
+def wrk(url: str, script: str, connections: int, seconds: float) -> dict:
+    """Run wrk (one thread) with a Lua script; returns its figures."""
+    with tempfile.NamedTemporaryFile("w", suffix=".lua", delete=False) as f:
+        f.write(script + _WRK_DONE)
+    try:
+        out = subprocess.run(
+            [
+                "wrk",
+                "-t",
+                "1",
+                "-c",
+                str(connections),
+                "-d",
+                f"{max(1, round(seconds))}s",  # wrk takes whole seconds
+                "--timeout",
+                "10s",
+                "-s",
+                f.name,
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    finally:
+        os.unlink(f.name)
+    rec = json.loads(next(line[4:] for line in out.splitlines() if line.startswith("WRK ")))
+    return rec
+
+
+def error_detail(r: dict) -> dict:
+    """wrk's error kinds and non-2xx statuses, only when there were errors."""
+    if not r["errors"] + r["non2xx"]:
+        return {}
+    return {
+        "error_kinds": r["error_kinds"],
+        "statuses": r["statuses"],
+        "first_error_body": r["first_error_body"],
+    }
+
+
+def open_sessions(url: str, model: str, n: int) -> list[str]:
+    """Create `n` sessions of `model` over REST (goals round-robin, seed = index); their ids."""
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=30) as c:
+        return [
+            c.post("/sessions", json={"model": model, "goal": i % 3, "seed": i}).json()["session_id"]
+            for i in range(n)
+        ]
+
+
+def close_sessions(url: str, sids: list[str]) -> None:
+    """Close the sessions over REST."""
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=30) as c:
+        for s in sids:
+            c.delete(f"/sessions/{s}")
+
+
+def obs_json() -> str:
+    """One fixed HalfCheetah-sized observation as JSON."""
+    return json.dumps([round(float(x), 4) for x in np.random.default_rng(0).normal(size=OBS_DIM) * 0.1])
+
+
+def bench_rest(url: str, sids: list[str], seconds: float) -> dict:
+    """One call per act, one connection per session."""
+    ids = ",".join(f'"{s}"' for s in sids)
+    script = f"""
+local ids = {{{ids}}}
+local body = '{{"observation": {obs_json()}}}'
+local i = 0
+request = function()
+  i = i + 1
+  return wrk.format("POST", "/sessions/" .. ids[(i % #ids) + 1] .. "/act", {{["Content-Type"] = "application/json"}}, body)
+end
+"""
+    r = wrk(url, script, len(sids), seconds)
+    return {
+        "sessions": len(sids),
+        "acts_per_s": round(r["requests"] / (r["duration_us"] / 1e6), 1),
+        "p50_ms": r["p50_us"] / 1000,
+        "p99_ms": r["p99_us"] / 1000,
+        "errors": r["errors"] + r["non2xx"],
+        **error_detail(r),
+    }
+
+
+def bench_rest_batch(url: str, sids: list[str], seconds: float) -> dict:
+    """Every session's observation in one `POST /act` call, one connection."""
+    obs = obs_json()
+    body = json.dumps({"requests": [{"session_id": s, "observation": json.loads(obs)} for s in sids]})
+    script = f"""
+local body = '{body}'
+request = function()
+  return wrk.format("POST", "/act", {{["Content-Type"] = "application/json"}}, body)
+end
+"""
+    r = wrk(url, script, 1, seconds)
+    calls = r["requests"] / (r["duration_us"] / 1e6)
+    return {
+        "sessions": len(sids),
+        "acts_per_s": round(calls * len(sids), 1),
+        "p50_ms": r["p50_us"] / 1000,
+        "p99_ms": r["p99_us"] / 1000,
+        "errors": r["errors"] + r["non2xx"],
+        **error_detail(r),
+    }
+
+
+def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict:
+    """Run in a separate process: one concurrent caller per session (unary Act or one Control stream each)."""
+    import grpc
+
+    from gmt.v1 import policy_pb2 as pb
+    from gmt.v1 import policy_pb2_grpc
+
+    obs = json.loads(obs_json())
+
+    async def main():
+        lat: list[float] = []
+        errors = 0
+        async with grpc.aio.insecure_channel(target) as ch:
+            stub = policy_pb2_grpc.PolicyServiceStub(ch)
+            stop = time.perf_counter() + seconds
+
+            async def unary(sid):
+                nonlocal errors
+                req = pb.ActRequest(session_id=sid, values=pb.FloatVector(values=obs))
+                while time.perf_counter() < stop:
+                    t = time.perf_counter()
+                    try:
+                        await stub.Act(req, metadata=(("x-session-id", sid),))
+                    except grpc.RpcError:
+                        errors += 1
+                    lat.append(time.perf_counter() - t)
+
+            async def stream(sid):
+                nonlocal errors
+                req = pb.ControlRequest(act=pb.ActRequest(session_id=sid, values=pb.FloatVector(values=obs)))
+                call = stub.Control(metadata=(("x-session-id", sid),))
+                while time.perf_counter() < stop:
+                    t = time.perf_counter()
+                    await call.write(req)
+                    r = await call.read()
+                    if r.WhichOneof("result") != "act":
+                        errors += 1
+                    lat.append(time.perf_counter() - t)
+                await call.done_writing()
+
+            t0 = time.perf_counter()
+            await asyncio.gather(*((unary if mode == "unary" else stream)(s) for s in sids))
+            wall = time.perf_counter() - t0
+        ms = np.asarray(lat[len(lat) // 10 :]) * 1000  # drop the first tenth (warm-up)
+        return {
+            "sessions": len(sids),
+            "acts_per_s": round(len(lat) / wall, 1),
+            "p50_ms": round(float(np.percentile(ms, 50)), 3),
+            "p99_ms": round(float(np.percentile(ms, 99)), 3),
+            "errors": errors,
+        }
+
+    return asyncio.run(main())
+
+
+def grpc_load(target: str, sids: list[str], seconds: float, mode: str) -> dict:
+    """`grpc_client` in a separate process (so the load does not share this one's GIL); its figures."""
+    code = (
+        "import json,sys; from gmt.bench.harness import grpc_client; "
+        "a=json.loads(sys.argv[1]); print(json.dumps(grpc_client(a['t'], a['s'], a['d'], a['m'])))"
+    )
+    arg = json.dumps({"t": target, "s": sids, "d": seconds, "m": mode})
+    out = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def redis_server() -> tuple[subprocess.Popen, str]:
+    """A private redis-server on a free loopback port (no persistence): (process, URL)."""
+    from gmt.service.cluster import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    for line in proc.stdout:
+        if "Ready to accept connections" in line:
+            threading.Thread(target=lambda: [None for _ in proc.stdout], daemon=True).start()
+            return proc, f"redis://127.0.0.1:{port}/0"
+    raise RuntimeError("redis-server exited before it was ready")

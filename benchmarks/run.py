@@ -1,0 +1,82 @@
+"""`gmt bench`: every requested section of the figures, as one JSON-ready dict (schema: `gmt.bench`)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+import tempfile
+from pathlib import Path
+
+from gmt.bench.alternatives import bench_alternatives
+from gmt.bench.cluster import bench_cluster
+from gmt.bench.engine import bench_engine
+from gmt.bench.failover import bench_failover
+from gmt.bench.harness import SESSIONS, default_size_checkpoint
+from gmt.bench.serving import bench_serving
+from gmt.bench.store import bench_store
+from gmt.bench.training import bench_training
+
+
+def machine() -> dict:
+    """The machine the figures come from: CPU, cores, torch, platform, whether the native kernel builds."""
+    import torch
+
+    cpu = platform.processor()
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    from gmt.model import native
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+        "native_kernel": native.load() is not None,
+    }
+
+
+def _default(tmp: Path) -> Path:
+    d = tmp / "bench-gmt"
+    if not d.exists():
+        default_size_checkpoint(d)
+    return d
+
+
+def run(
+    checkpoint: Path | None, sections: tuple[str, ...], seconds: float, sessions: tuple[int, ...] = SESSIONS
+) -> dict:
+    """Every requested section; a temporary default-size `window` checkpoint when none is given."""
+    result: dict = {"machine": machine()}
+    tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-"))
+    try:
+        if "engine" in sections:
+            result["engine"] = bench_engine()
+        if "serving" in sections:
+            checkpoint = checkpoint or _default(tmp)
+            if shutil.which("wrk") is None:
+                result["serving"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
+            else:
+                result["serving"] = bench_serving(checkpoint, sessions, seconds)
+        if "store" in sections:
+            if shutil.which("wrk") is None or shutil.which("redis-server") is None:
+                result["store"] = {
+                    "skipped": "wrk and redis-server are needed (apt-get install wrk redis-server)"
+                }
+            else:
+                result["store"] = bench_store(checkpoint or _default(tmp), max(sessions), seconds)
+        if "cluster" in sections:
+            result["cluster"] = bench_cluster(
+                checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
+            )
+        if "failover" in sections:
+            result["failover"] = bench_failover(checkpoint or _default(tmp), max(sessions))
+        if "training" in sections:
+            result["training"] = bench_training()
+        if "alternatives" in sections:
+            result["alternatives"] = bench_alternatives(checkpoint or _default(tmp), sessions, seconds)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return result
