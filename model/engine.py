@@ -28,7 +28,16 @@ from gmt.model.pool import SessionPool
 from gmt.model.predict import Predictor
 from gmt.model.sampling import ACTION_MODES, CONTINUOUS_MODES, MODES
 
-__all__ = ["EngineInfo", "InvalidObservation", "PolicyEngine", "StepFailed"]
+__all__ = [
+    "MAX_BLEND_STEPS",
+    "EngineInfo",
+    "InvalidObservation",
+    "PolicyEngine",
+    "StepFailed",
+    "check_blend_steps",
+]
+
+MAX_BLEND_STEPS = 100_000  # the longest gradual goal switch
 
 
 class InvalidObservation(ValueError):
@@ -37,6 +46,21 @@ class InvalidObservation(ValueError):
 
 class StepFailed(ArithmeticError):
     """A step produced non-finite values; the session was left as it was before the step."""
+
+
+def check_blend_steps(blend_steps: object) -> int:
+    """`blend_steps` if it can be a gradual switch's length: an integer in 0..MAX_BLEND_STEPS.
+
+    Raises:
+        ValueError: anything else.
+    """
+    if (
+        isinstance(blend_steps, bool)
+        or not isinstance(blend_steps, int | np.integer)
+        or not 0 <= blend_steps <= MAX_BLEND_STEPS
+    ):
+        raise ValueError(f"blend_steps must be an integer in 0..{MAX_BLEND_STEPS}, got {blend_steps!r}")
+    return int(blend_steps)
 
 
 @dataclass(frozen=True)
@@ -99,6 +123,7 @@ class PolicyEngine:
         self.K = self.cfg.context_length
         self.n_goals = self.cfg.n_goals
         self.obs_size = int(np.prod(self.cfg.obs_shape))
+        self._uint8 = checkpoint.observation_space.get("dtype") == "uint8"  # image values: integers in 0..255
         self.discrete = self.cfg.discrete_actions
         window = self.cfg.attention == "window"
         if incremental and not window:
@@ -156,20 +181,24 @@ class PolicyEngine:
 
     # ----- contexts -----------------------------------------------------------------------------------------
     def check_goal(self, goal: int) -> None:
-        """Raise ValueError for a goal id outside the goal table."""
-        if (
-            isinstance(goal, bool)
-            or not isinstance(goal, int | np.integer)
-            or not 0 <= int(goal) < self.n_goals
-        ):
-            raise ValueError(f"goal {goal!r} is not a goal id of this model (0..{self.n_goals - 1})")
+        """Raise ValueError for anything but a goal id of the goal table (0 .. n_goals - 1)."""
+        if isinstance(goal, bool) or not isinstance(goal, int | np.integer):
+            shown = repr(goal)
+        elif 0 <= goal < self.n_goals:
+            return
+        else:
+            shown = str(int(goal))
+        names = ", ".join(f"{g.id}={g.name}" for g in self.ckpt.goals)
+        raise ValueError(f"goal {shown} is not a goal id of model {self.ckpt.name!r}; goals are {names}")
 
     def check_mode(self, action_mode: str | None) -> str:
         """The action mode a session gets (its own, else the default). Raises ValueError for one this model lacks."""
         action_mode = action_mode or self.default_action_mode
         if action_mode not in self.action_modes:
+            kind = "discrete" if self.discrete else "continuous"
             raise ValueError(
-                f"action_mode must be one of {self.action_modes} for this model, got {action_mode!r}"
+                f"action_mode {action_mode!r} is not available for model {self.ckpt.name!r} ({kind} actions); "
+                f"choose one of {', '.join(self.action_modes)}"
             )
         return action_mode
 
@@ -244,8 +273,7 @@ class PolicyEngine:
     @_locked
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
         self.check_goal(goal)
-        if blend_steps < 0:
-            raise ValueError(f"blend_steps must be >= 0, got {blend_steps}")
+        blend_steps = check_blend_steps(blend_steps)
         p, s = self.pool, ctx.slot
         if blend_steps > 0 and goal != p.goal[s]:
             if ctx.blend_remaining == 0:
@@ -279,7 +307,7 @@ class PolicyEngine:
 
         Raises:
             InvalidObservation: wrong number of values, non-numeric or non-finite values (also after
-                normalisation, which can overflow float32).
+                normalisation, which can overflow float32), or values an image (uint8) cannot hold.
         """
         try:
             x = np.asarray(obs)
@@ -289,6 +317,10 @@ class PolicyEngine:
             raise InvalidObservation("observation must hold numbers, got booleans")
         if x.dtype == object or not np.issubdtype(x.dtype, np.number):
             raise InvalidObservation(f"observation must be numeric, got dtype {x.dtype}")
+        if self._uint8 and x.dtype != np.uint8 and x.size:
+            with np.errstate(invalid="ignore"):
+                if not np.all((x >= 0) & (x <= 255) & (x == np.round(x))):
+                    raise InvalidObservation("image observation values must be integers in 0..255")
         if x.size != self.obs_size:
             raise InvalidObservation(
                 f"observation has {x.size} values, expected {self.obs_size} (shape {list(self.cfg.obs_shape)})"

@@ -18,7 +18,7 @@ import numpy as np
 
 from gmt.model.checkpoint import Goal
 from gmt.model.context import Context
-from gmt.model.engine import InvalidObservation, StepFailed
+from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
 from gmt.service.batcher import MicroBatcher
 from gmt.service.errors import (
     AlreadyExists,
@@ -77,7 +77,7 @@ def check_new_session_id(sid: str) -> str:
     return sid
 
 
-MAX_BLEND_STEPS = 100_000
+MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 GoalRef = int | str | None
 
 
@@ -313,9 +313,11 @@ class Core:
         if isinstance(goal, bool):
             raise InvalidArgument(f"goal must be an id or a name, got {goal!r}")
         if isinstance(goal, int | np.integer):
-            if any(g.id == goal for g in goals):
-                return int(goal)
-            raise InvalidArgument(f"goal {goal} is not a goal id of model {m.name!r}; goals are {names}")
+            try:
+                m.engine.check_goal(goal)
+            except ValueError as e:
+                raise InvalidArgument(str(e)) from None
+            return int(goal)
         if isinstance(goal, str):
             for g in goals:
                 if g.name == goal:
@@ -402,14 +404,10 @@ class Core:
         self._check_serving()
         m = self.registry.resolve(model)
         g = self.resolve_goal(m, goal, target)
-        modes = m.engine.describe().action_modes
-        mode = action_mode or modes[0]
-        if mode not in modes:
-            kind = "discrete" if m.checkpoint.config.discrete_actions else "continuous"
-            raise InvalidArgument(
-                f"action_mode {mode!r} is not available for model {m.name!r} ({kind} actions); "
-                f"choose one of {', '.join(modes)}"
-            )
+        try:
+            mode = m.engine.check_mode(action_mode)
+        except ValueError as e:
+            raise InvalidArgument(str(e)) from None
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
         sid = uuid.uuid4().hex if session_id is None else check_new_session_id(session_id)
@@ -469,9 +467,6 @@ class Core:
             InvalidArgument: wrong size, non-numeric, NaN/Inf, out of range.
         """
         x = to_array(observation)
-        if m.checkpoint.observation_space.get("dtype") == "uint8" and x.dtype != np.uint8 and x.size:
-            if not np.all((x >= 0) & (x <= 255) & (x == np.round(x))):
-                raise InvalidArgument("image observation values must be integers in 0..255")
         try:
             return m.engine.prepare_observation(x)
         except InvalidObservation as e:
@@ -562,7 +557,14 @@ class Core:
 
         Returns:
             In request order: the item's ActResult, or the ServiceError that failed it.
+
+        Raises:
+            InvalidArgument: more than MAX_ACT_ITEMS items (the whole call fails).
         """
+        if len(items) > MAX_ACT_ITEMS:
+            raise InvalidArgument(
+                f"a call may act for at most {MAX_ACT_ITEMS} sessions, got {len(items)} requests"
+            )
         self._check_serving()
         return await run_whole(self._act_many(items))
 
@@ -650,14 +652,10 @@ class Core:
         """
         self._check_serving()
         check_session_id(sid)
-        if (
-            isinstance(blend_steps, bool)
-            or not isinstance(blend_steps, int)
-            or not 0 <= blend_steps <= MAX_BLEND_STEPS
-        ):
-            raise InvalidArgument(
-                f"blend_steps must be an integer in 0..{MAX_BLEND_STEPS}, got {blend_steps!r}"
-            )
+        try:  # before the session is read: a bad value is refused whatever the session's state
+            check_blend_steps(blend_steps)
+        except ValueError as e:
+            raise InvalidArgument(str(e)) from None
         return await run_whole(self._set_goal(sid, goal, target, blend_steps))
 
     async def _set_goal(self, sid: str, goal: GoalRef, target: float | None, blend_steps: int) -> SessionView:

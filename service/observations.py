@@ -28,17 +28,6 @@ DTYPES = (
 MAX_ABS_VALUE = 1e9  # largest |value| of an observation (and target): far beyond any physical quantity, far
 # below where the shipped model's forward pass overflows (about 1e19), and a bound the OpenAPI schema states exactly
 MAX_DIMS = 8
-MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
-
-
-def check_act_items(n: int) -> None:
-    """Reject a many-session act call with more than MAX_ACT_ITEMS items (the whole call fails).
-
-    Raises:
-        InvalidArgument: too many items.
-    """
-    if n > MAX_ACT_ITEMS:
-        raise InvalidArgument(f"a call may act for at most {MAX_ACT_ITEMS} sessions, got {n} requests")
 
 
 def decode_base64(data: str) -> bytes:

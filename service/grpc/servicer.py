@@ -14,7 +14,6 @@ from gmt.service.core import Core
 from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from gmt.service.grpc import convert
 from gmt.service.memory import Trimmer
-from gmt.service.observations import check_act_items
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
@@ -116,7 +115,6 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         )
 
     async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
-        check_act_items(len(request.requests))
         items = []
         for r in request.requests:
             try:

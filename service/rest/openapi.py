@@ -27,8 +27,9 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from gmt.service.core import MAX_BLEND_STEPS, Core, ModelView
-from gmt.service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
+from gmt.model.engine import MAX_BLEND_STEPS
+from gmt.service.core import MAX_ACT_ITEMS, Core, ModelView
+from gmt.service.observations import MAX_ABS_VALUE
 
 BEARER = "bearerAuth"
 OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token

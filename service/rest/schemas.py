@@ -12,9 +12,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, StrictStr, field_validator
 
-from gmt.service.core import MAX_BLEND_STEPS, ActResult, ModelView, SessionView
+from gmt.model.engine import MAX_BLEND_STEPS
+from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView
 from gmt.service.errors import ServiceError
-from gmt.service.observations import MAX_ACT_ITEMS
 
 
 def _integral(v: object) -> object:

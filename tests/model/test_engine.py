@@ -296,3 +296,48 @@ def test_pool_shrinks_back_once_every_session_has_gone():
     t = twin.new_context(1)
     obs = np.random.default_rng(0).normal(size=17).astype(np.float32)
     assert np.array_equal(engine.act([fresh], [obs])[0], twin.act([t], [obs])[0])
+
+
+# ----- the rules the engine owns (the service calls them and maps ValueError to invalid_argument) --------------
+def test_goal_ids_modes_and_blend_lengths_are_the_engines_rules():
+    engine = PolicyEngine(tiny_checkpoint())
+    with pytest.raises(
+        ValueError, match=r"^goal 3 is not a goal id of model 'tiny-gmt'; goals are 0=low, 1=medium"
+    ):
+        engine.check_goal(3)
+    for bad in (-1, True, "1", 1.0):
+        with pytest.raises(ValueError, match="is not a goal id"):
+            engine.check_goal(bad)
+    engine.check_goal(np.int64(2))
+    assert engine.check_mode(None) == "mean" and engine.check_mode("mean") == "mean"
+    with pytest.raises(ValueError, match=r"action_mode 'sample' is not available .* \(continuous actions\)"):
+        engine.new_context(0, action_mode="sample")
+    ctx = engine.new_context(0)
+    for bad in (-1, 100_001, True, 2.5):
+        with pytest.raises(ValueError, match=r"blend_steps must be an integer in 0\.\.100000"):
+            engine.set_goal(ctx, 1, blend_steps=bad)
+    assert ctx.goal == 0 and ctx.version == 0  # a refused change leaves the context as it was
+    engine.set_goal(ctx, 1, blend_steps=100_000)
+    assert ctx.blend_remaining == 100_000
+
+
+def test_an_image_model_takes_only_values_a_frame_can_hold():
+    import gymnasium as gym
+
+    frames = gym.spaces.Box(0, 255, (4, 84, 84), np.uint8)
+    engine = PolicyEngine(
+        tiny_checkpoint(env_id="ALE/Breakout-v5", observation_space=frames, context_length=4)
+    )
+    frame = np.random.default_rng(0).integers(0, 256, (4, 84, 84))
+    for x in (frame.astype(np.uint8), frame.astype(np.float32), frame):  # the same frame in any numeric dtype
+        np.testing.assert_array_equal(engine.prepare_observation(x), frame.astype(np.uint8))
+    for bad in (
+        frame + 0.5,
+        frame - 1,
+        np.where(frame == frame.max(), 256, frame),
+        np.full(frame.shape, np.nan),
+    ):
+        with pytest.raises(
+            InvalidObservation, match=r"image observation values must be integers in 0\.\.255"
+        ):
+            engine.prepare_observation(bad)
