@@ -10,6 +10,7 @@ from service_harness import RunningServer, ServeProcess, make_settings
 
 from gmt.bench.cluster import bench_cluster
 from gmt.bench.engine import bench_engine
+from gmt.bench.harness import rss_bytes
 from gmt.bench.serving import bench_serving
 from gmt.model.fixtures import tiny_checkpoint
 
@@ -61,7 +62,20 @@ def test_engine_section_times_both_paths_for_every_K_and_batch():
     assert {(r["K"], r["path"], r["batch"]) for r in rows} == {
         (K, p, B) for K in (4, 8) for p in ("incremental", "incremental_torch", "recompute") for B in (1, 3)
     }
-    assert all(r["ms_per_step"] > 0 and r["acts_per_s"] > 0 for r in rows)
+    for r in rows:  # acts/s is the batch over the time of one step
+        assert r["ms_per_step"] > 0 and r["acts_per_s"] == pytest.approx(
+            r["batch"] / r["ms_per_step"] * 1000, rel=0.02
+        )
+
+
+def test_rss_bytes_sees_memory_being_touched():
+    import os
+
+    before = rss_bytes(os.getpid())
+    block = np.ones(64 * 2**20, dtype=np.uint8)  # 64 MiB, every page written
+    grown = rss_bytes(os.getpid()) - before
+    assert before > 2**20 and 60 * 2**20 <= grown <= 80 * 2**20, (before, grown)
+    del block
 
 
 @pytest.mark.skipif(shutil.which("wrk") is None, reason="wrk is not installed (apt-get install wrk)")
@@ -73,7 +87,8 @@ def test_serving_section_drives_every_transport_without_errors(window_ckpt):
         assert [r["sessions"] for r in rows] == [1, 3], transport
         for r in rows:
             assert r["errors"] == 0 and r["acts_per_s"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"], (transport, r)
-    assert res["memory"]["rss_per_session_bytes"] >= 0
+    # The server's own growth per session (a tiny model: well under a MiB), not its whole RSS (hundreds of MiB).
+    assert abs(res["memory"]["rss_per_session_bytes"]) < 2**20, res["memory"]
 
 
 @pytest.mark.skipif(
@@ -88,3 +103,10 @@ def test_cluster_section_loads_two_replicas_through_nginx_without_errors(window_
     for wave in (res["load"], res["second_wave"]):
         assert wave["errors"] == 0 and wave["acts_per_s"] > 0, wave
     assert set(res["rss_bytes"]["live"]) == {"gmt-1", "gmt-2"}
+    for when, per_replica in res[
+        "rss_bytes"
+    ].items():  # each is a live serving process (torch alone is ~100 MiB)
+        assert all(rss > 50 * 2**20 for rss in per_replica.values()), (when, per_replica)
+    total = {when: sum(d.values()) for when, d in res["rss_bytes"].items()}
+    assert res["rss_per_live_session_bytes"] == (total["live"] - total["started"]) // 4
+    assert res["rss_growth_second_wave_bytes"] == total["second_wave"] - total["live"]

@@ -1,3 +1,5 @@
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -87,7 +89,13 @@ def test_refine_starts_from_the_level_and_writes_a_snapshot_with_provenance(tmp_
     wrapped = FixedObsNorm(gym.make(ENV), init)
     np.testing.assert_array_equal(wrapped.observation(obs[0]), init.normalise(obs[0]).numpy())
     out = load_behaviour(tmp_path / "out" / "slow", env.action_space)
-    assert best["step"] in (0, 512, 1024)
+    # The chosen snapshot is the best-scoring of those measured (every eval_every steps), and it is what was written.
+    records = json.loads((tmp_path / "work" / "records.json").read_text())
+    assert [r["step"] for r in records] == [0, 512, 1024]
+    assert best == min(records, key=lambda r: r["score"])
+    chosen = load_behaviour(tmp_path / "work" / f"step_{best['step']:08d}", env.action_space)
+    np.testing.assert_array_equal(out.act(obs), chosen.act(obs))
+    assert (out.meta.mean_speed, out.meta.std_speed) == (best["rest_mean"], best["rest_std"])
     assert out.meta.level == "slow" and out.meta.extra["refined"]["refine_step"] == best["step"]
     assert out.meta.train_step == 7 + best["step"]
     path = write_provenance(cfg, best, 12.0)
