@@ -3,7 +3,7 @@
 A tracking agent moves the paddle under the ball (FIRE launches a new ball); weaker levels of it react late
 (`lag`), aim badly (`jitter`) and press random buttons (`random_prob`); a uniform-random policy is the lowest
 level. Every level is rolled out in the preprocessed environment a checkpoint will declare (`Preprocessing`:
-Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.client.envs` applies), and the
+Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the
 frames are stored as uint8 in a Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a
 trajectory and of any segment is a plain sum.
 

@@ -2,7 +2,7 @@
 
 All episodes of every condition step in lockstep through the batched `PolicyEngine`, which is also what the
 server uses. Conditions: hold every goal; every ordered switch pair at mid-episode; cycling through the goals
-every N steps. Segments, their settle-in, the tolerance and success are `gmt.client.segments`' (the definition the
+every N steps. Segments, their settle-in, the tolerance and success are `gmt.common.segments`' (the definition the
 remote runner uses too): an episode succeeds when it never terminates early and every segment's mean statistic
 after its settle-in of min(100, length // 4) steps lies within tolerance of its goal's dataset mean.
 

@@ -15,7 +15,7 @@ against a tolerance:
   episode's return R(a) to part of an episode, the per-step one ignores that later bricks are worth more (an
   effect the paper notes in A.2.2).
 The return of a segment is the sum of its rewards, so the two parts of a switch episode add up to its return
-(the `return` statistic of `gmt.client.statistics` is the same sum over a whole trajectory).
+(the `return` statistic of `gmt.common.statistics` is the same sum over a whole trajectory).
 
 JSON schema (`ReturnEvalResult.to_dict`): checkpoint, env_id, statistic, action_mode, seeds, episode_steps,
 switch_at, wall_time_s, goals [{id, name, mean, std, ...}], holds [{goal, returns, lengths, mean, std, sem}],

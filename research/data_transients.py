@@ -2,7 +2,7 @@
 
 A GMT learns its transitions (braking from a sprint, speeding up from a walk) from the data's episodes that start
 in another level's states (`gmt data collect --pool-start`). This measures those episodes, and the ones started
-at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `gmt.client.segments`),
+at rest, on the spans the protocol measures a segment of each length (its settle-in skipped, `gmt.common.segments`),
 against the tolerance of the goal their episode is labelled with, and multiplies the shares along each
 multi-switch schedule (the first segment from rest, every later one from another level's states). A schedule the
 data itself passes in a few episodes of 15 asks a GMT for transitions faster than any it was shown. The last

@@ -1,4 +1,4 @@
-"""Per-trajectory statistics of offline datasets; the statistics themselves are `gmt.client.statistics`."""
+"""Per-trajectory statistics of offline datasets; the statistics themselves are `gmt.common.statistics`."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ from gmt.v1 import policy_pb2 as pb
 
 
 def space(d: dict) -> pb.Space:
-    """A space dict (`gmt.client.spaces`) as a message; null (infinite) bounds become +-inf."""
+    """A space dict (`gmt.common.spaces`) as a message; null (infinite) bounds become +-inf."""
 
     def bounds(values: list | None, inf: float) -> list[float]:
         return [inf if v is None else float(v) for v in (values or [])]
