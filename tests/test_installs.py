@@ -97,6 +97,11 @@ def test_the_tests_import_this_checkout():
         assert Path(module.__file__).parent == _folder(package), package
 
 
+def test_the_image_copies_every_folder_the_package_is_built_from():
+    copied = set(re.findall(r"^COPY (\S+) \1$", (ROOT / "docker" / "Dockerfile").read_text(), re.M))
+    assert copied == {Path(f).parts[0] for f in SETUPTOOLS["package-dir"].values()}
+
+
 # ----- fresh installs of the wheel, one per Python -----------------------------------------------------------------
 def _python(version: str) -> str | None:
     """An interpreter of `version` with venv and pip: this one, else on PATH, else a pyenv version."""
