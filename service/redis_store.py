@@ -30,7 +30,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 
-from service import session_codec
+from service import resp, session_codec
 from service.errors import (
     Aborted,
     AlreadyExists,
@@ -126,7 +126,12 @@ class RedisSessionStore(SessionStore):
         # A bounded pool that makes callers wait for a free connection (the default pool answered "Too many
         # connections" past 100 requests in flight); socket timeouts bound a call to a paused or unreachable Redis:
         # it answers `unavailable` (retryable).
-        self._client = redis_connect.connect(url, max_connections=64, pool_timeout_s=10, socket_timeout_s=5)
+        self._socket_timeout_s = 5.0
+        self._client = redis_connect.connect(
+            url, max_connections=64, pool_timeout_s=10, socket_timeout_s=self._socket_timeout_s
+        )
+        self._fast: resp.RespConnection | None = None  # the hot path's own connection (`_send`)
+        self._fast_lock = asyncio.Lock()
         self.redis = self._client.redis
         self.min_replicas = min_replicas
         self._wait_ms = max(1, round(wait_timeout_s * 1000))
@@ -310,12 +315,12 @@ class RedisSessionStore(SessionStore):
             # One script call for the whole turn (EVAL, not EVALSHA: no script-cache round trip, and a promoted
             # replica needs no script loaded), then WAIT on the same connection when replicas must hold it.
             keys = [self._key(sid) for sid, _, _ in queue]
-            argv = [self._ttl_ms, *(a for _, args, _ in queue for a in args)]
-            async with self.redis.pipeline(transaction=False) as p:
-                p.eval(_SAVE, len(keys), *keys, *argv)
-                if self.min_replicas:
-                    p.wait(self.min_replicas, self._wait_ms)
-                results, *acked = await self._call(p.execute())
+            commands = [
+                ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
+            ]
+            if self.min_replicas:
+                commands.append(["WAIT", self.min_replicas, self._wait_ms])
+            results, *acked = await self._send(commands)
             if len(results) != len(queue):
                 raise Internal(f"the store answered {len(results)} of {len(queue)} writes")
             short = self._not_replicated(acked[0] if acked else None)
@@ -334,6 +339,58 @@ class RedisSessionStore(SessionStore):
                 fut.set_exception(short)  # written on the primary only: not acknowledged (`save` marks it)
             else:
                 fut.set_result(int(r))
+
+    async def _send(self, commands: list[list]) -> list:
+        """The replies to `commands`, sent together on the store's own pipelined connection to the primary
+        (`service.resp`; redis-py's pipeline where the URL is a Unix socket or TLS).
+
+        Raises:
+            Unavailable: Redis cannot be reached, or answered an error.
+        """
+        conn = await self._connection()
+        if conn is None:
+            async with self.redis.pipeline(transaction=False) as p:
+                for c in commands:
+                    p.execute_command(*c)
+                return await self._call(p.execute())
+        try:
+            replies = await conn.call(*commands)
+        except resp.ConnectionLost as e:
+            raise Unavailable(f"session store unreachable: {e}") from e
+        for r in replies:
+            if isinstance(r, resp.RespError):
+                if str(r).startswith(("READONLY", "MASTERDOWN", "LOADING")):
+                    conn.close()  # a demoted or restarting primary: find the primary again next time
+                raise Unavailable(f"session store error: {r}")
+        return replies
+
+    async def _connection(self) -> resp.RespConnection | None:
+        """The open fast connection (opened to the current primary when there is none); None: use redis-py."""
+        if self._fast is not None and not self._fast.closed:
+            return self._fast
+        async with self._fast_lock:
+            if self._fast is not None and not self._fast.closed:
+                return self._fast
+            try:
+                where = await self._client.primary()
+            except self._errors as e:
+                raise Unavailable(f"session store unreachable: {e}") from e
+            if where is None:
+                return None
+            conn = resp.RespConnection(
+                where["host"],
+                where["port"],
+                username=where["username"],
+                password=where["password"],
+                db=where["db"],
+                timeout_s=self._socket_timeout_s,
+            )
+            try:
+                await conn.open()
+            except resp.ConnectionLost as e:
+                raise Unavailable(f"session store unreachable: {e}") from e
+            self._fast = conn
+            return conn
 
     async def _expire(self, sid: str) -> None:
         self._unconfirmed.discard(sid)
@@ -410,6 +467,8 @@ class RedisSessionStore(SessionStore):
         return self._seen_per_model[model]  # every held session was seen
 
     async def close(self) -> None:
+        if self._fast is not None:
+            self._fast.close()
         await self._client.aclose()
 
 
