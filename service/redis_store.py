@@ -295,43 +295,70 @@ class RedisSessionStore(SessionStore):
         held.version, held.step = session.ctx.version, session.ctx.step
 
     async def _write(self, sid: str, args: list) -> int:
-        """Run the save script for `sid` in this loop turn's pipeline; its answer once Redis acknowledged it."""
+        """Run the save script for `sid` with every other write of this loop turn; its answer once Redis
+        acknowledged it (and, with `min_replicas`, that many replicas)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         if not self._queue:
-            loop.call_soon(self._start_flush)
+            loop.call_soon(self._flush)
         self._queue.append((sid, args, fut))
         return await fut
 
-    def _start_flush(self) -> None:
-        task = asyncio.get_running_loop().create_task(self._flush())
+    def _flush(self) -> None:
+        """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
+        them): at once on the open fast connection, else from a task that connects first."""
+        queue, self._queue = self._queue, []
+        keys = [self._key(sid) for sid, _, _ in queue]
+        # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
+        commands = [
+            ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
+        ]
+        if self.min_replicas:
+            commands.append(["WAIT", self.min_replicas, self._wait_ms])
+        conn = self._fast
+        if conn is not None and not conn.closed:
+            futures = conn.send(*commands)
+            futures[-1].add_done_callback(lambda _: self._answer(queue, conn, futures))
+            return
+        task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
         task.add_done_callback(self._flushes.discard)
 
-    async def _flush(self) -> None:
-        """Send the queued writes in one pipeline and answer each."""
-        queue, self._queue = self._queue, []
+    async def _flush_slowly(self, queue: list, commands: list[list]) -> None:
         try:
-            # One script call for the whole turn (EVAL, not EVALSHA: no script-cache round trip, and a promoted
-            # replica needs no script loaded), then WAIT on the same connection when replicas must hold it.
-            keys = [self._key(sid) for sid, _, _ in queue]
-            commands = [
-                ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
-            ]
-            if self.min_replicas:
-                commands.append(["WAIT", self.min_replicas, self._wait_ms])
-            results, *acked = await self._send(commands)
-            if len(results) != len(queue):
-                raise Internal(f"the store answered {len(results)} of {len(queue)} writes")
-            short = self._not_replicated(acked[0] if acked else None)
+            replies = await self._send(commands)
         except BaseException as e:  # noqa: BLE001 - every waiter gets the failure
-            err = e if isinstance(e, ServiceError) else Unavailable(f"session store unreachable: {e}")
-            for *_, fut in queue:
-                if not fut.done():
-                    fut.set_exception(err)
+            self._resolve(queue, e)
             if not isinstance(e, Exception):
                 raise
             return
+        self._resolve(queue, replies)
+
+    def _answer(self, queue: list, conn: resp.RespConnection, futures: list[asyncio.Future]) -> None:
+        try:
+            replies = self._checked(conn, [f.result() for f in futures])
+        except resp.ConnectionLost as e:
+            replies = Unavailable(f"session store unreachable: {e}")
+        except ServiceError as e:
+            replies = e
+        self._resolve(queue, replies)
+
+    def _resolve(self, queue: list, replies: list | BaseException) -> None:
+        """Answer each queued write from the replies of its turn (or fail them all)."""
+        if not isinstance(replies, BaseException) and len(replies[0]) != len(queue):
+            replies = Internal(f"the store answered {len(replies[0])} of {len(queue)} writes")
+        if isinstance(replies, BaseException):
+            err = (
+                replies
+                if isinstance(replies, ServiceError)
+                else Unavailable(f"session store unreachable: {replies}")
+            )
+            for *_, fut in queue:
+                if not fut.done():
+                    fut.set_exception(err)
+            return
+        results, *acked = replies
+        short = self._not_replicated(acked[0] if acked else None)
         for (*_, fut), r in zip(queue, results, strict=True):
             if fut.done():
                 continue
@@ -354,9 +381,13 @@ class RedisSessionStore(SessionStore):
                     p.execute_command(*c)
                 return await self._call(p.execute())
         try:
-            replies = await conn.call(*commands)
+            return self._checked(conn, await conn.call(*commands))
         except resp.ConnectionLost as e:
             raise Unavailable(f"session store unreachable: {e}") from e
+
+    @staticmethod
+    def _checked(conn: resp.RespConnection, replies: list) -> list:
+        """`replies`, unless one is an error: then Unavailable (and a primary that stopped being one is let go)."""
         for r in replies:
             if isinstance(r, resp.RespError):
                 if str(r).startswith(("READONLY", "MASTERDOWN", "LOADING")):

@@ -95,12 +95,14 @@ class RespConnection:
                     self.close(ConnectionLost(f"Redis refused the connection's setup: {reply}"))
                     raise ConnectionLost(f"Redis refused the connection's setup: {reply}")
 
-    async def call(self, *commands: list) -> list:
-        """Send `commands` at once and return their replies (an error reply is a `RespError` in its place).
+    def send(self, *commands: list) -> list[asyncio.Future]:
+        """Write `commands` now; one future per command for its reply (an error reply is a `RespError` result).
+
+        If the last reply is not in within `timeout_s`, the connection is closed and every future still waiting
+        fails with ConnectionLost (a late reply could not be matched to its command any more).
 
         Raises:
-            ConnectionLost: the connection broke, or a reply took longer than `timeout_s` (the connection is then
-                closed: a late reply could not be matched to its command any more).
+            ConnectionLost: the connection is closed.
         """
         if self.closed or self._writer is None:
             raise ConnectionLost("the connection is closed")
@@ -108,12 +110,21 @@ class RespConnection:
         futures = [loop.create_future() for _ in commands]
         self._waiting.extend(futures)
         self._writer.write(encode(*commands))
-        try:
-            async with asyncio.timeout(self.timeout_s):
-                return [await f for f in futures]
-        except TimeoutError:
+        timer = loop.call_later(self.timeout_s, self._late, futures[-1])
+        futures[-1].add_done_callback(lambda _: timer.cancel())
+        return futures
+
+    def _late(self, last: asyncio.Future) -> None:
+        if not last.done():
             self.close(ConnectionLost(f"no reply from Redis within {self.timeout_s:g} s"))
-            raise ConnectionLost(f"no reply from Redis within {self.timeout_s:g} s") from None
+
+    async def call(self, *commands: list) -> list:
+        """Send `commands` at once and return their replies (an error reply is a `RespError` in its place).
+
+        Raises:
+            ConnectionLost: the connection broke, or a reply took longer than `timeout_s`.
+        """
+        return [await f for f in self.send(*commands)]
 
     def close(self, error: BaseException | None = None) -> None:
         """Close the connection; every command still waiting fails with `error` (default ConnectionLost)."""
