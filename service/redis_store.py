@@ -272,6 +272,33 @@ class RedisSessionStore(SessionStore):
         return fields
 
     async def save(self, session: Session, read_version: int | None = None) -> None:
+        fut = self._queue_save(session, read_version)
+        try:
+            n = await fut
+        except ServiceError as e:
+            raise self._failed(session, e) from None
+        self._saved(session, n)
+
+    async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
+        futures = []
+        for session, read_version in items:  # all queued in this turn: one script call writes them all
+            try:
+                futures.append(self._queue_save(session, read_version))
+            except ServiceError as e:
+                futures.append(e)
+        out: list[ServiceError | None] = []
+        for (session, _), fut in zip(items, futures, strict=True):
+            try:
+                if isinstance(fut, ServiceError):
+                    raise fut
+                self._saved(session, await fut)
+                out.append(None)
+            except ServiceError as e:
+                out.append(self._failed(session, e) if not isinstance(fut, ServiceError) else e)
+        return out
+
+    def _queue_save(self, session: Session, read_version: int | None) -> asyncio.Future:
+        """Queue the session's change for this turn's write; the future answers the script's result for it."""
         held = self._held.get(session.id)
         if held is None or held.session is not session:
             raise ValueError(f"session {session.id!r} was not read from this store")
@@ -279,30 +306,29 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         fields = session_codec.change_fields(session, held.step)
         expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
-        try:
-            n = await self._write(session.id, [expect, len(fields), *_flat(fields)])
-        except ServiceError:
-            self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
-            if self.min_replicas:
-                self._unconfirmed.add(session.id)
-            raise
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+        if not self._queue:
+            loop.call_soon(self._flush)
+        self._queue.append((session.id, [expect, len(fields), *_flat(fields)], fut))
+        return fut
+
+    def _failed(self, session: Session, e: ServiceError) -> ServiceError:
+        self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
+        if self.min_replicas:
+            self._unconfirmed.add(session.id)
+        return e
+
+    def _saved(self, session: Session, n: int) -> None:
+        """Account for the script's result `n` of a session's write (raising its error)."""
         if n == -1:
             self._forget(session.id)
             raise NotFound(f"session {session.id!r} was closed or expired while this request ran")
         if n == -2:
             self._forget(session.id)
             raise Aborted(_aborted(session.id))
+        held = self._held[session.id]
         held.version, held.step = session.ctx.version, session.ctx.step
-
-    async def _write(self, sid: str, args: list) -> int:
-        """Run the save script for `sid` with every other write of this loop turn; its answer once Redis
-        acknowledged it (and, with `min_replicas`, that many replicas)."""
-        loop = asyncio.get_running_loop()
-        fut = loop.create_future()
-        if not self._queue:
-            loop.call_soon(self._flush)
-        self._queue.append((sid, args, fut))
-        return await fut
 
     def _flush(self) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
