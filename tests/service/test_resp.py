@@ -109,3 +109,24 @@ def test_a_reply_later_than_the_timeout_closes_the_connection(server):
         assert c.closed  # a late reply could no longer be matched to its command
 
     asyncio.run(scenario())
+
+
+def test_replies_split_anywhere_are_parsed_whole():
+    """The bytes of several replies, cut at every position, parse to the same replies once complete."""
+    wire = b":-2\r\n$5\r\nab\r\nc\r\n*3\r\n:1\r\n$-1\r\n*1\r\n+OK\r\n-ERR bad\r\n$0\r\n\r\n"
+    want = [-2, b"ab\r\nc", [1, None, [b"OK"]], "ERR bad", b""]
+    for cut in range(len(wire) + 1):
+        got, buf = [], bytearray()
+        for chunk in (wire[:cut], wire[cut:]):
+            buf += chunk
+            pos = 0
+            while True:
+                try:
+                    reply, pos = resp.parse(buf, pos)
+                except resp._Incomplete:
+                    break
+                got.append(str(reply) if isinstance(reply, resp.RespError) else reply)
+            del buf[:pos]
+        assert got == want, cut
+    with pytest.raises(resp.RespError):
+        resp.parse(b"?what\r\n")
