@@ -198,6 +198,17 @@ class Context:
             "action": [p.h_action.dtype.str, list(p.h_action.shape[2:])],
         }
 
+    def held(self, t: int) -> tuple[int, int, float, np.ndarray, np.ndarray]:
+        """Held step `t` (one of the last `size` steps): goal token, blend target, blend weight, state, action."""
+        p, s, pos = self.pool, self.slot, t % self.pool.H
+        return (
+            int(p.h_goal[s, pos]),
+            int(p.h_blend_to[s, pos]),
+            float(p.h_blend_w[s, pos]),
+            p.h_state[s, pos],
+            p.h_action[s, pos],
+        )
+
     def to_stored(self) -> StoredContext:
         """The context as plain data (what a session store persists)."""
         return StoredContext(
