@@ -617,13 +617,12 @@ class Core:
                     s.last_used = now
                     stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal)))
                 # Every write at once: a shared store sends them in one round trip (group commit).
-                saved = await asyncio.gather(
-                    *(self._save(m, s, version) for _, s, m, version, _ in stepped), return_exceptions=True
-                )
-                for (i, *_, result), e in zip(stepped, saved, strict=True):
-                    if isinstance(e, BaseException) and not isinstance(e, ServiceError):
-                        raise e
-                    out[i] = e if isinstance(e, ServiceError) else result
+                point_of_no_return()
+                saved = await self.store.save_many([(s, version) for _, s, _, version, _ in stepped])
+                for (i, s, m, _, result), e in zip(stepped, saved, strict=True):
+                    if e is not None:
+                        m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
+                    out[i] = e if e is not None else result
         return out
 
     async def _save(self, m: LoadedModel, s: Session, read_version: int) -> None:

@@ -130,8 +130,27 @@ class RedisClient:
         url: The URL, password redacted.
     """
 
-    def __init__(self, redis: Any, sentinel: Any, url: str) -> None:
-        self.redis, self.sentinel, self.url = redis, sentinel, url
+    def __init__(self, redis: Any, sentinel: Any, url: str, service: str | None = None) -> None:
+        self.redis, self.sentinel, self.url, self.service = redis, sentinel, url, service
+
+    async def primary(self) -> dict | None:
+        """Where the current primary is, for a plain TCP connection of our own: host, port, username, password,
+        db (asking the sentinels with a sentinel URL); None where the URL is a Unix socket or TLS.
+
+        Raises:
+            redis.RedisError: no sentinel names a primary.
+        """
+        pool = self.redis.connection_pool
+        kw = pool.connection_kwargs
+        who = {"username": kw.get("username"), "password": kw.get("password"), "db": int(kw.get("db") or 0)}
+        if self.sentinel is not None:
+            host, port = await self.sentinel.discover_master(self.service)
+            return {"host": host, "port": int(port), **who}
+        from redis.asyncio.connection import Connection
+
+        if pool.connection_class is not Connection:  # Unix socket or TLS: leave those to redis-py
+            return None
+        return {"host": kw.get("host", "localhost"), "port": int(kw.get("port", 6379)), **who}
 
     async def aclose(self) -> None:
         """Close the client, its pool, and the sentinel clients."""
@@ -164,7 +183,14 @@ def connect(
     import redis.asyncio as aioredis
 
     target = parse_redis_url(url)
-    timeouts = {"socket_timeout": socket_timeout_s, "socket_connect_timeout": socket_timeout_s}
+    from redis.asyncio.retry import Retry
+    from redis.backoff import NoBackoff
+    from redis.exceptions import ConnectionError as RedisConnectionError
+
+    # Once more on a broken connection (a pooled one that Redis closed by restarting): a fresh one answers.
+    # Never on a timeout: a paused Redis must answer `unavailable` after one socket timeout, not several.
+    once = Retry(NoBackoff(), 1, supported_errors=(RedisConnectionError,))
+    timeouts = {"socket_timeout": socket_timeout_s, "socket_connect_timeout": socket_timeout_s, "retry": once}
     if target is None:
         pool = aioredis.BlockingConnectionPool.from_url(
             url, max_connections=max_connections, timeout=pool_timeout_s, **timeouts
@@ -195,4 +221,4 @@ def connect(
         password=target.password,
         **timeouts,
     )
-    return RedisClient(client, sentinel, redacted(url))
+    return RedisClient(client, sentinel, redacted(url), target.service)

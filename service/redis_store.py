@@ -30,7 +30,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 
-from gmt.service import session_codec
+from gmt.service import resp, session_codec
 from gmt.service.errors import (
     Aborted,
     AlreadyExists,
@@ -126,7 +126,12 @@ class RedisSessionStore(SessionStore):
         # A bounded pool that makes callers wait for a free connection (the default pool answered "Too many
         # connections" past 100 requests in flight); socket timeouts bound a call to a paused or unreachable Redis:
         # it answers `unavailable` (retryable).
-        self._client = redis_connect.connect(url, max_connections=64, pool_timeout_s=10, socket_timeout_s=5)
+        self._socket_timeout_s = 5.0
+        self._client = redis_connect.connect(
+            url, max_connections=64, pool_timeout_s=10, socket_timeout_s=self._socket_timeout_s
+        )
+        self._fast: resp.RespConnection | None = None  # the hot path's own connection (`_send`)
+        self._fast_lock = asyncio.Lock()
         self.redis = self._client.redis
         self.min_replicas = min_replicas
         self._wait_ms = max(1, round(wait_timeout_s * 1000))
@@ -267,6 +272,33 @@ class RedisSessionStore(SessionStore):
         return fields
 
     async def save(self, session: Session, read_version: int | None = None) -> None:
+        fut = self._queue_save(session, read_version)
+        try:
+            n = await fut
+        except ServiceError as e:
+            raise self._failed(session, e) from None
+        self._saved(session, n)
+
+    async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
+        futures = []
+        for session, read_version in items:  # all queued in this turn: one script call writes them all
+            try:
+                futures.append(self._queue_save(session, read_version))
+            except ServiceError as e:
+                futures.append(e)
+        out: list[ServiceError | None] = []
+        for (session, _), fut in zip(items, futures, strict=True):
+            try:
+                if isinstance(fut, ServiceError):
+                    raise fut
+                self._saved(session, await fut)
+                out.append(None)
+            except ServiceError as e:
+                out.append(self._failed(session, e) if not isinstance(fut, ServiceError) else e)
+        return out
+
+    def _queue_save(self, session: Session, read_version: int | None) -> asyncio.Future:
+        """Queue the session's change for this turn's write; the future answers the script's result for it."""
         held = self._held.get(session.id)
         if held is None or held.session is not session:
             raise ValueError(f"session {session.id!r} was not read from this store")
@@ -274,59 +306,85 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         fields = session_codec.change_fields(session, held.step)
         expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
-        try:
-            n = await self._write(session.id, [expect, len(fields), *_flat(fields)])
-        except ServiceError:
-            self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
-            if self.min_replicas:
-                self._unconfirmed.add(session.id)
-            raise
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+        if not self._queue:
+            loop.call_soon(self._flush)
+        self._queue.append((session.id, [expect, len(fields), *_flat(fields)], fut))
+        return fut
+
+    def _failed(self, session: Session, e: ServiceError) -> ServiceError:
+        self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
+        if self.min_replicas:
+            self._unconfirmed.add(session.id)
+        return e
+
+    def _saved(self, session: Session, n: int) -> None:
+        """Account for the script's result `n` of a session's write (raising its error)."""
         if n == -1:
             self._forget(session.id)
             raise NotFound(f"session {session.id!r} was closed or expired while this request ran")
         if n == -2:
             self._forget(session.id)
             raise Aborted(_aborted(session.id))
+        held = self._held[session.id]
         held.version, held.step = session.ctx.version, session.ctx.step
 
-    async def _write(self, sid: str, args: list) -> int:
-        """Run the save script for `sid` in this loop turn's pipeline; its answer once Redis acknowledged it."""
-        loop = asyncio.get_running_loop()
-        fut = loop.create_future()
-        if not self._queue:
-            loop.call_soon(self._start_flush)
-        self._queue.append((sid, args, fut))
-        return await fut
-
-    def _start_flush(self) -> None:
-        task = asyncio.get_running_loop().create_task(self._flush())
+    def _flush(self) -> None:
+        """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
+        them): at once on the open fast connection, else from a task that connects first."""
+        queue, self._queue = self._queue, []
+        keys = [self._key(sid) for sid, _, _ in queue]
+        # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
+        commands = [
+            ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
+        ]
+        if self.min_replicas:
+            commands.append(["WAIT", self.min_replicas, self._wait_ms])
+        conn = self._fast
+        if conn is not None and not conn.closed:
+            futures = conn.send(*commands)
+            futures[-1].add_done_callback(lambda _: self._answer(queue, conn, futures))
+            return
+        task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
         task.add_done_callback(self._flushes.discard)
 
-    async def _flush(self) -> None:
-        """Send the queued writes in one pipeline and answer each."""
-        queue, self._queue = self._queue, []
+    async def _flush_slowly(self, queue: list, commands: list[list]) -> None:
         try:
-            # One script call for the whole turn (EVAL, not EVALSHA: no script-cache round trip, and a promoted
-            # replica needs no script loaded), then WAIT on the same connection when replicas must hold it.
-            keys = [self._key(sid) for sid, _, _ in queue]
-            argv = [self._ttl_ms, *(a for _, args, _ in queue for a in args)]
-            async with self.redis.pipeline(transaction=False) as p:
-                p.eval(_SAVE, len(keys), *keys, *argv)
-                if self.min_replicas:
-                    p.wait(self.min_replicas, self._wait_ms)
-                results, *acked = await self._call(p.execute())
-            if len(results) != len(queue):
-                raise Internal(f"the store answered {len(results)} of {len(queue)} writes")
-            short = self._not_replicated(acked[0] if acked else None)
+            replies = await self._send(commands)
         except BaseException as e:  # noqa: BLE001 - every waiter gets the failure
-            err = e if isinstance(e, ServiceError) else Unavailable(f"session store unreachable: {e}")
-            for *_, fut in queue:
-                if not fut.done():
-                    fut.set_exception(err)
+            self._resolve(queue, e)
             if not isinstance(e, Exception):
                 raise
             return
+        self._resolve(queue, replies)
+
+    def _answer(self, queue: list, conn: resp.RespConnection, futures: list[asyncio.Future]) -> None:
+        try:
+            replies = self._checked(conn, [f.result() for f in futures])
+        except resp.ConnectionLost as e:
+            replies = Unavailable(f"session store unreachable: {e}")
+        except ServiceError as e:
+            replies = e
+        self._resolve(queue, replies)
+
+    def _resolve(self, queue: list, replies: list | BaseException) -> None:
+        """Answer each queued write from the replies of its turn (or fail them all)."""
+        if not isinstance(replies, BaseException) and len(replies[0]) != len(queue):
+            replies = Internal(f"the store answered {len(replies[0])} of {len(queue)} writes")
+        if isinstance(replies, BaseException):
+            err = (
+                replies
+                if isinstance(replies, ServiceError)
+                else Unavailable(f"session store unreachable: {replies}")
+            )
+            for *_, fut in queue:
+                if not fut.done():
+                    fut.set_exception(err)
+            return
+        results, *acked = replies
+        short = self._not_replicated(acked[0] if acked else None)
         for (*_, fut), r in zip(queue, results, strict=True):
             if fut.done():
                 continue
@@ -334,6 +392,62 @@ class RedisSessionStore(SessionStore):
                 fut.set_exception(short)  # written on the primary only: not acknowledged (`save` marks it)
             else:
                 fut.set_result(int(r))
+
+    async def _send(self, commands: list[list]) -> list:
+        """The replies to `commands`, sent together on the store's own pipelined connection to the primary
+        (`gmt.service.resp`; redis-py's pipeline where the URL is a Unix socket or TLS).
+
+        Raises:
+            Unavailable: Redis cannot be reached, or answered an error.
+        """
+        conn = await self._connection()
+        if conn is None:
+            async with self.redis.pipeline(transaction=False) as p:
+                for c in commands:
+                    p.execute_command(*c)
+                return await self._call(p.execute())
+        try:
+            return self._checked(conn, await conn.call(*commands))
+        except resp.ConnectionLost as e:
+            raise Unavailable(f"session store unreachable: {e}") from e
+
+    @staticmethod
+    def _checked(conn: resp.RespConnection, replies: list) -> list:
+        """`replies`, unless one is an error: then Unavailable (and a primary that stopped being one is let go)."""
+        for r in replies:
+            if isinstance(r, resp.RespError):
+                if str(r).startswith(("READONLY", "MASTERDOWN", "LOADING")):
+                    conn.close()  # a demoted or restarting primary: find the primary again next time
+                raise Unavailable(f"session store error: {r}")
+        return replies
+
+    async def _connection(self) -> resp.RespConnection | None:
+        """The open fast connection (opened to the current primary when there is none); None: use redis-py."""
+        if self._fast is not None and not self._fast.closed:
+            return self._fast
+        async with self._fast_lock:
+            if self._fast is not None and not self._fast.closed:
+                return self._fast
+            try:
+                where = await self._client.primary()
+            except self._errors as e:
+                raise Unavailable(f"session store unreachable: {e}") from e
+            if where is None:
+                return None
+            conn = resp.RespConnection(
+                where["host"],
+                where["port"],
+                username=where["username"],
+                password=where["password"],
+                db=where["db"],
+                timeout_s=self._socket_timeout_s,
+            )
+            try:
+                await conn.open()
+            except resp.ConnectionLost as e:
+                raise Unavailable(f"session store unreachable: {e}") from e
+            self._fast = conn
+            return conn
 
     async def _expire(self, sid: str) -> None:
         self._unconfirmed.discard(sid)
@@ -410,6 +524,8 @@ class RedisSessionStore(SessionStore):
         return self._seen_per_model[model]  # every held session was seen
 
     async def close(self) -> None:
+        if self._fast is not None:
+            self._fast.close()
         await self._client.aclose()
 
 

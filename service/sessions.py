@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, SessionExpired
+from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, ServiceError, SessionExpired
 
 Clock = Callable[[], float]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
@@ -106,6 +106,21 @@ class SessionStore(abc.ABC):
             Aborted: another replica wrote the session since it was read (retry the request).
             NotFound: the session was closed or expired meanwhile.
         """
+
+    async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
+        """`save` for each (session, read version), all at once (a shared store writes them in one round trip).
+
+        Returns:
+            Per item: None when saved, else the error `save` would have raised.
+        """
+        out: list[ServiceError | None] = []
+        for session, read_version in items:
+            try:
+                await self.save(session, read_version)
+                out.append(None)
+            except ServiceError as e:
+                out.append(e)
+        return out
 
     @abc.abstractmethod
     async def delete(self, sid: str) -> None:

@@ -1,0 +1,204 @@
+"""A minimal pipelined Redis connection (RESP2) for the session store's hot path.
+
+redis-py spends ~60 us of Python per call on this machine (pool checkout, command packing, response parsing, a
+reader coroutine) against ~27 us for the round trip itself; an act's write is on the path of every answer, so the
+store sends it over this one connection instead: commands are written in order, and the replies, parsed as the
+bytes arrive (an `asyncio.Protocol`, no reader task), answer them in order, so any number of writes are in flight
+at once. Everything else (reads, creates, sweeps, Sentinel) stays with redis-py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+
+
+class RespError(Exception):
+    """An error reply from Redis (`-ERR ...`), or a reply this parser does not read."""
+
+
+class ConnectionLost(ConnectionError):
+    """The connection broke or timed out; every command still waiting for its reply fails with this."""
+
+
+class _Incomplete(Exception):
+    """The buffer ends inside a reply."""
+
+
+def encode(*commands: list) -> bytes:
+    """Commands (lists of bytes / str / int / float arguments) as RESP arrays of bulk strings."""
+    out: list[bytes] = []
+    for args in commands:
+        out.append(b"*%d\r\n" % len(args))
+        for a in args:
+            if not isinstance(a, bytes):
+                a = str(a).encode()
+            out.append(b"$%d\r\n" % len(a))
+            out.append(a)
+            out.append(b"\r\n")
+    return b"".join(out)
+
+
+def parse(buf: bytes | bytearray, pos: int = 0) -> tuple[object, int]:
+    """The reply that starts at `pos` and where the next one starts.
+
+    Raises:
+        _Incomplete: the buffer ends inside the reply.
+        RespError: not a RESP2 reply.
+    """
+    end = buf.find(b"\r\n", pos)
+    if end < 0:
+        raise _Incomplete
+    kind, rest = buf[pos : pos + 1], bytes(buf[pos + 1 : end])
+    pos = end + 2
+    if kind == b":":
+        return int(rest), pos
+    if kind == b"$":
+        n = int(rest)
+        if n < 0:
+            return None, pos
+        if len(buf) < pos + n + 2:
+            raise _Incomplete
+        return bytes(buf[pos : pos + n]), pos + n + 2
+    if kind == b"*":
+        n = int(rest)
+        if n < 0:
+            return None, pos
+        items = []
+        for _ in range(n):
+            item, pos = parse(buf, pos)
+            items.append(item)
+        return items, pos
+    if kind == b"+":
+        return rest, pos
+    if kind == b"-":
+        return RespError(rest.decode(errors="replace")), pos
+    raise RespError(f"unexpected reply {bytes(buf[pos - len(rest) - 3 : pos])[:40]!r}")
+
+
+class _Protocol(asyncio.Protocol):
+    def __init__(self, owner: RespConnection) -> None:
+        self.owner = owner
+        self.buf = bytearray()
+
+    def data_received(self, data: bytes) -> None:
+        self.buf += data
+        pos = 0
+        waiting = self.owner._waiting
+        try:
+            while pos < len(self.buf):
+                reply, pos = parse(self.buf, pos)
+                if not waiting:
+                    raise RespError("a reply came that no command waits for")
+                f = waiting.popleft()
+                if not f.done():
+                    f.set_result(reply)
+        except _Incomplete:
+            pass
+        except (RespError, ValueError) as e:
+            self.owner.close(ConnectionLost(f"unreadable reply from Redis: {e}"))
+            return
+        del self.buf[:pos]
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.owner.close(ConnectionLost(f"the connection to Redis broke: {exc or 'closed by the server'}"))
+
+
+class RespConnection:
+    """One TCP connection to a Redis server, pipelined.
+
+    Args:
+        host: Server host.
+        port: Server port.
+        username: ACL user (None: the default user).
+        password: Password (None: none).
+        db: Database number.
+        timeout_s: Longest wait for a connection, or for a reply once sent.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        username: str | None = None,
+        password: str | None = None,
+        db: int = 0,
+        timeout_s: float = 5.0,
+    ) -> None:
+        self.address = (host, port)
+        self._auth = (username, password)
+        self._db = db
+        self.timeout_s = timeout_s
+        self._transport: asyncio.Transport | None = None
+        self._waiting: collections.deque[asyncio.Future] = collections.deque()
+        self.closed = False
+
+    async def open(self) -> None:
+        """Connect, authenticate and select the database.
+
+        Raises:
+            ConnectionLost: the server cannot be reached in time, or refused the handshake.
+        """
+        loop = asyncio.get_running_loop()
+        try:
+            self._transport, _ = await asyncio.wait_for(
+                loop.create_connection(lambda: _Protocol(self), *self.address), self.timeout_s
+            )
+        except (OSError, TimeoutError) as e:
+            self.closed = True
+            raise ConnectionLost(
+                f"cannot connect to Redis at {self.address[0]}:{self.address[1]}: {e}"
+            ) from e
+        setup = []
+        user, password = self._auth
+        if password is not None:
+            setup.append(["AUTH", user, password] if user else ["AUTH", password])
+        if self._db:
+            setup.append(["SELECT", self._db])
+        for reply in await self.call(*setup) if setup else ():
+            if isinstance(reply, RespError):
+                self.close(ConnectionLost(f"Redis refused the connection's setup: {reply}"))
+                raise ConnectionLost(f"Redis refused the connection's setup: {reply}")
+
+    def send(self, *commands: list) -> list[asyncio.Future]:
+        """Write `commands` now; one future per command for its reply (an error reply is a `RespError` result).
+
+        If the last reply is not in within `timeout_s`, the connection is closed and every future still waiting
+        fails with ConnectionLost (a late reply could not be matched to its command any more).
+
+        Raises:
+            ConnectionLost: the connection is closed.
+        """
+        if self.closed or self._transport is None:
+            raise ConnectionLost("the connection is closed")
+        loop = asyncio.get_running_loop()
+        futures = [loop.create_future() for _ in commands]
+        self._waiting.extend(futures)
+        self._transport.write(encode(*commands))
+        timer = loop.call_later(self.timeout_s, self._late, futures[-1])
+        futures[-1].add_done_callback(lambda _: timer.cancel())
+        return futures
+
+    def _late(self, last: asyncio.Future) -> None:
+        if not last.done():
+            self.close(ConnectionLost(f"no reply from Redis within {self.timeout_s:g} s"))
+
+    async def call(self, *commands: list) -> list:
+        """Send `commands` at once and return their replies (an error reply is a `RespError` in its place).
+
+        Raises:
+            ConnectionLost: the connection broke, or a reply took longer than `timeout_s`.
+        """
+        return [await f for f in self.send(*commands)]
+
+    def close(self, error: BaseException | None = None) -> None:
+        """Close the connection; every command still waiting fails with `error` (default ConnectionLost)."""
+        self.closed = True
+        error = error or ConnectionLost("the connection was closed")
+        while self._waiting:
+            f = self._waiting.popleft()
+            if not f.done():
+                f.set_exception(error)
+        if self._transport is not None:
+            self._transport.close()
