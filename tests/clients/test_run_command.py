@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 
 import pytest
 from typer.testing import CliRunner
@@ -59,6 +60,22 @@ def test_unreachable_server_exits_with_a_clear_message():
     r = runner.invoke(app, ["run", "--server", "http://127.0.0.1:9", "--retries", "1", "--steps", "5"])
     assert r.exit_code == 1
     assert "error: unavailable: could not connect to http://127.0.0.1:9 after 2 attempt(s)" in r.output
+
+
+@pytest.mark.parametrize("transport", [["--grpc"], ["--grpc", "--stream"], ["--server"]])
+def test_refused_connection_is_one_line_naming_the_target_and_what_to_check(transport):
+    with socket.socket() as closed:  # bound, never listening: every connection to it is refused
+        closed.bind(("127.0.0.1", 0))
+        target = f"127.0.0.1:{closed.getsockname()[1]}"
+        address = target if transport[0] == "--grpc" else f"http://{target}"
+        args = ["run", transport[0], address, *transport[1:], "--retries", "0", "--steps", "5"]
+        r = runner.invoke(app, args)
+    assert r.exit_code == 1
+    (line,) = r.output.strip().splitlines()
+    assert line.startswith(f"error: unavailable: could not connect to {address} after 1 attempt(s): ")
+    assert "Rpc" not in line and "check that the server is running" in line
+    flag = "--grpc HOST:PORT" if transport[0] == "--grpc" else "--server URL"
+    assert flag in line
 
 
 def test_run_is_a_gmt_command():
