@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from service.rest import openapi
+from service.rest import media, openapi
 from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
 
@@ -237,8 +237,8 @@ class AnswerCutOff:
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
-    The same contract as the documented route in `routes.py` (body limit, validation messages, error envelope,
-    `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
+    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation messages,
+    error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
     cost: measured, FastAPI's stack was most of the server's time per act under load. Any other request passes
     through untouched.
     """
@@ -275,6 +275,11 @@ class FastAct:
             if raw is None:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
+            if raw:
+                content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
+                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
+                if refusal is not None:
+                    return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
                 return 200, await act_answer(core, sid, raw), session
             except ValidationError as e:

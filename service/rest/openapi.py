@@ -43,7 +43,8 @@ def build(app: FastAPI, core: Core | None) -> dict:
         title=app.title,
         version=app.version,
         description=app.description
-        + f"\n\nRequest bodies are limited to {settings.max_request_bytes} bytes (413 payload_too_large)."
+        + f"\n\nRequest bodies are limited to {settings.max_request_bytes} bytes (413 payload_too_large)"
+        + " and are JSON: `Content-Type: application/json` (415 unsupported_media_type otherwise, without one too)."
         + ' Errors are `{"error": {"code", "message"}}`.',
         routes=app.routes,
     )
@@ -54,6 +55,11 @@ def build(app: FastAPI, core: Core | None) -> dict:
     for item in doc["paths"].values():
         for op in item.values():
             op.get("responses", {}).pop("422", None)
+            if "requestBody" in op:  # `media.require_json` / `FastAct`
+                op["responses"]["415"] = {
+                    "description": "The body's Content-Type is not application/json (or absent)",
+                    "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
+                }
     if models:
         _exact_bodies(doc, schemas, models)
     if settings.token is not None:
