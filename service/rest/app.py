@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from service.rest import media, openapi
+from service.rest import docs, media, openapi
 from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
 
@@ -152,10 +152,11 @@ class BodyLimit:
 class AuthFirst:
     """With auth on, refuses a request without the right bearer token before anything reads its body.
 
-    Health checks and the API docs stay open; every other path (unknown ones included) needs the token.
+    Health checks and the API docs (their pages and assets) stay open; every other path (unknown ones included)
+    needs the token.
     """
 
-    OPEN = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS
 
     def __init__(self, app: ASGIApp, token: str | None) -> None:
         self.app = app
@@ -398,10 +399,13 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         lifespan=lifespan,
         # No trailing-slash redirects: Starlette builds their Location from the Host header.
         redirect_slashes=False,
+        docs_url=None,  # `docs` serves /docs and /redoc with their assets from the package, not a CDN
+        redoc_url=None,
     )
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
+    docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
