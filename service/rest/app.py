@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service import examples
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from service.rest import docs, media, openapi
@@ -385,6 +386,8 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         c = core or Core(settings)
         if not c.started:
             await c.start()  # models load here, never at import time
+        loaded = {name: m.checkpoint for name, m in (c.registry.models if c.registry else {}).items()}
+        app.state.examples = await asyncio.to_thread(examples.examples_of, loaded)
         app.state.core = c
         try:
             yield

@@ -80,9 +80,10 @@ async def list_models(core: CoreDep) -> S.ModelList:
 
 
 @api.get("/models/{name}", response_model=S.ModelOut, tags=["models"], responses=errors(404))
-async def get_model(name: str, core: CoreDep) -> S.ModelOut:
-    """A model's spaces, goal table and context length."""
-    return S.ModelOut.of(core.get_model(name))
+async def get_model(name: str, core: CoreDep, request: Request) -> S.ModelOut:
+    """A model's spaces, goal table, context length and an example observation."""
+    view = core.get_model(name)
+    return S.ModelOut.of(view, getattr(request.app.state, "examples", {}).get(view.name))
 
 
 @api.post(
