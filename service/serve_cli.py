@@ -49,8 +49,13 @@ def serve_command(**flags: Any) -> None:
         raise typer.Exit(1) from None
     except PortUnavailable as e:
         typer.echo(f"error: {e}", err=True)
-        typer.echo(_port_hint(e.transport), err=True)
+        typer.echo(_port_hint(e.transport) if e.port_at_fault else _HOST_HINT, err=True)
         raise typer.Exit(1) from None
+
+
+_HOST_HINT = (
+    "check the interface to listen on: gmt serve --host ADDRESS or GMT_HOST=ADDRESS (default 127.0.0.1)"
+)
 
 
 def _port_hint(transport: str) -> str:

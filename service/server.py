@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import logging
 import signal
@@ -38,18 +39,21 @@ class _Uvicorn(uvicorn.Server):
 
 
 class PortUnavailable(OSError):
-    """A port `gmt serve` was told to listen on cannot be bound (in use, or not allowed).
+    """A port `gmt serve` was told to listen on cannot be bound (in use, not allowed, or no such interface).
 
     Attributes:
         transport: "REST" or "gRPC".
         host: The interface.
         port: The port.
         reason: Why, as the system says it (e.g. "Address already in use").
+        port_at_fault: Whether another port would do (in use, or privileged), rather than another host.
     """
 
-    def __init__(self, transport: str, host: str, port: int, reason: str) -> None:
-        super().__init__(f"cannot listen for {transport} on {host}:{port}: {reason}")
+    def __init__(self, transport: str, host: str, port: int, reason: str, port_at_fault: bool = True) -> None:
+        address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        super().__init__(f"cannot listen for {transport} on {address}: {reason}")
         self.transport, self.host, self.port, self.reason = transport, host, port, reason
+        self.port_at_fault = port_at_fault
 
 
 def _bound(host: str, port: int, transport: str) -> socket.socket:
@@ -59,13 +63,18 @@ def _bound(host: str, port: int, transport: str) -> socket.socket:
         PortUnavailable: the port cannot be bound.
     """
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)  # asyncio sets TCP_NODELAY only then
+    sock = None
     try:
+        sock = socket.socket(
+            family, socket.SOCK_STREAM, socket.IPPROTO_TCP
+        )  # asyncio sets TCP_NODELAY then only
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((host, port))
     except OSError as e:
-        sock.close()
-        raise PortUnavailable(transport, host, port, e.strerror or str(e)) from None
+        if sock is not None:
+            sock.close()
+        at_fault = e.errno in (errno.EADDRINUSE, errno.EACCES)
+        raise PortUnavailable(transport, host, port, e.strerror or str(e), at_fault) from None
     return sock
 
 

@@ -106,3 +106,27 @@ def test_grpc_does_not_join_a_port_another_server_holds_with_so_reuseport(ckpt_r
 
         with pytest.raises((RuntimeError, OSError)):
             asyncio.run(bind())
+
+
+def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
+    gmt = str(Path(sys.executable).parent / "gmt")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    cmd = [
+        gmt,
+        "serve",
+        "--host",
+        "::2",
+        "--rest-port",
+        "0",
+        "--grpc-port",
+        "0",
+        "--checkpoints",
+        str(tmp_path),
+    ]
+    r = subprocess.run(
+        cmd, capture_output=True, text=True, env=env, timeout=120
+    )  # bind only: nothing is sent
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    first, hint = r.stderr.strip().splitlines()
+    assert first.startswith("error: cannot listen for REST on [::2]:0: ")
+    assert "--host" in hint and "GMT_HOST" in hint and "port" not in hint
