@@ -65,9 +65,8 @@ def _bound(host: str, port: int, transport: str) -> socket.socket:
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = None
     try:
-        sock = socket.socket(
-            family, socket.SOCK_STREAM, socket.IPPROTO_TCP
-        )  # asyncio sets TCP_NODELAY then only
+        # IPPROTO_TCP given: asyncio sets TCP_NODELAY only then
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((host, port))
     except OSError as e:
@@ -128,11 +127,14 @@ class Server:
             except BaseException:
                 await self.core.close()
                 raise
-        sock = _bind(s.host, s.rest_port)
         try:
-            _check_port(s.host, s.grpc_port, "gRPC")  # before the models load, not after
+            sock = _bind(s.host, s.rest_port)
+            try:
+                _check_port(s.host, s.grpc_port, "gRPC")  # before the models load, not after
+            except PortUnavailable:
+                sock.close()
+                raise
         except PortUnavailable:
-            sock.close()
             await self.core.close()
             raise
         self.rest_port = sock.getsockname()[1]

@@ -239,10 +239,10 @@ class AnswerCutOff:
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
-    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation messages,
-    error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
-    cost: measured, FastAPI's stack was most of the server's time per act under load. Any other request passes
-    through untouched.
+    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation
+    messages, error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a
+    fraction of the per-request cost: measured, FastAPI's stack was most of the server's time per act under load.
+    Any other request passes through untouched.
     """
 
     _PATH = re.compile(r"^/sessions/([^/]+)/act$")

@@ -154,9 +154,7 @@ def _act_examples(doc: dict, models: list[ModelView], examples: dict[str, Exampl
         name: {
             "summary": f"{name}: {e.description}",
             "value": {
-                "requests": [
-                    {"session_id": "<id of a session on " + name + ">", "observation": e.observation}
-                ]
+                "requests": [{"session_id": f"<id of a session on {name}>", "observation": e.observation}]
             },
         }
         for name, e in shown

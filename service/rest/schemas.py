@@ -107,7 +107,7 @@ class ModelOut(BaseModel):
     )
     example_observation: ExampleObservation | None = Field(
         default=None,
-        description="What an observation of this model looks like (null before the models load).",
+        description="What an observation of this model looks like (where it comes from: `source`).",
     )
 
     @classmethod
