@@ -42,7 +42,7 @@ def run_command(
     """Drive an agent remotely: send observations, apply actions, report each goal segment."""
     import gymnasium as gym
 
-    from gmt.client.errors import ServiceError
+    from gmt.client.errors import ConnectionFailed, ServiceError
     from gmt.client.runner import StatusLine, parse_goal, parse_schedule, run
     from gmt.common.envs import SpaceMismatch
 
@@ -68,6 +68,14 @@ def run_command(
     try:
         with client:
             run(client, cfg, echo=typer.echo, status=StatusLine())
+    except ConnectionFailed as e:  # one line: the address tried and what to check
+        hint = (
+            "--grpc HOST:PORT is its gRPC address (gmt serve --grpc-port, default 50051)"
+            if grpc
+            else "--server URL is its REST address (gmt serve --rest-port, default 8000)"
+        )
+        typer.echo(f"error: {e}; check that the server is running and that {hint}", err=True)
+        raise typer.Exit(1) from None
     except (SpaceMismatch, ServiceError, MissingExtra, KeyError, ValueError, gym.error.Error) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         typer.echo(f"error: {msg}", err=True)

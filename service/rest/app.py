@@ -17,9 +17,10 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from gmt.service import examples
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from gmt.service.rest import openapi
+from gmt.service.rest import docs, media, openapi
 from gmt.service.rest.routes import act_answer, api, public, session_header
 from gmt.service.settings import Settings
 
@@ -152,10 +153,11 @@ class BodyLimit:
 class AuthFirst:
     """With auth on, refuses a request without the right bearer token before anything reads its body.
 
-    Health checks and the API docs stay open; every other path (unknown ones included) needs the token.
+    Health checks and the API docs (their pages and assets) stay open; every other path (unknown ones included)
+    needs the token.
     """
 
-    OPEN = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS
 
     def __init__(self, app: ASGIApp, token: str | None) -> None:
         self.app = app
@@ -237,10 +239,10 @@ class AnswerCutOff:
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
-    The same contract as the documented route in `routes.py` (body limit, validation messages, error envelope,
-    `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
-    cost: measured, FastAPI's stack was most of the server's time per act under load. Any other request passes
-    through untouched.
+    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation
+    messages, error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a
+    fraction of the per-request cost: measured, FastAPI's stack was most of the server's time per act under load.
+    Any other request passes through untouched.
     """
 
     _PATH = re.compile(r"^/sessions/([^/]+)/act$")
@@ -275,6 +277,11 @@ class FastAct:
             if raw is None:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
+            if raw:
+                content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
+                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
+                if refusal is not None:
+                    return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
                 return 200, await act_answer(core, sid, raw), session
             except ValidationError as e:
@@ -379,6 +386,8 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         c = core or Core(settings)
         if not c.started:
             await c.start()  # models load here, never at import time
+        loaded = {name: m.checkpoint for name, m in (c.registry.models if c.registry else {}).items()}
+        app.state.examples = await asyncio.to_thread(examples.examples_of, loaded)
         app.state.core = c
         try:
             yield
@@ -393,10 +402,13 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         lifespan=lifespan,
         # No trailing-slash redirects: Starlette builds their Location from the Host header.
         redirect_slashes=False,
+        docs_url=None,  # `docs` serves /docs and /redoc with their assets from the package, not a CDN
+        redoc_url=None,
     )
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
+    docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
