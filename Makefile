@@ -1,5 +1,5 @@
-# Every target that needs Python creates or reuses .venv and installs into it the extra it needs (DESIGN.md section
-# 8), at the versions of constraints.txt: `make serve` the `serve` extra, `make test` the `dev` extra (all tests).
+# Every target that needs Python creates or reuses .venv and installs into it the extra it needs (docs/install.md),
+# at the versions of constraints.txt: `make serve` the `serve` extra, `make test` the `dev` extra (all tests).
 # torch is pinned there as its CPU build: pip finds it in a local wheel directory (as here) or, elsewhere, on the
 # PyTorch CPU index (export PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu).
 PY ?= python3

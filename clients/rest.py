@@ -1,4 +1,4 @@
-"""REST client (httpx) for the service's JSON API (DESIGN.md section 6)."""
+"""REST client (httpx) for the service's JSON API (docs/architecture.md, "API shapes")."""
 
 from __future__ import annotations
 

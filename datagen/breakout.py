@@ -193,7 +193,7 @@ LEVELS: dict[str, Skill] = {
 # Episodes per level by default: the same number each, so that no level outweighs the others in the
 # k-means + silhouette relabelling (with many more short low-return episodes it settles on k = 2).
 DEFAULT_EPISODES = {"random": 80, "weak": 80, "medium": 80, "good": 80, "strong": 80}
-# Agent steps per episode at most: the 1000-step episodes of the evaluation protocol (DESIGN.md section 5; the
+# Agent steps per episode at most: the 1000-step episodes of the evaluation protocol (docs/architecture.md; the
 # paper's Breakout switch at step 300 splits an episode 0.3 / 0.7). At 2000 the strong level's returns (~280)
 # dwarf the others and the relabelling picks k = 2.
 DEFAULT_MAX_STEPS = 1000

@@ -1,4 +1,4 @@
-"""Goal-switching evaluation (DESIGN.md section 5, paper section 3.1 and A.2.3).
+"""Goal-switching evaluation (docs/architecture.md, "Evaluation protocol"; paper section 3.1 and A.2.3).
 
 All episodes of every condition step in lockstep through the batched `PolicyEngine`, which is also what the
 server uses. Conditions: hold every goal; every ordered switch pair at mid-episode; cycling through the goals
@@ -71,7 +71,7 @@ class Condition:
 def protocol(
     n_goals: int, steps: int = 1000, multi_every: tuple[int, ...] = MULTI_SWITCH_EVERY
 ) -> list[Condition]:
-    """The conditions of DESIGN.md section 5 for `n_goals` goals and `steps`-step episodes.
+    """The conditions of the evaluation protocol (docs/architecture.md) for `n_goals` goals and `steps`-step episodes.
 
     For 1000 steps, holds are measured over [100, 1000), switches at 500 over [100, 500) and [600, 1000), and
     cycles of N steps after their first N/4 steps (a shorter last cycle after a quarter of its own length).

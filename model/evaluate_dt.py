@@ -1,4 +1,4 @@
-"""The Decision Transformer baseline under the goal-switching protocol (DESIGN.md section 5, paper A.2.3).
+"""The Decision Transformer baseline under the goal-switching protocol (docs/architecture.md, paper A.2.3).
 
 A Decision Transformer (a `GMT` with `return` conditioning) is steered by a return-to-go instead of a goal id.
 Goal g's target is the mean episode return of g's trajectories in the training data (recorded in gmt.json at

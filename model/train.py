@@ -1,4 +1,4 @@
-"""Training loop: seeded, resumable, CPU-efficient; writes a checkpoint directory (DESIGN.md section 4)."""
+"""Training loop: seeded, resumable, CPU-efficient; writes a checkpoint directory (docs/architecture.md, "Checkpoints")."""
 
 from __future__ import annotations
 

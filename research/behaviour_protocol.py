@@ -2,7 +2,7 @@
 
 A GMT learns its transitions from the behaviour data, so if the commanded agent itself cannot change speed
 within a multi-switch segment's settle-in, no GMT trained on its episodes will. This drives the agent with its
-own commands on the DESIGN.md protocol (15 seeds, holds, switches at 500, cycles every 300 / 200 / 100) and
+own commands on the evaluation protocol (docs/architecture.md) (15 seeds, holds, switches at 500, cycles every 300 / 200 / 100) and
 judges it against the goal means of its collected data, with the GMT protocol's tolerance and settle-in.
 
 Usage:

@@ -1,6 +1,6 @@
 """Evaluate a checkpoint under inference variants the product does not offer, to test a diagnosis.
 
-`gmt eval` plays the DESIGN.md protocol as the server would act. Two questions about a model that misses the bar
+`gmt eval` plays the evaluation protocol (docs/architecture.md) as the server would act. Two questions about a model that misses the bar
 need the same protocol with one thing changed:
 
 - `--restart`: at every goal switch the session's context is cleared (as `POST /sessions/{id}/reset` with the new

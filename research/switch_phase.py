@@ -1,8 +1,8 @@
 """How a model's speed change after a switch depends on where in its stride the switch finds it.
 
 A legged gait's speed swings within each stride (Hopper's fast hop: ~2.0-2.9 m/s over ~80 steps), so a switch
-to a slower goal lands at some point of that stride, and braking from some points takes longer. The DESIGN.md
-protocol switches at fixed steps, and its seeds start from nearly the same rest pose, so every episode of a
+to a slower goal lands at some point of that stride, and braking from some points takes longer. The evaluation
+protocol (docs/architecture.md) switches at fixed steps, and its seeds start from nearly the same rest pose, so every episode of a
 condition meets the switch at about the same point of the stride: a condition can pass or fail on where that
 point happens to be. This plays the start of the every-N cycle (goal `--from-goal` for N steps, `--to-goal` for
 N, then `--from-goal` again) with the third segment's switch moved by each offset in `--offsets`, and prints the

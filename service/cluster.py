@@ -6,7 +6,7 @@ The session store has no single point of failure: a Redis primary (`redis`) and 
 `gmt-2`) reach the primary through the sentinels (`--redis-url redis+sentinel://...`) and acknowledge a step only
 once a Redis replica holds it (`--store-min-replicas 1`); two Redis replicas, so that one is still there to
 acknowledge after the other was promoted. nginx is in front with `docker/nginx.conf` rendered for loopback
-addresses: REST on :8000 and gRPC on :50051 by default (DESIGN.md section 8; `docker/compose.yaml` is the same
+addresses: REST on :8000 and gRPC on :50051 by default (docs/cluster.md; `docker/compose.yaml` is the same
 topology in containers). `up` returns once every process is ready (the Redis replicas in sync, the sentinels
 agreeing on the primary and knowing each other and the replicas, nginx answering on both ports); each
 process's pid is in `<run dir>/<name>.pid`, and `down` stops exactly those processes.

@@ -1,5 +1,6 @@
 """The `gmt` console command: every registered command answers --help, options come from the configurations they
-fill (same defaults), the command lines written in the repository still parse, and the entry point is lazy."""
+fill (same defaults), the command lines written in the repository (Makefile, README, docs/, PROVENANCE.md) still
+parse, and the entry point is lazy."""
 
 from __future__ import annotations
 
@@ -133,6 +134,7 @@ def test_every_serve_flag_shows_the_settings_default():
 # ----- the command lines written in the repository still parse ---------------------------------------------------
 def _written_command_lines() -> list[tuple[str, str]]:
     texts = [("Makefile", (ROOT / "Makefile").read_text()), ("README.md", (ROOT / "README.md").read_text())]
+    texts += [(str(p.relative_to(ROOT)), p.read_text()) for p in sorted(ROOT.glob("docs/*.md"))]
     texts += [(str(p.relative_to(ROOT)), p.read_text()) for p in ROOT.glob("checkpoints/*/PROVENANCE.md")]
     for p in ROOT.glob("checkpoints/*/gmt.json"):
         texts.append((str(p.relative_to(ROOT)), json.loads(p.read_text()).get("command", "")))
@@ -142,10 +144,10 @@ def _written_command_lines() -> list[tuple[str, str]]:
         text = re.sub(r"\\\n\s*", " ", text)
         for line in text.splitlines():
             m = re.match(
-                r"^\s*(?:\$\(BIN\)/)?(gmt (?:train|eval|serve|run|data \w+|cluster \w+|bench)\b[^#&|;`]*)",
+                r"^\s*(?:\$\(BIN\)/|\.venv/bin/)?(gmt (?:train|eval|serve|run|data \w+|cluster \w+|bench)\b[^#&|;`]*)",
                 line,
             )
-            if m:
+            if m and "..." not in m.group(1):  # a line that elides its arguments is not a command to run
                 line = m.group(1)
                 for _ in range(10):  # nested variables, e.g. $(DEMO_VIA_$(TRANSPORT)), inner first
                     line = re.sub(r"\$\((\w+)\)", lambda v: make_vars.get(v.group(1), v.group(1)), line)
@@ -155,7 +157,8 @@ def _written_command_lines() -> list[tuple[str, str]]:
 
 def test_the_written_command_lines_find_commands():
     wheres = {w for w, _ in _written_command_lines()}
-    assert {"Makefile", "README.md"} <= wheres and any(w.endswith("PROVENANCE.md") for w in wheres)
+    assert {"Makefile", "README.md", "docs/training.md", "docs/data.md", "docs/clients.md"} <= wheres
+    assert any(w.endswith("PROVENANCE.md") for w in wheres)
 
 
 @pytest.mark.parametrize("where, line", _written_command_lines(), ids=lambda x: x[:60])

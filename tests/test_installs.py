@@ -1,4 +1,4 @@
-"""Installs by role (DESIGN.md section 8): what each extra brings, the lock that pins them, what serving imports;
+"""Installs by role (docs/install.md): what each extra brings, the lock that pins them, what serving imports;
 the one import package (`gmt`) an install puts into site-packages, and the base install on every supported Python
 (3.11, 3.12, 3.13: each found here is used, the others are skipped) driving a live server."""
 

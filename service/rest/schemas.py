@@ -1,4 +1,4 @@
-"""JSON bodies of the REST API (pydantic v2), as DESIGN.md section 6 fixes them.
+"""JSON bodies of the REST API (pydantic v2), as docs/architecture.md ("API shapes") lists them.
 
 Request bodies are validated strictly: a number is never read from a string or a boolean, so that the server
 accepts exactly what its OpenAPI schema (`gmt.service.rest.openapi`) admits. Integers may be written as integral

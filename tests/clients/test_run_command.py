@@ -92,11 +92,12 @@ def test_bad_schedule_and_video_without_out_are_usage_errors():
     assert r.exit_code == 2 and "--out" in r.output
 
 
-def test_the_readmes_gmt_run_examples_write_to_distinct_folders():
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    section = readme.split("\n## Drive it remotely", 1)[1].split("\n## ", 1)[0]  # to the next section, if any
-    blocks = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
-    commands = [c for b in blocks for c in b.replace("\\\n", " ").splitlines() if c.startswith("gmt run ")]
+def test_the_documented_gmt_run_examples_write_to_distinct_folders():
+    root = Path(__file__).resolve().parents[2]
+    text = (root / "README.md").read_text() + (root / "docs" / "clients.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)```", text, flags=re.S)
+    lines = [c.removeprefix(".venv/bin/") for b in blocks for c in b.replace("\\\n", " ").splitlines()]
+    commands = [c for c in lines if c.startswith("gmt run ")]
     outs = [c.split("--out ")[1].split()[0] for c in commands if "--out " in c]
     assert len(commands) >= 3 and len(outs) == len(commands)
     assert len(set(outs)) == len(outs), outs  # one example's files never overwrite another's

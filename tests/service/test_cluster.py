@@ -1,4 +1,4 @@
-"""The scale-out topology for real (DESIGN.md section 8): `gmt cluster up` starts a Redis primary, two Redis
+"""The scale-out topology for real (docs/cluster.md): `gmt cluster up` starts a Redis primary, two Redis
 replicas and three sentinels, two `gmt serve` replicas and nginx with the shipped docker/nginx.conf on free
 loopback ports. nginx routes each session to one replica, and when that replica is killed (SIGKILL) while a
 request is in flight, the clients' retries (with the expected step) continue the episode on the other one with

@@ -1,7 +1,7 @@
 """The shipped checkpoints, served for real: the evaluation protocol's switch between the extreme goals.
 
 For every shipped checkpoint of a MuJoCo task, real environments are stepped through a real server on a loopback
-port as `gmt eval` judges a switch (DESIGN.md section 5): the lowest goal, then the highest from step 500 through
+port as `gmt eval` judges a switch (docs/architecture.md, "Evaluation protocol"): the lowest goal, then the highest from step 500 through
 `PUT /sessions/{id}/goal` (and the reverse), 1000 steps, for two seeds; the four sessions act together through
 `POST /act`. Each segment's mean x-velocity after its settle-in must be within the evaluation tolerance of its
 goal's dataset mean, and no episode may end early (a fall fails, as in `gmt eval`).
@@ -51,7 +51,7 @@ def test_the_protocols_switch_between_the_extreme_goals(shipped_server, ckpt_dir
     steps = runs[0][0].steps
     assert steps == 1000 and all(
         c.schedule[1][0] == 500 for c, _ in runs
-    )  # DESIGN.md: the switch at step 500
+    )  # the evaluation protocol: the switch at step 500
     envs = [gym.make(ckpt.env_id) for _ in runs]
     obs = [env.reset(seed=seed)[0] for env, (_, seed) in zip(envs, runs, strict=True)]
     vel = np.zeros((len(runs), steps))
