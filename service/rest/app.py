@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.console import routes as console
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from service.rest import openapi
@@ -152,17 +153,27 @@ class BodyLimit:
 class AuthFirst:
     """With auth on, refuses a request without the right bearer token before anything reads its body.
 
-    Health checks and the API docs stay open; every other path (unknown ones included) needs the token.
+    Health checks, the API docs and the console's static page (`/ui`: no data; the page sends the token on every
+    call it makes) stay open; every other path (unknown ones included) needs the token.
     """
 
-    OPEN = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+    OPEN = frozenset(
+        {"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json", "/ui"}
+    )
+    OPEN_PREFIXES = ("/ui/",)
 
     def __init__(self, app: ASGIApp, token: str | None) -> None:
         self.app = app
         self.token = None if token is None else token.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
+        path = scope.get("path", "")
+        if (
+            self.token is None
+            or scope["type"] != "http"
+            or path in self.OPEN
+            or path.startswith(self.OPEN_PREFIXES)
+        ):
             return await self.app(scope, receive, send)
         auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
         if auth is None or auth[:7].lower() != b"bearer ":  # the scheme is case-insensitive (RFC 9110)
@@ -397,6 +408,7 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
+    app.include_router(console.router)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
