@@ -1,0 +1,38 @@
+"""Helpers of the browser tests (the `chromium` fixture is in tests/conftest.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from urllib.parse import urlsplit
+
+
+def requested_urls(driver) -> list[str]:
+    """Every URL the current page requested: Chromium's network log (drained by the call) and the page's own
+    resource timing entries."""
+    urls = driver.execute_script(
+        "return [location.href, ...performance.getEntriesByType('resource').map((e) => e.name)]"
+    )
+    for entry in driver.get_log("performance"):
+        message = json.loads(entry["message"])["message"]
+        if message["method"] == "Network.requestWillBeSent":
+            urls.append(message["params"]["request"]["url"])
+    return urls
+
+
+def external(urls: list[str]) -> list[str]:
+    """The URLs that are neither on a loopback address nor data: URLs."""
+    return [
+        u
+        for u in urls
+        if not (u.startswith("data:") or urlsplit(u).hostname in ("127.0.0.1", "localhost", "::1"))
+    ]
+
+
+def save_screenshot(driver, name: str, tmp_path) -> None:
+    """A PNG of the page in `tmp_path`, and in $GMT_SCREENSHOT_DIR when set (how docs/ui-*.png are made)."""
+    png = driver.get_screenshot_as_png()
+    assert png.startswith(b"\x89PNG")
+    for folder in filter(None, (tmp_path, os.environ.get("GMT_SCREENSHOT_DIR"))):
+        Path(folder, name).write_bytes(png)
