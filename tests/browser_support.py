@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -31,8 +32,14 @@ def external(urls: list[str]) -> list[str]:
 
 
 def save_screenshot(driver, name: str, tmp_path) -> None:
-    """A PNG of the page in `tmp_path`, and in $GMT_SCREENSHOT_DIR when set (how docs/ui-*.png are made)."""
+    """A PNG of the page in `tmp_path`; also in $GMT_SCREENSHOT_DIR when set, in 256 colours (how docs/ui-*.png
+    are made)."""
     png = driver.get_screenshot_as_png()
     assert png.startswith(b"\x89PNG")
-    for folder in filter(None, (tmp_path, os.environ.get("GMT_SCREENSHOT_DIR"))):
-        Path(folder, name).write_bytes(png)
+    Path(tmp_path, name).write_bytes(png)
+    folder = os.environ.get("GMT_SCREENSHOT_DIR")
+    if folder:
+        from PIL import Image
+
+        image = Image.open(io.BytesIO(png)).convert("RGB").quantize(256)
+        image.save(Path(folder, name), optimize=True)

@@ -85,8 +85,8 @@ def test_console_follows_a_session_and_steers_it(chromium, served, tmp_path):
     high = _wait(
         d, lambda d: d.find_element(By.CSS_SELECTOR, '#goal-buttons button[data-goal="high"]'), "no buttons"
     )
-    _act(api, sid, 4)  # the page follows the event stream
-    _wait(d, lambda d: d.find_element(By.ID, "s-step").text == "12", "the event stream did not bring step 12")
+    _act(api, sid, 20)  # the page follows the event stream
+    _wait(d, lambda d: d.find_element(By.ID, "s-step").text == "28", "the event stream did not bring step 28")
 
     high.click()
     deadline = time.monotonic() + TIMEOUT_S
@@ -94,8 +94,8 @@ def test_console_follows_a_session_and_steers_it(chromium, served, tmp_path):
         assert time.monotonic() < deadline, "clicking 'high' did not change the session's goal"
         time.sleep(0.05)
     _wait(d, lambda d: d.find_element(By.ID, "s-goal").get_attribute("data-goal") == "2", "goal not shown")
-    _act(api, sid, 6)
-    _wait(d, lambda d: d.find_element(By.ID, "s-step").text == "18", "no act after the goal change")
+    _act(api, sid, 30)
+    _wait(d, lambda d: d.find_element(By.ID, "s-step").text == "58", "no act after the goal change")
     save_screenshot(d, "ui-session.png", tmp_path)
 
     # The target slider spans the goal means (0..2): 1.1 is nearest to medium's mean.

@@ -255,6 +255,9 @@ function onEvent(v, kind, d) {
     $("s-state").textContent = `last act ${d.latency_ms.toFixed(2)} ms in the server`;
   } else if (kind === "goal" || kind === "reset") {
     v.marks.push([d.step, `${kind} ${d.goal_name}`]);
+    const g = v.spec.goals.find((g) => g.id === d.goal);
+    if (g) $("target").value = g.mean; // the slider shows the goal now pursued
+    $("target-value").textContent = Number($("target").value).toFixed(2);
     if (kind === "reset") v.actions.length = v.goals.length = v.rewards.length = 0;
     setState(v, d);
   } else if (kind === "dropped") $("s-state").textContent = `${d.count} events dropped (slow page)`;
