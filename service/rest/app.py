@@ -363,7 +363,11 @@ class RequestMetrics:
             await send(message)
 
         core = getattr(scope["app"].state, "core", None) if "app" in scope else None
-        in_flight = core.metrics.in_flight_rest if core is not None and scope["path"] != "/metrics" else None
+        path = scope["path"]
+        counted = path != "/metrics" and not path.endswith(
+            "/events"
+        )  # a scrape; an event stream (long-lived)
+        in_flight = core.metrics.in_flight_rest if core is not None and counted else None
         if in_flight is not None:
             in_flight.inc()
         try:

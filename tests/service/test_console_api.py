@@ -199,6 +199,8 @@ def test_a_reader_that_leaves_is_let_go(served, api):
         lines = r.iter_lines()  # held: a dropped generator would close the stream
         assert next(lines) == "event: session"
         assert sid in served.core.events
+        metrics = api.get("/metrics").text  # an open stream is not a request in flight
+        assert 'gmt_requests_in_flight{transport="rest"} 0.0' in metrics
     deadline = time.monotonic() + 30
     while sid in served.core.events:  # the disconnect ends the subscription, no keep-alive needed
         assert time.monotonic() < deadline, "the subscription outlived its reader"
