@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
+.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -22,6 +22,25 @@ venv: $(VENV)/.installed-dev
 
 serve: $(VENV)/.installed-serve
 	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT)
+
+# With `make serve` running (another terminal, same REST_PORT / GRPC_PORT): install the `run` extra (MuJoCo,
+# matplotlib) into .venv and drive HalfCheetah-v5 with halfcheetah-gmt through the server, goal `low`, `high` from
+# step 300, `low` again from 600. Prints each goal segment's target and achieved speed, writes
+# $(DEMO_OUT)/episode-0.{json,csv,png}. Over REST at SERVER (default http://localhost:$(REST_PORT)), or with
+# TRANSPORT=grpc over the gRPC Control stream at GRPC_TARGET (default localhost:$(GRPC_PORT)). DEMO_ARGS replaces
+# the goals and length: make demo DEMO_ARGS="--goal lowest --schedule highest@500 --steps 1000 --video".
+SERVER ?= http://localhost:$(REST_PORT)
+GRPC_TARGET ?= localhost:$(GRPC_PORT)
+TRANSPORT ?= rest
+DEMO_OUT ?= runs/demo
+DEMO_ARGS ?= --goal low --schedule high@300,low@600 --steps 900 --seed 0
+DEMO_VIA_rest = --server $(SERVER)
+DEMO_VIA_grpc = --grpc $(GRPC_TARGET) --stream
+
+demo: $(VENV)/.installed-run
+	$(if $(DEMO_VIA_$(TRANSPORT)),,$(error TRANSPORT must be rest or grpc, not '$(TRANSPORT)'))
+	$(BIN)/gmt run --env HalfCheetah-v5 --model halfcheetah-gmt $(DEMO_VIA_$(TRANSPORT)) $(DEMO_ARGS) \
+		--out $(DEMO_OUT)
 
 # A Redis primary (redis) and two replicas (redis-replica, redis-replica-2) watched by three sentinels (sentinel-1..3,
 # quorum 2: a failed primary is replaced by a replica), two gmt replicas (gmt-1, gmt-2: --redis-url redis+sentinel://...,

@@ -146,6 +146,13 @@ def as_observation(obs: Any) -> np.ndarray:
     return x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x
 
 
+def _reason(e: BaseException) -> str:
+    """Why a connection failed, on one line: a gRPC error's details (its str() is a multi-line dump)."""
+    details = getattr(e, "details", None)
+    text = details() if callable(details) else str(e)
+    return " ".join(str(text or type(e).__name__).split())
+
+
 def with_retries(
     call: Callable[[], T],
     is_connection_error: Callable[[BaseException], bool],
@@ -171,7 +178,7 @@ def with_retries(
             if attempt == retries:
                 if connect:
                     raise ConnectionFailed(
-                        f"could not connect to {where} after {attempt + 1} attempt(s): {e}"
+                        f"could not connect to {where} after {attempt + 1} attempt(s): {_reason(e)}"
                     ) from e
                 raise
             time.sleep(backoff_s * 2**attempt)

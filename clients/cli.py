@@ -45,7 +45,7 @@ def run_command(
     import gymnasium as gym
 
     from clients.envs import SpaceMismatch
-    from clients.errors import ServiceError
+    from clients.errors import ConnectionFailed, ServiceError
     from clients.runner import StatusLine, parse_goal, parse_schedule, run
 
     if flags["video"] and flags["out"] is None:
@@ -70,6 +70,14 @@ def run_command(
     try:
         with client:
             run(client, cfg, echo=typer.echo, status=StatusLine())
+    except ConnectionFailed as e:  # one line: the address tried and what to check
+        hint = (
+            "--grpc HOST:PORT is its gRPC address (gmt serve --grpc-port, default 50051)"
+            if grpc
+            else "--server URL is its REST address (gmt serve --rest-port, default 8000)"
+        )
+        typer.echo(f"error: {e}; check that the server is running and that {hint}", err=True)
+        raise typer.Exit(1) from None
     except (SpaceMismatch, ServiceError, MissingExtra, KeyError, ValueError, gym.error.Error) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         typer.echo(f"error: {msg}", err=True)

@@ -16,6 +16,10 @@ from clients.base import ModelInfo
 from clients.extras import MissingExtra, require_module
 
 VIDEO_SIZE = (480, 320)  # width, height of rendered MuJoCo frames
+# The camera that follows the agent's centre of mass (`mode="trackcom"`) in the MJCF of Gymnasium's HalfCheetah,
+# Hopper, Walker2d and Ant. Without a camera named, Gymnasium renders from a free camera that stays put, and the
+# agent runs out of the picture.
+TRACKING_CAMERA = "track"
 
 
 class SpaceMismatch(ValueError):
@@ -91,7 +95,8 @@ def atari_env(
 
 
 def _make_plain(spec: ModelInfo, env_id: str, max_steps: int | None, render: bool) -> gym.Env:
-    """`gym.make(env_id)`; MuJoCo frames are rendered offscreen (EGL unless MUJOCO_GL says otherwise).
+    """`gym.make(env_id)`; MuJoCo frames are rendered offscreen (EGL unless MUJOCO_GL says otherwise) by the
+    model's tracking camera (`TRACKING_CAMERA`; a model without one falls back to Gymnasium's free camera).
 
     Raises:
         MissingExtra: a MuJoCo environment without MuJoCo installed (the `run` extra).
@@ -111,9 +116,14 @@ def _gym_make(env_id: str, max_steps: int | None, render: bool) -> gym.Env:
     width, height = VIDEO_SIZE
     try:
         return gym.make(
-            env_id, max_episode_steps=max_steps, render_mode="rgb_array", width=width, height=height
+            env_id,
+            max_episode_steps=max_steps,
+            render_mode="rgb_array",
+            width=width,
+            height=height,
+            camera_name=TRACKING_CAMERA,
         )
-    except TypeError:  # not a MuJoCo env: no width / height arguments
+    except TypeError:  # not a MuJoCo env: no width / height / camera arguments
         return gym.make(env_id, max_episode_steps=max_steps, render_mode="rgb_array")
 
 

@@ -198,18 +198,16 @@ class Context:
             "action": [p.h_action.dtype.str, list(p.h_action.shape[2:])],
         }
 
-    def since(self, t0: int) -> dict[str, np.ndarray]:
-        """The held steps from timestep `t0` on: `t` [m] and goals, blend_to, blend_w, states, actions [m, ...]."""
-        t = np.arange(max(t0, self.step - self.size), self.step)
-        pos, p = t % self.pool.H, self.pool
-        return {
-            "t": t,
-            "goals": p.h_goal[self.slot, pos],
-            "blend_to": p.h_blend_to[self.slot, pos],
-            "blend_w": p.h_blend_w[self.slot, pos],
-            "states": p.h_state[self.slot, pos],
-            "actions": p.h_action[self.slot, pos],
-        }
+    def held(self, t: int) -> tuple[int, int, float, np.ndarray, np.ndarray]:
+        """Held step `t` (one of the last `size` steps): goal token, blend target, blend weight, state, action."""
+        p, s, pos = self.pool, self.slot, t % self.pool.H
+        return (
+            int(p.h_goal[s, pos]),
+            int(p.h_blend_to[s, pos]),
+            float(p.h_blend_w[s, pos]),
+            p.h_state[s, pos],
+            p.h_action[s, pos],
+        )
 
     def to_stored(self) -> StoredContext:
         """The context as plain data (what a session store persists)."""

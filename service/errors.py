@@ -76,6 +76,12 @@ class PayloadTooLarge(ServiceError):
     code, http_status, grpc_code = "payload_too_large", 413, "RESOURCE_EXHAUSTED"
 
 
+class UnsupportedMediaType(ServiceError):
+    """A REST request body that is not declared JSON (see `service.rest.media`); gRPC has no such case."""
+
+    code, http_status, grpc_code = "unsupported_media_type", 415, "INVALID_ARGUMENT"
+
+
 class ResourceExhausted(ServiceError):
     """The server holds its maximum number of live sessions."""
 

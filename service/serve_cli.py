@@ -26,7 +26,7 @@ def serve_command(**flags: Any) -> None:
 
     from service import logs
     from service.errors import Unavailable
-    from service.server import serve
+    from service.server import PortUnavailable, serve
 
     try:
         settings = Settings(**{k: v for k, v in flags.items() if v is not None and v != [] and v != ()})
@@ -47,3 +47,21 @@ def serve_command(**flags: Any) -> None:
     except Unavailable as e:  # the session store did not answer at startup
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from None
+    except PortUnavailable as e:
+        typer.echo(f"error: {e}", err=True)
+        typer.echo(_port_hint(e.transport) if e.port_at_fault else _HOST_HINT, err=True)
+        raise typer.Exit(1) from None
+
+
+_HOST_HINT = (
+    "check the interface to listen on: gmt serve --host ADDRESS or GMT_HOST=ADDRESS (default 127.0.0.1)"
+)
+
+
+def _port_hint(transport: str) -> str:
+    """How to choose another port for `transport` ("REST" or "gRPC"): the flag, the variable, the make variable."""
+    name = "rest" if transport == "REST" else "grpc"
+    return (
+        f"choose another {transport} port: gmt serve --{name}-port PORT, GMT_{name.upper()}_PORT=PORT, "
+        f"or make serve {name.upper()}_PORT=PORT"
+    )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import logging
 import signal
@@ -37,14 +38,56 @@ class _Uvicorn(uvicorn.Server):
         self.listening.set()
 
 
-def _bind(host: str, port: int) -> socket.socket:
+class PortUnavailable(OSError):
+    """A port `gmt serve` was told to listen on cannot be bound (in use, not allowed, or no such interface).
+
+    Attributes:
+        transport: "REST" or "gRPC".
+        host: The interface.
+        port: The port.
+        reason: Why, as the system says it (e.g. "Address already in use").
+        port_at_fault: Whether another port would do (in use, or privileged), rather than another host.
+    """
+
+    def __init__(self, transport: str, host: str, port: int, reason: str, port_at_fault: bool = True) -> None:
+        address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        super().__init__(f"cannot listen for {transport} on {address}: {reason}")
+        self.transport, self.host, self.port, self.reason = transport, host, port, reason
+        self.port_at_fault = port_at_fault
+
+
+def _bound(host: str, port: int, transport: str) -> socket.socket:
+    """A TCP socket bound to (host, port), not listening yet.
+
+    Raises:
+        PortUnavailable: the port cannot be bound.
+    """
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)  # asyncio sets TCP_NODELAY only then
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind((host, port))
+    sock = None
+    try:
+        # IPPROTO_TCP given: asyncio sets TCP_NODELAY only then
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+    except OSError as e:
+        if sock is not None:
+            sock.close()
+        at_fault = e.errno in (errno.EADDRINUSE, errno.EACCES)
+        raise PortUnavailable(transport, host, port, e.strerror or str(e), at_fault) from None
+    return sock
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    sock = _bound(host, port, "REST")
     sock.listen(2048)
     sock.set_inheritable(True)
     return sock
+
+
+def _check_port(host: str, port: int, transport: str) -> None:
+    """Raise `PortUnavailable` now if `port` cannot be bound (gRPC binds it later, after the models load)."""
+    if port:
+        _bound(host, port, transport).close()
 
 
 class Server:
@@ -84,7 +127,16 @@ class Server:
             except BaseException:
                 await self.core.close()
                 raise
-        sock = _bind(s.host, s.rest_port)
+        try:
+            sock = _bind(s.host, s.rest_port)
+            try:
+                _check_port(s.host, s.grpc_port, "gRPC")  # before the models load, not after
+            except PortUnavailable:
+                sock.close()
+                raise
+        except PortUnavailable:
+            await self.core.close()
+            raise
         self.rest_port = sock.getsockname()[1]
         caps = connection_caps(s)
         guard = ConnectionGuard(
@@ -110,7 +162,10 @@ class Server:
             await self.core.close()
             raise RuntimeError("REST server failed to start (see the log above)")
         try:
-            self._grpc = GrpcServer(self.core, s.host, s.grpc_port)
+            try:
+                self._grpc = GrpcServer(self.core, s.host, s.grpc_port)
+            except (RuntimeError, OSError):  # grpcio's "Failed to bind to address": taken since the check
+                raise PortUnavailable("gRPC", s.host, s.grpc_port, "gRPC could not bind it") from None
             self.grpc_port = self._grpc.port
             await self._grpc.start()
         except BaseException:

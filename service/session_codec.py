@@ -74,16 +74,13 @@ def _state(session: Session, ctx: Context) -> bytes:
 
 def _record(ctx: Context, t: int) -> bytes:
     """Held step `t` as a record's bytes (`_record_dtype`), written field by field: no structured array."""
-    p, s = ctx.pool, ctx.slot
-    pos = t % p.H
-    head = _HEAD.pack(t, int(p.h_goal[s, pos]), int(p.h_blend_to[s, pos]), float(p.h_blend_w[s, pos]))
-    state, action = p.h_state[s, pos], p.h_action[s, pos]
+    goal, blend_to, blend_w, state, action = ctx.held(t)
     if not _LITTLE:
         state, action = (
             state.astype(state.dtype.newbyteorder("<")),
             action.astype(action.dtype.newbyteorder("<")),
         )
-    return head + state.tobytes() + action.tobytes()
+    return _HEAD.pack(t, goal, blend_to, blend_w) + state.tobytes() + action.tobytes()
 
 
 def create_fields(session: Session) -> dict[str, bytes]:

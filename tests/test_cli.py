@@ -146,7 +146,9 @@ def _written_command_lines() -> list[tuple[str, str]]:
                 line,
             )
             if m:
-                line = re.sub(r"\$\((\w+)\)", lambda v: make_vars.get(v.group(1), v.group(1)), m.group(1))
+                line = m.group(1)
+                for _ in range(10):  # nested variables, e.g. $(DEMO_VIA_$(TRANSPORT)), inner first
+                    line = re.sub(r"\$\((\w+)\)", lambda v: make_vars.get(v.group(1), v.group(1)), line)
                 lines.append((where, line.strip()))
     return lines
 

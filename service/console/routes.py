@@ -4,7 +4,7 @@ the page itself, `GET /ui` and `GET /ui/<asset>` (static files shipped in the pa
 Auth: the page and its assets hold no data and are served without a token (a browser cannot send a header on a
 page load); the page asks for the token, keeps it in the tab's `sessionStorage`, and sends it as `Authorization:
 Bearer` on every call it makes, the event stream included (read with `fetch`, not `EventSource`, which cannot set
-headers), so no token ever appears in a URL. `app.AuthFirst` leaves `/ui` open and guards everything else.
+headers), so no token ever appears in a URL. `app.AuthFirst` leaves `PATHS` open and guards everything else.
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ ASSETS = {  # every file the page loads: nothing else is served from /ui
     "console.js": "text/javascript; charset=utf-8",
     "console.css": "text/css; charset=utf-8",
 }
+PATHS = frozenset({"/ui", *(f"/ui/{name}" for name in ASSETS)})
+"""The page and its assets: open without a token (see `app.AuthFirst`)."""
 PAGE_HEADERS = {
     # Only this origin: the page can load nothing from elsewhere and send nothing elsewhere.
     "Content-Security-Policy": "default-src 'none'; script-src 'self'; style-src 'self'; connect-src 'self'; "

@@ -236,6 +236,8 @@ def server_options(settings: Settings, max_connections: int) -> list[tuple[str, 
         ("grpc.max_concurrent_streams", settings.grpc_max_streams_per_connection),
         ("grpc.max_allowed_incoming_connections", max_connections),
         ("grpc.server_handshake_timeout_ms", int(settings.grpc_handshake_timeout_s * 1000)),
+        # gRPC binds with SO_REUSEPORT by default: a second `gmt serve` on a taken port would share it silently.
+        ("grpc.so_reuseport", 0),
     ]
 
 

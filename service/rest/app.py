@@ -17,10 +17,11 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service import examples
 from service.console import routes as console
 from service.core import Core
 from service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from service.rest import openapi
+from service.rest import docs, media, openapi
 from service.rest.routes import act_answer, api, public, session_header
 from service.settings import Settings
 
@@ -153,27 +154,18 @@ class BodyLimit:
 class AuthFirst:
     """With auth on, refuses a request without the right bearer token before anything reads its body.
 
-    Health checks, the API docs and the console's static page (`/ui`: no data; the page sends the token on every
-    call it makes) stay open; every other path (unknown ones included) needs the token.
+    Health checks, the API docs (their pages and assets) and the console's page and assets (no data: the page
+    sends the token on every call it makes) stay open; every other path (unknown ones included) needs the token.
     """
 
-    OPEN = frozenset(
-        {"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json", "/ui"}
-    )
-    OPEN_PREFIXES = ("/ui/",)
+    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS | console.PATHS
 
     def __init__(self, app: ASGIApp, token: str | None) -> None:
         self.app = app
         self.token = None if token is None else token.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        path = scope.get("path", "")
-        if (
-            self.token is None
-            or scope["type"] != "http"
-            or path in self.OPEN
-            or path.startswith(self.OPEN_PREFIXES)
-        ):
+        if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
             return await self.app(scope, receive, send)
         auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
         if auth is None or auth[:7].lower() != b"bearer ":  # the scheme is case-insensitive (RFC 9110)
@@ -248,10 +240,10 @@ class AnswerCutOff:
 class FastAct:
     """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
 
-    The same contract as the documented route in `routes.py` (body limit, validation messages, error envelope,
-    `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a fraction of the per-request
-    cost: measured, FastAPI's stack was most of the server's time per act under load. Any other request passes
-    through untouched.
+    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation
+    messages, error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a
+    fraction of the per-request cost: measured, FastAPI's stack was most of the server's time per act under load.
+    Any other request passes through untouched.
     """
 
     _PATH = re.compile(r"^/sessions/([^/]+)/act$")
@@ -286,6 +278,11 @@ class FastAct:
             if raw is None:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
+            if raw:
+                content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
+                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
+                if refusal is not None:
+                    return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
                 return 200, await act_answer(core, sid, raw), session
             except ValidationError as e:
@@ -394,6 +391,8 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         c = core or Core(settings)
         if not c.started:
             await c.start()  # models load here, never at import time
+        loaded = {name: m.checkpoint for name, m in (c.registry.models if c.registry else {}).items()}
+        app.state.examples = await asyncio.to_thread(examples.examples_of, loaded)
         app.state.core = c
         try:
             yield
@@ -408,11 +407,14 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         lifespan=lifespan,
         # No trailing-slash redirects: Starlette builds their Location from the Host header.
         redirect_slashes=False,
+        docs_url=None,  # `docs` serves /docs and /redoc with their assets from the package, not a CDN
+        redoc_url=None,
     )
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
     app.include_router(console.router)
+    docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)

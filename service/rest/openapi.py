@@ -28,6 +28,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from service.core import MAX_BLEND_STEPS, Core, ModelView
+from service.examples import Example
 from service.observations import MAX_ABS_VALUE, MAX_ACT_ITEMS
 
 BEARER = "bearerAuth"
@@ -43,7 +44,8 @@ def build(app: FastAPI, core: Core | None) -> dict:
         title=app.title,
         version=app.version,
         description=app.description
-        + f"\n\nRequest bodies are limited to {settings.max_request_bytes} bytes (413 payload_too_large)."
+        + f"\n\nRequest bodies are limited to {settings.max_request_bytes} bytes (413 payload_too_large)"
+        + " and are JSON: `Content-Type: application/json` (415 unsupported_media_type otherwise, without one too)."
         + ' Errors are `{"error": {"code", "message"}}`.',
         routes=app.routes,
     )
@@ -54,8 +56,14 @@ def build(app: FastAPI, core: Core | None) -> dict:
     for item in doc["paths"].values():
         for op in item.values():
             op.get("responses", {}).pop("422", None)
+            if "requestBody" in op:  # `media.require_json` / `FastAct`
+                op["responses"]["415"] = {
+                    "description": "The body's Content-Type is not application/json (or absent)",
+                    "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
+                }
     if models:
         _exact_bodies(doc, schemas, models)
+        _act_examples(doc, models, getattr(app.state, "examples", {}))
     if settings.token is not None:
         _bearer_auth(doc)
     return doc
@@ -129,6 +137,27 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
             }
         },
         "required": ["requests"],
+    }
+
+
+def _act_examples(doc: dict, models: list[ModelView], examples: dict[str, Example]) -> None:
+    """Each model's example observation (`service.examples`) as an example body of the act operations."""
+    shown = [(m.name, examples[m.name]) for m in models if m.name in examples]
+    shown = [(name, e) for name, e in shown if e.observation is not None]  # images: no frame in the document
+    if not shown:
+        return
+    _body(doc, "/sessions/{session_id}/act", "post")["examples"] = {
+        name: {"summary": f"{name}: {e.description}", "value": {"observation": e.observation}}
+        for name, e in shown
+    }
+    _body(doc, "/act", "post")["examples"] = {
+        name: {
+            "summary": f"{name}: {e.description}",
+            "value": {
+                "requests": [{"session_id": f"<id of a session on {name}>", "observation": e.observation}]
+            },
+        }
+        for name, e in shown
     }
 
 

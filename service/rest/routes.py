@@ -14,6 +14,7 @@ from service.core import MAX_ID_LENGTH, Core
 from service.errors import ServiceError
 from service.observations import check_act_items, decode_base64, decode_tensor
 from service.rest import schemas as S
+from service.rest.media import require_json
 
 SESSION_HEADER = "X-Session-Id"
 _ERRORS = {
@@ -49,7 +50,7 @@ CoreDep = Annotated[Core, Depends(get_core)]
 
 # Auth (with --auth-token) is checked by `app.AuthFirst` before anything reads a body; `openapi` declares it.
 public = APIRouter(tags=["health"])
-api = APIRouter()
+api = APIRouter(dependencies=[Depends(require_json)])  # bodies must be declared JSON (415 otherwise)
 
 
 @public.get("/healthz", response_model=S.Health)
@@ -79,9 +80,10 @@ async def list_models(core: CoreDep) -> S.ModelList:
 
 
 @api.get("/models/{name}", response_model=S.ModelOut, tags=["models"], responses=errors(404))
-async def get_model(name: str, core: CoreDep) -> S.ModelOut:
-    """A model's spaces, goal table and context length."""
-    return S.ModelOut.of(core.get_model(name))
+async def get_model(name: str, core: CoreDep, request: Request) -> S.ModelOut:
+    """A model's spaces, goal table, context length and an example observation."""
+    view = core.get_model(name)
+    return S.ModelOut.of(view, getattr(request.app.state, "examples", {}).get(view.name))
 
 
 @api.post(

@@ -14,6 +14,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, S
 
 from service.core import MAX_BLEND_STEPS, ActResult, ModelView, SessionView
 from service.errors import ServiceError
+from service.examples import Example
 from service.observations import MAX_ACT_ITEMS
 
 
@@ -73,6 +74,20 @@ class ModelList(BaseModel):
     models: list[ModelSummary]
 
 
+class ExampleObservation(BaseModel):
+    """A real observation of the model's environment (`service.examples`), to see what one looks like."""
+
+    source: Literal["reset", "mean", "hint"] = Field(
+        description="`reset`: the environment's first observation after reset(seed=0), made on the server; "
+        "`mean`: the mean observation of the training data (the server has no simulator for the environment); "
+        "`hint`: images, described instead of shown."
+    )
+    description: str = Field(description="Where it comes from, or for images what to send.")
+    observation: list[Any] | None = Field(
+        description='The observation, ready for `{"observation": ...}` in an act (null for images).'
+    )
+
+
 class ModelOut(BaseModel):
     """`GET /models/{name}`: spaces, goal table and context length K."""
 
@@ -90,10 +105,14 @@ class ModelOut(BaseModel):
         description="The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
         "arguments), to reproduce observations client-side; null for raw environment observations.",
     )
+    example_observation: ExampleObservation | None = Field(
+        default=None,
+        description="What an observation of this model looks like (where it comes from: `source`).",
+    )
 
     @classmethod
-    def of(cls, v: ModelView) -> ModelOut:
-        """From the core's view."""
+    def of(cls, v: ModelView, example: Example | None = None) -> ModelOut:
+        """From the core's view and the model's example observation."""
         return cls(
             name=v.name,
             env_id=v.env_id,
@@ -105,6 +124,7 @@ class ModelOut(BaseModel):
             discrete_actions=v.discrete_actions,
             action_modes=list(v.action_modes),
             preprocessing=v.preprocessing,
+            example_observation=None if example is None else ExampleObservation(**asdict(example)),
         )
 
 

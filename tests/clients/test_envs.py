@@ -1,12 +1,15 @@
-"""Local environments are made from the model's spec and refused when their spaces differ."""
+"""Local environments are made from the model's spec, refused when their spaces differ, filmed by a camera that
+follows the agent."""
 
 from __future__ import annotations
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 from clients.base import ModelInfo
-from clients.envs import SpaceMismatch, describe_space, make_env
+from clients.envs import VIDEO_SIZE, SpaceMismatch, describe_space, make_env
+from clients.spaces import space_to_dict
 
 PONG_ACTIONS = {"type": "discrete", "n": 6, "shape": []}
 PONG_FRAMES = {"type": "box", "shape": [210, 160, 3], "dtype": "uint8", "low": None, "high": None}
@@ -62,3 +65,39 @@ def test_time_limit_is_the_episode_length():
 def test_describe_space():
     assert describe_space({"type": "discrete", "n": 6}) == "Discrete(6)"
     assert describe_space({"type": "box", "shape": [17], "dtype": "float64"}) == "Box(float64, shape=[17])"
+
+
+def _agent_share(frame: np.ndarray) -> float:
+    """Share of a frame's pixels in the agents' tan / pink colours (floor and sky are grey, green or blue)."""
+    rgb = frame.astype(int)
+    return float(((rgb[..., 0] - rgb[..., 2]) > 40).mean())
+
+
+def _frame_at(env: gym.Env, x: float) -> np.ndarray:
+    u = env.unwrapped
+    qpos = u.data.qpos.copy()
+    qpos[0] = x  # the root's forward position
+    u.set_state(qpos, u.data.qvel.copy())
+    return env.render()
+
+
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"])
+def test_videos_follow_the_agent_where_a_fixed_camera_loses_it(env_id):
+    local = gym.make(env_id)
+    s = spec(env_id, space_to_dict(local.observation_space), space_to_dict(local.action_space))
+    local.close()
+    width, height = VIDEO_SIZE
+    tracked = make_env(s, render=True)
+    # Gymnasium's default camera, as gmt run used it
+    fixed = gym.make(env_id, render_mode="rgb_array", width=width, height=height)
+    try:
+        for env in (tracked, fixed):
+            env.reset(seed=0)
+        start = _agent_share(_frame_at(tracked, 0.0))
+        assert start > 0.003 and _agent_share(_frame_at(fixed, 0.0)) > 0.002  # both see it at the start
+        far = 30.0  # ~600 steps at 1 m/s (HalfCheetah's dt is 0.05 s)
+        assert _agent_share(_frame_at(tracked, far)) > 0.5 * start
+        assert _agent_share(_frame_at(fixed, far)) < 0.0005  # the fixed camera lost it
+    finally:
+        tracked.close()
+        fixed.close()

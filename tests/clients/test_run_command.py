@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
+import socket
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -61,6 +64,22 @@ def test_unreachable_server_exits_with_a_clear_message():
     assert "error: unavailable: could not connect to http://127.0.0.1:9 after 2 attempt(s)" in r.output
 
 
+@pytest.mark.parametrize("transport", [["--grpc"], ["--grpc", "--stream"], ["--server"]])
+def test_refused_connection_is_one_line_naming_the_target_and_what_to_check(transport):
+    with socket.socket() as closed:  # bound, never listening: every connection to it is refused
+        closed.bind(("127.0.0.1", 0))
+        target = f"127.0.0.1:{closed.getsockname()[1]}"
+        address = target if transport[0] == "--grpc" else f"http://{target}"
+        args = ["run", transport[0], address, *transport[1:], "--retries", "0", "--steps", "5"]
+        r = runner.invoke(app, args)
+    assert r.exit_code == 1
+    (line,) = r.output.strip().splitlines()
+    assert line.startswith(f"error: unavailable: could not connect to {address} after 1 attempt(s): ")
+    assert "Rpc" not in line and "check that the server is running" in line
+    flag = "--grpc HOST:PORT" if transport[0] == "--grpc" else "--server URL"
+    assert flag in line
+
+
 def test_run_is_a_gmt_command():
     r = runner.invoke(app, ["--help"])
     assert r.exit_code == 0 and "run" in r.output and "Drive an agent remotely" in r.output
@@ -71,3 +90,13 @@ def test_bad_schedule_and_video_without_out_are_usage_errors():
     assert r.exit_code == 2 and "GOAL@STEP" in r.output
     r = runner.invoke(app, ["run", "--video"])
     assert r.exit_code == 2 and "--out" in r.output
+
+
+def test_the_readmes_gmt_run_examples_write_to_distinct_folders():
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme.split("\n## Drive it remotely", 1)[1].split("\n## ", 1)[0]  # to the next section, if any
+    blocks = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+    commands = [c for b in blocks for c in b.replace("\\\n", " ").splitlines() if c.startswith("gmt run ")]
+    outs = [c.split("--out ")[1].split()[0] for c in commands if "--out " in c]
+    assert len(commands) >= 3 and len(outs) == len(commands)
+    assert len(set(outs)) == len(outs), outs  # one example's files never overwrite another's

@@ -151,6 +151,8 @@ def test_unreachable_server_is_retried_then_fails_clearly(kind, no_sleep):
     assert no_sleep == [0.1, 0.2]  # two retries, exponential back-off, then give up
     assert f"127.0.0.1:{port}" in str(e.value) and "3 attempt(s)" in str(e.value)
     assert isinstance(e.value, Unavailable) and e.value.code == "unavailable"
+    assert "\n" not in str(e.value) and "Rpc" not in str(e.value)  # one line, not gRPC's error dump
+    assert "Connection refused" in str(e.value) or "Errno 111" in str(e.value)
 
 
 class CountingTransport(httpx.HTTPTransport):

@@ -253,7 +253,8 @@ def test_auth_guards_the_api_but_not_the_page(ckpt_root):
             assert 'src="/ui/console.js"' in page.text
             assert c.get("/ui/console.js").headers["content-type"].startswith("text/javascript")
             assert c.get("/ui/console.css").status_code == 200
-            missing = c.get("/ui/other.js")
+            assert c.get("/ui/other.js").status_code == 401  # only the page's own files are open
+            missing = c.get("/ui/other.js", headers=AUTH)
             assert missing.status_code == 404 and missing.json()["error"]["code"] == "not_found"
 
             sid = c.post("/sessions", json={"model": "tiny-gmt", "goal": 0}, headers=AUTH).json()[

@@ -6,6 +6,8 @@ twin session that saw the same observations.
 
 import base64
 import json
+import shutil
+import subprocess
 
 import grpc
 import numpy as np
@@ -204,6 +206,73 @@ def test_rest_body_too_large_without_content_length(http, rest_twins):
     r = http.post(f"/sessions/{sid}/act", content=chunks(), headers={"content-type": "application/json"})
     assert r.status_code == 413 and r.json()["error"]["code"] == "payload_too_large"
     check()
+
+
+JSON_ROUTES = [
+    ("POST", "/sessions", {"model": "tiny-gmt", "goal": 0}),
+    ("POST", "/sessions/{sid}/act", {"observation": [0.0] * N}),
+    ("PUT", "/sessions/{sid}/goal", {"goal": 2}),
+    ("POST", "/sessions/{sid}/reset", {"goal": 0}),
+    ("POST", "/act", {"requests": [{"session_id": "{sid}", "observation": [0.0] * N}]}),
+]
+
+
+@pytest.mark.parametrize("method,path,body", JSON_ROUTES, ids=[f"{m} {p}" for m, p, _ in JSON_ROUTES])
+@pytest.mark.parametrize(
+    "content_type,named",
+    [
+        ("application/x-www-form-urlencoded", "Content-Type 'application/x-www-form-urlencoded'"),  # curl -d
+        ("text/plain", "Content-Type 'text/plain'"),
+        (None, "no Content-Type"),
+    ],
+)
+def test_rest_body_not_declared_json_is_415_naming_both_types(
+    http, rest_twins, method, path, body, content_type, named
+):
+    sid, check = rest_twins
+    headers = {} if content_type is None else {"content-type": content_type}
+    raw = json.dumps(body).replace("{sid}", sid)
+    r = http.request(method, path.format(sid=sid), content=raw, headers=headers)
+    assert r.status_code == 415, r.text
+    error = r.json()["error"]
+    assert error["code"] == "unsupported_media_type"
+    assert named in error["message"] and "expected Content-Type: application/json" in error["message"]
+    if "{sid}" in path:
+        assert r.headers["x-session-id"] == sid
+    check()  # nothing was applied
+
+
+@pytest.mark.parametrize("content_type", ["application/json; charset=utf-8", "application/vnd.gmt+json"])
+def test_rest_json_content_types_with_parameters_or_suffix_are_json(http, rest_twins, content_type):
+    sid, _ = rest_twins
+    raw = json.dumps({"observation": [0.0] * N})
+    r = http.post(f"/sessions/{sid}/act", content=raw, headers={"content-type": content_type})
+    assert r.status_code == 200, r.text
+    r = http.put(f"/sessions/{sid}/goal", content='{"goal": 0}', headers={"content-type": content_type})
+    assert r.status_code == 200, r.text
+
+
+def test_openapi_documents_the_415_of_every_operation_with_a_body(http):
+    doc = http.get("/openapi.json").json()
+    ops = {(m.upper(), p): op for p, item in doc["paths"].items() for m, op in item.items()}
+    with_body = {k for k, op in ops.items() if "requestBody" in op}
+    assert with_body == {(m, p.replace("{sid}", "{session_id}")) for m, p, _ in JSON_ROUTES}
+    assert {k for k, op in ops.items() if "415" in op["responses"]} == with_body
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_curl_data_without_a_json_header_is_told_how_to_send_json(server):
+    out = subprocess.run(
+        ["curl", "-s", "-X", "POST", f"{server.url}/sessions", "-d", '{"model": "tiny-gmt", "goal": 0}'],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    ).stdout
+    message = json.loads(out)["error"]["message"]
+    assert (
+        "'application/x-www-form-urlencoded'" in message and "-H 'content-type: application/json'" in message
+    )
 
 
 @pytest.mark.parametrize(

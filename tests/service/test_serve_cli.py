@@ -1,13 +1,19 @@
-"""`gmt serve` as users run it: flags, environment, the no-model start, graceful SIGTERM."""
+"""`gmt serve` as users run it: flags, environment, the no-model start, graceful SIGTERM, a taken port."""
 
+import asyncio
+import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import httpx
-from service_harness import ServeProcess
+import pytest
+from service_harness import ServeProcess, make_settings
 
+from service.core import Core
+from service.grpc.server import GrpcServer
 from service.settings import Settings
 
 
@@ -53,3 +59,74 @@ def test_serve_help_lists_the_flags():
         "--replica-id",
     ):
         assert flag in out
+
+
+def _held_port(reuseport: bool = False) -> socket.socket:
+    """A loopback socket listening on a free port (with SO_REUSEPORT, as gRPC servers bind, when asked)."""
+    s = socket.socket()
+    if reuseport:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    s.bind(("127.0.0.1", 0))
+    s.listen()
+    return s
+
+
+@pytest.mark.parametrize("transport", ["rest", "grpc"])
+def test_a_taken_port_fails_in_a_few_lines_naming_the_port_and_how_to_change_it(transport, tmp_path):
+    gmt = str(Path(sys.executable).parent / "gmt")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    with _held_port() as held:
+        port = held.getsockname()[1]
+        ports = {"rest": "0", "grpc": "0", transport: str(port)}
+        cmd = [gmt, "serve", "--host", "127.0.0.1", "--checkpoints", str(tmp_path)]
+        cmd += ["--rest-port", ports["rest"], "--grpc-port", ports["grpc"]]
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) <= 5, r.stderr
+    assert "Traceback" not in r.stderr
+    name = {"rest": "REST", "grpc": "gRPC"}[transport]
+    assert f"cannot listen for {name} on 127.0.0.1:{port}: Address already in use" in lines[0]
+    for hint in (
+        f"--{transport}-port",
+        f"GMT_{transport.upper()}_PORT",
+        f"make serve {transport.upper()}_PORT=",
+    ):
+        assert hint in r.stderr
+
+
+def test_grpc_does_not_join_a_port_another_server_holds_with_so_reuseport(ckpt_root):
+    # grpcio binds with SO_REUSEPORT by default, so a second server would share the port with the first.
+    with _held_port(reuseport=True) as held:
+        port = held.getsockname()[1]
+        core = Core(make_settings(checkpoints=[ckpt_root]))
+
+        async def bind() -> None:
+            GrpcServer(core, "127.0.0.1", port)
+
+        with pytest.raises((RuntimeError, OSError)):
+            asyncio.run(bind())
+
+
+def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
+    gmt = str(Path(sys.executable).parent / "gmt")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    cmd = [
+        gmt,
+        "serve",
+        "--host",
+        "::2",
+        "--rest-port",
+        "0",
+        "--grpc-port",
+        "0",
+        "--checkpoints",
+        str(tmp_path),
+    ]
+    r = subprocess.run(
+        cmd, capture_output=True, text=True, env=env, timeout=120
+    )  # bind only: nothing is sent
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    first, hint = r.stderr.strip().splitlines()
+    assert first.startswith("error: cannot listen for REST on [::2]:0: ")
+    assert "--host" in hint and "GMT_HOST" in hint and "port" not in hint
