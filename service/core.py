@@ -482,10 +482,12 @@ class Core:
             raise InvalidArgument(f"limit must be an integer in 1..{MAX_LIST_SESSIONS}, got {limit!r}")
         total, briefs = await self.store.list_page(offset, limit)
         now, here = self.clock(), self.settings.replica_id
-        rows = []
+        rows, goal_names = [], {}
         for b in briefs:
-            m = self.registry.models.get(b.model)
-            names = {g.id: g.name for g in m.checkpoint.goals} if m else {}
+            names = goal_names.get(b.model)
+            if names is None:
+                m = self.registry.models.get(b.model)
+                names = goal_names[b.model] = {g.id: g.name for g in m.checkpoint.goals} if m else {}
             a = b.activity
             rows.append(
                 SessionRow(
