@@ -75,6 +75,12 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         except ServiceError as e:
             code = e.grpc_code
             await context.abort(grpc.StatusCode[e.grpc_code], e.message)
+        except asyncio.CancelledError:
+            # gRPC itself ended the call: its deadline passed (a race with `within_deadline`'s own timer, which
+            # answers the same status) or the client cancelled it.
+            remaining = context.time_remaining()
+            code = "DEADLINE_EXCEEDED" if remaining is not None and remaining <= 0 else "CANCELLED"
+            raise
         finally:
             in_flight.dec()
             self.core.metrics.observe_request("grpc", method, code, time.perf_counter() - t0)
