@@ -10,6 +10,7 @@ from pathlib import Path
 
 from gmt.bench.alternatives import bench_alternatives
 from gmt.bench.cluster import bench_cluster, bench_scaleout
+from gmt.bench.console import bench_console
 from gmt.bench.engine import bench_engine
 from gmt.bench.failover import bench_failover
 from gmt.bench.harness import SESSIONS, default_size_checkpoint
@@ -73,6 +74,8 @@ def run(
             result["soak"] = bench_cluster(
                 checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
             )
+        if "console" in sections:
+            result["console"] = bench_console(checkpoint or _default(tmp), max(sessions), seconds)
         if "failover" in sections:
             result["failover"] = bench_failover(checkpoint or _default(tmp), max(sessions))
         if "training" in sections:
