@@ -7,12 +7,21 @@ number of live sessions (`ResourceExhausted`). It does not order calls: the core
 from __future__ import annotations
 
 import abc
+import itertools
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, ServiceError, SessionExpired
+from gmt.service.console.activity import Activity, SessionBrief
+from gmt.service.errors import (
+    AlreadyExists,
+    FailedPrecondition,
+    NotFound,
+    ResourceExhausted,
+    ServiceError,
+    SessionExpired,
+)
 
 Clock = Callable[[], float]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
@@ -31,6 +40,7 @@ class Session:
         last_used: Clock time of the last act / set_goal / reset.
         request: What created it (model, goal, seed, action mode): a retried create must repeat it to be
             answered this session.
+        activity: Acts/s and last latency (the console's listing).
     """
 
     id: str
@@ -39,6 +49,14 @@ class Session:
     created_at: float
     last_used: float
     request: str = ""
+    activity: Activity = field(default_factory=Activity)
+
+
+def brief(s: Session, held_here: bool = True) -> SessionBrief:
+    """The listing's view of a session held as a `Session`."""
+    return SessionBrief(
+        s.id, s.model, int(s.ctx.goal), int(s.ctx.step), s.created_at, s.last_used, s.activity, held_here
+    )
 
 
 def expired_message(sid: str, idle_timeout_s: float) -> str:
@@ -146,6 +164,14 @@ class SessionStore(abc.ABC):
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release connections."""
 
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        """(live sessions held, up to `limit` of them from `offset`), newest first.
+
+        Raises:
+            FailedPrecondition: this store cannot list its sessions.
+        """
+        raise FailedPrecondition(f"the session store {type(self).__name__} cannot list its sessions")
+
 
 class MemorySessionStore(SessionStore):
     """Sessions in a dict of this process (the default; lost on restart)."""
@@ -215,3 +241,7 @@ class MemorySessionStore(SessionStore):
 
     def local_count(self, model: str) -> int:
         return self._per_model[model]
+
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)
+        return len(self._sessions), [brief(s) for s in page]
