@@ -12,6 +12,7 @@ from browser_support import external, requested_urls, save_screenshot
 from service_harness import OBS_DIM, RunningServer, make_settings
 
 pytest.importorskip("selenium")
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 
@@ -30,7 +31,11 @@ def served(ckpt_root):
 
 
 def _wait(driver, condition, message: str):
-    return WebDriverWait(driver, TIMEOUT_S, poll_frequency=0.1).until(condition, message)
+    # The listing is redrawn every second: an element found just before a redraw goes stale; look again.
+    wait = WebDriverWait(
+        driver, TIMEOUT_S, poll_frequency=0.1, ignored_exceptions=(StaleElementReferenceException,)
+    )
+    return wait.until(condition, message)
 
 
 def _shown(element_id: str):
@@ -44,8 +49,13 @@ def _shown(element_id: str):
 
 
 def _text(driver, css: str) -> str:
-    els = driver.find_elements(By.CSS_SELECTOR, css)
-    return els[0].text if els else ""
+    for _ in range(20):  # the listing is redrawn every second: read again if the element went stale meanwhile
+        try:
+            els = driver.find_elements(By.CSS_SELECTOR, css)
+            return els[0].text if els else ""
+        except StaleElementReferenceException:
+            continue
+    raise AssertionError(f"{css} kept going stale")
 
 
 def _act(api: httpx.Client, sid: str, n: int) -> None:
@@ -80,7 +90,7 @@ def test_console_follows_a_session_and_steers_it(chromium, served, tmp_path):
     _wait(d, lambda d: _text(d, f"{row} td.step") == "8", "the listed step did not advance to 8")
     save_screenshot(d, "ui-console.png", tmp_path)
 
-    d.find_element(By.CSS_SELECTOR, f"{row} a").click()
+    _wait(d, lambda d: d.find_element(By.CSS_SELECTOR, f"{row} a").click() or True, "the row's link")
     _wait(d, lambda d: d.find_element(By.ID, "s-id").text == sid, "the session page did not open")
     high = _wait(
         d, lambda d: d.find_element(By.CSS_SELECTOR, '#goal-buttons button[data-goal="high"]'), "no buttons"
