@@ -190,9 +190,15 @@ def read_meta(directory: str | Path) -> dict:
         raise CheckpointError(f"{meta_path} is not valid JSON: {e}") from e
     except OSError as e:
         raise CheckpointError(f"{meta_path} cannot be read: {e.strerror}") from e
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+    if (
+        not isinstance(meta, dict)
+        or meta.get("format") != FORMAT
+        or meta.get("format_version") != FORMAT_VERSION
+    ):
         got = (meta.get("format"), meta.get("format_version")) if isinstance(meta, dict) else (None, None)
-        raise CheckpointError(f"{meta_path}: expected format {FORMAT} v{FORMAT_VERSION}, got {got[0]} v{got[1]}")
+        raise CheckpointError(
+            f"{meta_path}: expected format {FORMAT} v{FORMAT_VERSION}, got {got[0]} v{got[1]}"
+        )
     return meta
 
 
@@ -254,7 +260,9 @@ def load_checkpoint(
         if k in expected and tuple(v.shape) != tuple(expected[k].shape)
     ]
     if wrong:
-        raise CheckpointError(f"{weights} does not match the config: wrong tensor shapes: {', '.join(wrong[:5])}")
+        raise CheckpointError(
+            f"{weights} does not match the config: wrong tensor shapes: {', '.join(wrong[:5])}"
+        )
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise CheckpointError(

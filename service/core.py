@@ -365,7 +365,9 @@ class Core:
     def _batcher(self, m: LoadedModel) -> MicroBatcher:
         b = self._batchers.get(m.key)
         if b is None:
-            raise FailedPrecondition(f"version {m.version!r} of model {m.name!r} was unloaded from this server")
+            raise FailedPrecondition(
+                f"version {m.version!r} of model {m.name!r} was unloaded from this server"
+            )
         return b
 
     async def _stop(self, m: LoadedModel, wait_s: float = 0.0) -> None:
@@ -403,7 +405,9 @@ class Core:
         roots = [r.resolve() for r in self.settings.checkpoints]
         p = Path(path)
         tries = [p] if p.is_absolute() else [Path.cwd() / p, *(r / p for r in roots)]
-        inside = [t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)]
+        inside = [
+            t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)
+        ]
         for t in inside:
             if t.exists():
                 return t
@@ -431,7 +435,9 @@ class Core:
         if not isinstance(name, str) or not (name in self.registry.names or _MODEL_NAME.fullmatch(name)):
             raise InvalidArgument("a new model's name must be 1 to 128 letters, digits, '.', '_' or '-'")
         if fingerprint is not None and not (isinstance(fingerprint, str) and _HEX.fullmatch(fingerprint)):
-            raise InvalidArgument("fingerprint must be 12 to 64 hex digits (a prefix of the checkpoint's sha256)")
+            raise InvalidArgument(
+                "fingerprint must be 12 to 64 hex digits (a prefix of the checkpoint's sha256)"
+            )
         d = self.checkpoint_path(path)
         async with self._admin:
             try:
@@ -514,7 +520,9 @@ class Core:
                 force, or it cannot be found or loaded.
         """
         if s.model not in self.registry.names:
-            raise FailedPrecondition(f"session {s.id!r} runs model {s.model!r}, which this server does not serve")
+            raise FailedPrecondition(
+                f"session {s.id!r} runs model {s.model!r}, which this server does not serve"
+            )
         m = self.registry.find(s.model, s.model_version)
         if m is not None:
             if s.fingerprint and m.fingerprint and m.fingerprint != s.fingerprint:

@@ -85,7 +85,10 @@ class Metrics:
             registry=r,
         )
         self.sessions_created = Counter(
-            "gmt_sessions_created", "Sessions created, by model and version.", ["model", "version"], registry=r
+            "gmt_sessions_created",
+            "Sessions created, by model and version.",
+            ["model", "version"],
+            registry=r,
         )
         self.sessions_expired = Counter(
             "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r

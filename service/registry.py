@@ -146,7 +146,9 @@ class ModelRegistry:
         for d in discover(paths):
             name = d.name
             if name in reg.names:
-                reg.errors[str(d)] = f"duplicate model name {name!r} (already loaded from {reg.models[name].path})"
+                reg.errors[str(d)] = (
+                    f"duplicate model name {name!r} (already loaded from {reg.models[name].path})"
+                )
                 log.error("checkpoint skipped", extra={"path": str(d), "error": reg.errors[str(d)]})
                 continue
             try:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from gmt.service.core import MAX_ACT_ITEMS
 from gmt.model.checkpoint import load_checkpoint
+from gmt.service.core import MAX_ACT_ITEMS
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
@@ -360,4 +360,6 @@ def test_one_call_is_one_forward_pass_even_beyond_max_batch(make_server, ckpt_ro
         batches = metric_samples(http, "gmt_batch_size")
     assert batches[("gmt_batch_size_count", key)] == 2
     assert batches[("gmt_batch_size_sum", key)] == 2 * n
-    assert batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    assert (
+        batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    )

@@ -135,7 +135,9 @@ def test_concurrent_sessions_share_one_forward_pass(make_server, engine, ckpt_ro
     # All 8 requests of each round went through one forward pass: 2 batches, 16 observations.
     assert batches[("gmt_batch_size_count", key)] == 2
     assert batches[("gmt_batch_size_sum", key)] == 2 * n
-    assert batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    assert (
+        batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    )
     # Batching changes nothing: every session's actions are the engine's for that session alone.
     for i in range(n):
         ctx = engine.new_context(i % 3)
