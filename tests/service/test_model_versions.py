@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import gc
 import json
+import subprocess
+import sys
 import threading
 import time
 import weakref
+from pathlib import Path
 
 import grpc
 import httpx
@@ -386,3 +389,52 @@ def test_a_replica_adopts_a_session_of_a_version_it_lacks(make_server, roots, ve
         r = hc.post(f"/sessions/{sid}/act", json={"observation": obs[0].tolist(), "step": 6})
         assert r.status_code == 409 and r.json()["error"]["code"] == "failed_precondition"
         assert f"version {versions['v2']!r} of model {MODEL!r} is not loaded" in r.json()["error"]["message"]
+
+
+def test_load_and_unload_under_256_sessions_give_no_errors(make_server, roots, versions, tmp_path, record_property):
+    """256 sessions act without pause from another process while versions are loaded, promoted, run as a canary,
+    unloaded and drained: every act is answered, and v1 goes once the load loop closes its sessions."""
+    server = make_server(checkpoints=[roots], max_sessions=1024)
+    stop = tmp_path / "stop"
+    loop = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("load_loop.py")), server.url, MODEL, "256", str(stop), "120"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert loop.stdout.readline().strip() == "ready"
+        with httpx.Client(base_url=server.url, timeout=60) as http:
+            calls = [
+                ("POST", f"/models/{MODEL}/versions", {"path": "releases/v2"}),
+                ("PUT", f"/models/{MODEL}/default", {"version": versions["v2"]}),
+                ("POST", f"/models/{MODEL}/versions", {"path": "releases/v3"}),
+                ("PUT", f"/models/{MODEL}/default", {"version": versions["v3"], "share": 0.5}),
+                ("DELETE", f"/models/{MODEL}/versions/{versions['v3']}", None),
+                ("POST", f"/models/{MODEL}/versions/{versions['v1']}/drain", None),
+            ]
+            before = acts_answered(http)
+            for method, path, body in calls:
+                r = http.request(method, path, json=body)
+                assert r.status_code in (200, 201), r.text
+            during = acts_answered(http) - before
+            sessions = {v["version"]: v["sessions"] for v in versions_of(http)["versions"]}
+            assert sessions == {versions["v1"]: 256, versions["v2"]: 0}
+            stop.touch()
+            out, _ = loop.communicate(timeout=120)
+            report = json.loads(out.strip().splitlines()[-1])
+            wait_for(lambda: [v["version"] for v in versions_of(http)["versions"]] == [versions["v2"]], "v1 unloaded")
+    finally:
+        stop.touch()
+        if loop.poll() is None:
+            loop.kill()
+            loop.wait(30)
+    record_property("load_report", report)
+    print(f"256 sessions under load and unload: {report}; acts answered during the 6 management calls: {during}")
+    assert report["errors"] == {} and report["versions"] == [versions["v1"]]
+    assert during > 0  # the load went on while the versions changed
+
+
+def acts_answered(http) -> float:
+    """Acts the server answered 200 (its request metrics)."""
+    line = f'gmt_request_duration_seconds_count{{code="200",method="act",transport="rest"}} '
+    return float(next(x for x in http.get("/metrics").text.splitlines() if x.startswith(line)).split()[-1])
