@@ -408,7 +408,8 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
             await c.start()  # models load here, never at import time
         # No local keeps the checkpoints: this frame lives as long as the app, and an unloaded version must go.
         app.state.examples = await asyncio.to_thread(
-            examples.examples_of, {n: m.checkpoint for n, m in (c.registry.models if c.registry else {}).items()}
+            examples.examples_of,
+            {n: m.checkpoint for n, m in (c.registry.models if c.registry else {}).items()},
         )
         app.state.core = c
         try:

@@ -63,5 +63,11 @@ async def main(url: str, model: str, n: int, stop: Path, max_s: float) -> dict:
 
 
 if __name__ == "__main__":
-    url, model, n, stop, max_s = sys.argv[1], sys.argv[2], int(sys.argv[3]), Path(sys.argv[4]), float(sys.argv[5])
+    url, model, n, stop, max_s = (
+        sys.argv[1],
+        sys.argv[2],
+        int(sys.argv[3]),
+        Path(sys.argv[4]),
+        float(sys.argv[5]),
+    )
     print(json.dumps(asyncio.run(main(url, model, n, stop, max_s))), flush=True)

@@ -24,9 +24,8 @@ from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
 from gmt.service import core as core_module
 from gmt.v1 import admin_pb2 as apb
-from gmt.v1 import admin_pb2_grpc
+from gmt.v1 import admin_pb2_grpc, policy_pb2_grpc
 from gmt.v1 import policy_pb2 as pb
-from gmt.v1 import policy_pb2_grpc
 
 MODEL = "tiny-gmt"
 N = 8
@@ -85,11 +84,17 @@ def test_v2_rolls_in_while_v1_sessions_continue_exactly_and_v1_is_freed(make_ser
     live, twin = make_server(checkpoints=[roots]), make_server(checkpoints=[roots])
     rng = np.random.default_rng(11)
     obs = rng.normal(size=(2 * N, 10, OBS_DIM)).astype(np.float32)
-    with httpx.Client(base_url=live.url, timeout=30) as http, httpx.Client(base_url=twin.url, timeout=30) as ref:
+    with (
+        httpx.Client(base_url=live.url, timeout=30) as http,
+        httpx.Client(base_url=twin.url, timeout=30) as ref,
+    ):
         old = [create(http, seed=i) for i in range(N)]
         twins = [create(ref, seed=i) for i in range(N)]
         assert {s["model_version"] for s in old + twins} == {versions["v1"]}
-        got = {s["session_id"]: [act(http, s["session_id"], obs[i, t], t) for t in range(5)] for i, s in enumerate(old)}
+        got = {
+            s["session_id"]: [act(http, s["session_id"], obs[i, t], t) for t in range(5)]
+            for i, s in enumerate(old)
+        }
 
         r = http.post(f"/models/{MODEL}/versions", json={"path": "releases/v2"})
         assert r.status_code == 201, r.text
@@ -133,16 +138,18 @@ def test_v2_rolls_in_while_v1_sessions_continue_exactly_and_v1_is_freed(make_ser
         assert act(http, old[-1]["session_id"], obs[N - 1, 0], 10)  # the last one still acts on v1
         assert versions["v1"] in [v["version"] for v in versions_of(http)["versions"]]
         assert http.delete(f"/sessions/{old[-1]['session_id']}").status_code == 204
-        wait_for(lambda: versions["v1"] not in [v["version"] for v in versions_of(http)["versions"]], "v1 unloaded")
+        wait_for(
+            lambda: versions["v1"] not in [v["version"] for v in versions_of(http)["versions"]], "v1 unloaded"
+        )
 
         def freed() -> bool:
             live.run(_collect())
             return engine() is None and weights() is None
 
         wait_for(freed, "v1's engine and weights freed")
-        assert [s["model_version"] for s in [http.get(f"/sessions/{n['session_id']}").json() for n in new]] == [
-            versions["v2"]
-        ] * N
+        assert [
+            s["model_version"] for s in [http.get(f"/sessions/{n['session_id']}").json() for n in new]
+        ] == [versions["v2"]] * N
         metrics = http.get("/metrics").text
         assert f'gmt_batch_size_count{{model="{MODEL}",version="{versions["v2"]}"}}' in metrics
         assert "gmt_model_versions_loaded 1.0" in metrics
@@ -168,7 +175,9 @@ def test_a_canary_gets_its_share_of_new_sessions(make_server, roots, versions, r
         print(f"canary share measured: {share:.4f} of 400 sessions")
         assert 0.20 <= share <= 0.30, share
         assert set(got) == {versions["v1"], versions["v2"]}
-        again = create(http, seed=0, session_id="canary-7")  # a retried create: the same session, same version
+        again = create(
+            http, seed=0, session_id="canary-7"
+        )  # a retried create: the same session, same version
         assert again["model_version"] == got[7]
         # Over gRPC too: the version table, and a session naming its version.
         with grpc.insecure_channel(server.target) as ch:
@@ -209,7 +218,9 @@ def _corrupt(root, name: str, how: str) -> str:
     return f"bad/{name}"
 
 
-def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(make_server, roots, versions, tmp_path):
+def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
+    make_server, roots, versions, tmp_path
+):
     server = make_server(checkpoints=[roots])
     cases = [
         ("missing", 400, "has no model.safetensors"),
@@ -230,7 +241,9 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(make_se
         pt = roots / "bad" / "weights.pt"
         pt.write_bytes(b"\x80\x04")
         r = http.post(f"/models/{MODEL}/versions", json={"path": "bad/weights.pt"})
-        assert r.status_code == 400 and "pickle-based formats are not accepted" in r.json()["error"]["message"]
+        assert (
+            r.status_code == 400 and "pickle-based formats are not accepted" in r.json()["error"]["message"]
+        )
         r = http.post(f"/models/{MODEL}/versions", json={"path": "releases/v2", "fingerprint": "0" * 12})
         assert r.status_code == 400 and f"not the expected {'0' * 12}" in r.json()["error"]["message"]
         # A checkpoint that names a version already loaded from other weights.
@@ -259,8 +272,13 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(make_se
         with grpc.insecure_channel(server.target) as ch:
             admin = admin_pb2_grpc.ModelAdminStub(ch)
             with pytest.raises(grpc.RpcError) as e:
-                admin.LoadVersion(apb.LoadVersionRequest(name=MODEL, path=_corrupt(roots, "g-shapes", "shapes")))
-            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "wrong tensor shapes" in e.value.details()
+                admin.LoadVersion(
+                    apb.LoadVersionRequest(name=MODEL, path=_corrupt(roots, "g-shapes", "shapes"))
+                )
+            assert (
+                e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+                and "wrong tensor shapes" in e.value.details()
+            )
             with pytest.raises(grpc.RpcError) as e:
                 admin.LoadVersion(apb.LoadVersionRequest(name=MODEL, path="/etc"))
             assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
@@ -305,7 +323,9 @@ def test_management_is_authorised(make_server, roots):
     with grpc.insecure_channel(open_server.target) as ch:
         admin = admin_pb2_grpc.ModelAdminStub(ch)
         with pytest.raises(grpc.RpcError) as e:
-            admin.Drain(apb.DrainRequest(name=MODEL, version="x"), metadata=(("x-forwarded-for", "203.0.113.9"),))
+            admin.Drain(
+                apb.DrainRequest(name=MODEL, version="x"), metadata=(("x-forwarded-for", "203.0.113.9"),)
+            )
         assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
 
     bearer = make_server(checkpoints=[roots], auth_token="user")
@@ -325,10 +345,14 @@ def test_management_is_authorised(make_server, roots):
     with grpc.insecure_channel(both.target) as ch:
         admin = admin_pb2_grpc.ModelAdminStub(ch)
         with pytest.raises(grpc.RpcError) as e:
-            admin.Drain(apb.DrainRequest(name=MODEL, version="x"), metadata=(("authorization", "Bearer user"),))
+            admin.Drain(
+                apb.DrainRequest(name=MODEL, version="x"), metadata=(("authorization", "Bearer user"),)
+            )
         assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
         with pytest.raises(grpc.RpcError) as e:
-            admin.Drain(apb.DrainRequest(name=MODEL, version="x"), metadata=(("authorization", "Bearer root"),))
+            admin.Drain(
+                apb.DrainRequest(name=MODEL, version="x"), metadata=(("authorization", "Bearer root"),)
+            )
         assert e.value.code() == grpc.StatusCode.NOT_FOUND  # authorised: the version does not exist
 
 
@@ -361,7 +385,9 @@ def test_acts_are_answered_while_a_version_loads(make_server, roots, monkeypatch
         assert out["r"].status_code == 201, out["r"].text
 
 
-def test_a_replica_adopts_a_session_of_a_version_it_lacks(make_server, roots, versions, redis_clean, tmp_path):
+def test_a_replica_adopts_a_session_of_a_version_it_lacks(
+    make_server, roots, versions, redis_clean, tmp_path
+):
     """Two replicas share Redis; one loads v2 and starts sessions on it, the other (which never loaded v2) continues
     them exactly, loading v2 from its checkpoint roots by fingerprint. A replica without the checkpoint says which
     version it lacks."""
@@ -385,19 +411,32 @@ def test_a_replica_adopts_a_session_of_a_version_it_lacks(make_server, roots, ve
         np.testing.assert_array_equal(np.float32(got), np.float32(want))
         assert hb.get(f"/sessions/{sid}").json()["model_version"] == versions["v2"]
         b_table = {v["version"]: v["state"] for v in versions_of(hb)["versions"]}
-        assert b_table == {versions["v1"]: "serving", versions["v2"]: "draining"}  # adopted: for its sessions only
+        assert b_table == {
+            versions["v1"]: "serving",
+            versions["v2"]: "draining",
+        }  # adopted: for its sessions only
         r = hc.post(f"/sessions/{sid}/act", json={"observation": obs[0].tolist(), "step": 6})
         assert r.status_code == 409 and r.json()["error"]["code"] == "failed_precondition"
         assert f"version {versions['v2']!r} of model {MODEL!r} is not loaded" in r.json()["error"]["message"]
 
 
-def test_load_and_unload_under_256_sessions_give_no_errors(make_server, roots, versions, tmp_path, record_property):
+def test_load_and_unload_under_256_sessions_give_no_errors(
+    make_server, roots, versions, tmp_path, record_property
+):
     """256 sessions act without pause from another process while versions are loaded, promoted, run as a canary,
     unloaded and drained: every act is answered, and v1 goes once the load loop closes its sessions."""
     server = make_server(checkpoints=[roots], max_sessions=1024)
     stop = tmp_path / "stop"
     loop = subprocess.Popen(
-        [sys.executable, str(Path(__file__).with_name("load_loop.py")), server.url, MODEL, "256", str(stop), "120"],
+        [
+            sys.executable,
+            str(Path(__file__).with_name("load_loop.py")),
+            server.url,
+            MODEL,
+            "256",
+            str(stop),
+            "120",
+        ],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -422,19 +461,24 @@ def test_load_and_unload_under_256_sessions_give_no_errors(make_server, roots, v
             stop.touch()
             out, _ = loop.communicate(timeout=120)
             report = json.loads(out.strip().splitlines()[-1])
-            wait_for(lambda: [v["version"] for v in versions_of(http)["versions"]] == [versions["v2"]], "v1 unloaded")
+            wait_for(
+                lambda: [v["version"] for v in versions_of(http)["versions"]] == [versions["v2"]],
+                "v1 unloaded",
+            )
     finally:
         stop.touch()
         if loop.poll() is None:
             loop.kill()
             loop.wait(30)
     record_property("load_report", report)
-    print(f"256 sessions under load and unload: {report}; acts answered during the 6 management calls: {during}")
+    print(
+        f"256 sessions under load and unload: {report}; acts answered during the 6 management calls: {during}"
+    )
     assert report["errors"] == {} and report["versions"] == [versions["v1"]]
     assert during > 0  # the load went on while the versions changed
 
 
 def acts_answered(http) -> float:
     """Acts the server answered 200 (its request metrics)."""
-    line = f'gmt_request_duration_seconds_count{{code="200",method="act",transport="rest"}} '
+    line = 'gmt_request_duration_seconds_count{code="200",method="act",transport="rest"} '
     return float(next(x for x in http.get("/metrics").text.splitlines() if x.startswith(line)).split()[-1])
