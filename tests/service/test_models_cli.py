@@ -26,7 +26,13 @@ def test_gmt_models_drives_a_rollout(make_server, tmp_path):
     server = make_server(checkpoints=[root])
     s = ("--server", server.url)
     out = gmt("models", "list", *s)
-    assert out.returncode == 0 and out.stdout.split("\n")[1].split() == ["tiny-gmt", v1, "serving", "0", "default"]
+    assert out.returncode == 0 and out.stdout.split("\n")[1].split() == [
+        "tiny-gmt",
+        v1,
+        "serving",
+        "0",
+        "default",
+    ]
     out = gmt("models", "load", "tiny-gmt", str(root / "next" / "tiny-gmt-2"), *s)
     assert out.returncode == 0 and out.stdout.startswith(f"tiny-gmt {v2} loaded (serving"), out.stderr
     out = gmt("models", "promote", "tiny-gmt", v2, "--share", "0.1", *s)
