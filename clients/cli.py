@@ -16,7 +16,9 @@ from gmt.common.cli_support import dataclass_flags, field_docs, with_flags
 from gmt.common.extras import MissingExtra
 
 # Options from the configuration they fill (`RunConfig`) and the clients' defaults; goal and schedule are parsed.
-RUN_FLAGS = dataclass_flags(RunConfig, skip=("goal", "schedule", "transport"), names={"env_id": ("--env",)})
+RUN_FLAGS = dataclass_flags(
+    RunConfig, skip=("goal", "schedule", "transport"), names={"env_id": ("--env",), "live_port": ("--port",)}
+)
 
 
 @with_flags(RUN_FLAGS)

@@ -21,6 +21,7 @@ from gmt.client.base import (
     Session,
     SessionInfo,
     as_observation,
+    batch_routing_key,
     goal_selector,
     new_session_id,
     with_retries,
@@ -305,7 +306,10 @@ class GrpcClient(PolicyClient):
             requests=[act_request(sid, o, t) for (sid, o), t in zip(items, steps, strict=True)]
         )
         try:
-            results = self._call("ActBatch", req, safe=all(t is not None for t in steps)).results
+            key = batch_routing_key([sid for sid, _ in items]) if items else None  # as `RestClient.act_many`
+            results = self._call(
+                "ActBatch", req, session_id=key, safe=all(t is not None for t in steps)
+            ).results
         except ServiceError as e:
             for sid, _ in items:
                 self._seen_act(sid, e)

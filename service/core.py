@@ -21,6 +21,8 @@ from gmt.model.checkpoint import VERSION_PATTERN, CheckpointError, Goal
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
 from gmt.service.batcher import MicroBatcher
+from gmt.service.console.activity import SessionRow
+from gmt.service.console.events import EventHub
 from gmt.service.errors import (
     AlreadyExists,
     FailedPrecondition,
@@ -89,6 +91,7 @@ def check_new_session_id(sid: str) -> str:
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 UNLOAD_WAIT_S = 5.0  # longest wait, in a forced unload, for the acts already in the version's batcher
+MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
 GoalRef = int | str | None
 _HEX = re.compile(r"[0-9a-fA-F]{12,64}")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
@@ -212,6 +215,7 @@ class Core:
         self._tasks: set[asyncio.Task] = set()  # unloads of drained versions in progress
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
         self._sweeper: asyncio.Task | None = None
+        self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
 
     # ----- lifecycle ----------------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -254,6 +258,7 @@ class Core:
         if self._closed:
             return
         self._closed = self.closing = True
+        self.events.close()
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
@@ -302,6 +307,7 @@ class Core:
         gone = await self.store.sweep()
         for s in gone:
             self._dropped(s.id, s.key)
+            self.events.end(s.id, "expired", {"session_id": s.id})
             log.info("session expired", extra={"session": short_id(s.id), "model": s.key})
         for m in self.registry.loaded():  # a shared store lets go of sessions it stopped seeing
             self._unload_if_drained(m)
@@ -750,6 +756,42 @@ class Core:
         async with self._lock(sid):
             return self._view_session(await self.store.get(sid, hold=False))
 
+    async def list_sessions(self, offset: int = 0, limit: int = 100) -> tuple[int, list[SessionRow]]:
+        """The store's live sessions, newest first: (how many there are, the page from `offset`).
+
+        Acts/s and last latency are as of the session's last act (in a shared store, as of the act before).
+
+        Raises:
+            InvalidArgument: `offset` is negative or `limit` is not in 1..`MAX_LIST_SESSIONS`.
+        """
+        if isinstance(offset, bool) or not isinstance(offset, int) or offset < 0:
+            raise InvalidArgument(f"offset must be an integer >= 0, got {offset!r}")
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST_SESSIONS:
+            raise InvalidArgument(f"limit must be an integer in 1..{MAX_LIST_SESSIONS}, got {limit!r}")
+        total, briefs = await self.store.list_page(offset, limit)
+        now, here = self.clock(), self.settings.replica_id
+        rows, goal_names = [], {}
+        for b in briefs:
+            names = goal_names.get(b.model)
+            if names is None:
+                m = self.registry.models.get(b.model)
+                names = goal_names[b.model] = {g.id: g.name for g in m.checkpoint.goals} if m else {}
+            a = b.activity
+            rows.append(
+                SessionRow(
+                    session_id=b.session_id,
+                    model=b.model,
+                    goal=b.goal,
+                    goal_name=names.get(b.goal, ""),
+                    step=b.step,
+                    idle_s=max(now - b.last_used, 0.0),
+                    acts_per_s=a.rate(now) if a.count else None,
+                    last_latency_ms=None if a.latency_s is None else a.latency_s * 1000.0,
+                    served_by=a.by or (here if b.held_here else None),
+                )
+            )
+        return total, rows
+
     def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
         """The raw observation checked and normalised, once, into what the engine consumes.
 
@@ -787,6 +829,7 @@ class Core:
         return await run_whole(self._act(sid, observation, step))
 
     async def _act(self, sid: str, observation: object, step: int | None) -> ActResult:
+        t0 = time.perf_counter()
         async with self._lock(sid):
             s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
             if repeat is not None:
@@ -798,7 +841,18 @@ class Core:
                 raise InvalidArgument(str(e)) from None
             s.last_used = self.clock()
             await self._save(m, s, version)
-        return self._result(m, sid, action, step, goal)
+            result = self._result(m, sid, action, step, goal)
+            self._acted(s, result, t0)
+        return result
+
+    def _acted(self, s: Session, r: ActResult, t0: float) -> None:
+        """Account for an answered act begun at `perf_counter()` `t0`: the session's activity, its watchers."""
+        latency = time.perf_counter() - t0
+        s.activity.record(s.last_used, latency, self.settings.replica_id)
+        if s.id in self.events:
+            action = r.action if r.action is not None else r.discrete_action
+            data = {"step": r.step, "goal": r.goal, "action": action, "latency_ms": latency * 1000.0}
+            self.events.publish(s.id, "act", data)
 
     async def _prepare(self, sid: str, observation: object, step: int | None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
@@ -859,6 +913,7 @@ class Core:
         return await run_whole(self._act_many(items))
 
     async def _act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
+        t0 = time.perf_counter()
         out: list[ActResult | ServiceError | None] = [None] * len(items)
         seen: set[str] = set()
         order: list[int] = []
@@ -912,6 +967,8 @@ class Core:
                 for (i, s, m, _, result), e in zip(stepped, saved, strict=True):
                     if e is not None:
                         m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
+                    else:
+                        self._acted(s, result, t0)
                     out[i] = e if e is not None else result
         return out
 
@@ -958,7 +1015,12 @@ class Core:
             s.last_used = self.clock()
             await self._save(m, s, version)
             log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})
-            return self._view_session(s)
+            view = self._view_session(s)
+            if sid in self.events:
+                given = {"goal": goal} if target is None else {"target": target}
+                data = {"goal": g, "goal_name": view.goal_name, "step": view.step, "given": given}
+                self.events.publish(sid, "goal", {**data, "blend_steps": blend_steps})
+            return view
 
     async def reset(self, sid: str, goal: GoalRef = None, target: float | None = None) -> SessionView:
         """Start a new episode in the session, keeping its goal unless one is given.
@@ -981,7 +1043,10 @@ class Core:
             m.engine.reset(ctx, g)
             s.last_used = self.clock()
             await self._save(m, s, version)
-            return self._view_session(s)
+            view = self._view_session(s)
+            if sid in self.events:
+                self.events.publish(sid, "reset", {"goal": view.goal, "goal_name": view.goal_name, "step": 0})
+            return view
 
     async def close_session(self, sid: str) -> None:
         """Forget the session. Raises NotFound / SessionExpired."""
@@ -992,5 +1057,6 @@ class Core:
         async with self._lock(sid):
             point_of_no_return()
             await self.store.delete(sid)
+            self.events.end(sid, "closed", {"session_id": sid})
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session closed", extra={"session": short_id(sid)})

@@ -6,7 +6,8 @@ Fields (format 3):
   layout of a step record (`H` held steps, the state's and the action's dtype and shape);
 - `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
   matches a copy of its predecessor);
-- `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version) and `last_used`;
+- `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
+  last latency and replica of the console's listing, `console.activity`: as of the act before the write);
 - `r:<t mod H>`: the record of held step `t`: t, goal token, blend target and weight, state, action, as raw
   little-endian bytes.
 
@@ -26,6 +27,7 @@ import numpy as np
 import orjson
 
 from gmt.model.context import Context, StoredContext
+from gmt.service.console.activity import Activity
 from gmt.service.sessions import Session
 
 FORMAT_VERSION = 3
@@ -67,6 +69,7 @@ def _record_of(sd: str, ss: tuple, ad: str, ash: tuple) -> np.dtype:
 def _state(session: Session, ctx: Context) -> bytes:
     st = ctx.scalars()
     st["last_used"] = session.last_used
+    st["activity"] = session.activity.dump()
     return orjson.dumps(st)
 
 
@@ -157,6 +160,7 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             request=str(meta.get("request", "")),
             model_version=str(meta.get("model_version", "")),
             fingerprint=str(meta.get("fingerprint", "")),
+            activity=Activity.load(st.get("activity")),
         )
     except CodecError:
         raise

@@ -7,12 +7,21 @@ number of live sessions (`ResourceExhausted`). It does not order calls: the core
 from __future__ import annotations
 
 import abc
+import itertools
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, ServiceError, SessionExpired
+from gmt.service.console.activity import Activity, SessionBrief
+from gmt.service.errors import (
+    AlreadyExists,
+    FailedPrecondition,
+    NotFound,
+    ResourceExhausted,
+    ServiceError,
+    SessionExpired,
+)
 
 Clock = Callable[[], float]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
@@ -34,6 +43,7 @@ class Session:
         model_version: The model version it runs for its whole life ('' for a session stored before versions
             were: the model's default version).
         fingerprint: That version's checkpoint fingerprint (how a replica that lacks the version finds it).
+        activity: Acts/s and last latency (the console's listing).
     """
 
     id: str
@@ -44,11 +54,19 @@ class Session:
     request: str = ""
     model_version: str = ""
     fingerprint: str = ""
+    activity: Activity = field(default_factory=Activity)
 
     @property
     def key(self) -> str:
         """`model@version`: the engine, batcher and per-version count it belongs to."""
         return f"{self.model}@{self.model_version}"
+
+
+def brief(s: Session, held_here: bool = True) -> SessionBrief:
+    """The listing's view of a session held as a `Session`."""
+    return SessionBrief(
+        s.id, s.model, int(s.ctx.goal), int(s.ctx.step), s.created_at, s.last_used, s.activity, held_here
+    )
 
 
 def expired_message(sid: str, idle_timeout_s: float) -> str:
@@ -157,6 +175,14 @@ class SessionStore(abc.ABC):
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release connections."""
 
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        """(live sessions held, up to `limit` of them from `offset`), newest first.
+
+        Raises:
+            FailedPrecondition: this store cannot list its sessions.
+        """
+        raise FailedPrecondition(f"the session store {type(self).__name__} cannot list its sessions")
+
 
 class MemorySessionStore(SessionStore):
     """Sessions in a dict of this process (the default; lost on restart)."""
@@ -226,3 +252,7 @@ class MemorySessionStore(SessionStore):
 
     def local_count(self, key: str) -> int:
         return self._per_model[key]
+
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)
+        return len(self._sessions), [brief(s) for s in page]

@@ -18,6 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gmt.service import admin, examples
+from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from gmt.service.rest import docs, media, openapi
@@ -155,11 +156,12 @@ class AuthFirst:
     """Refuses a request that may not be answered before anything reads its body.
 
     Model management paths follow `gmt.service.admin` (the admin token, else the bearer token, else loopback
-    only). With auth on, health checks and the API docs (their pages and assets) stay open; every other path
-    (unknown ones included) needs the token.
+    only). With auth on, health checks, the API docs (their pages and assets) and the console's page and assets
+    (no data: the page sends the token on every call it makes) stay open; every other path (unknown ones
+    included) needs the token.
     """
 
-    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS
+    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS | console.PATHS
 
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
@@ -379,7 +381,11 @@ class RequestMetrics:
             await send(message)
 
         core = getattr(scope["app"].state, "core", None) if "app" in scope else None
-        in_flight = core.metrics.in_flight_rest if core is not None and scope["path"] != "/metrics" else None
+        path = scope["path"]
+        counted = path != "/metrics" and not path.endswith(
+            "/events"
+        )  # a scrape; an event stream (long-lived)
+        in_flight = core.metrics.in_flight_rest if core is not None and counted else None
         if in_flight is not None:
             in_flight.inc()
         try:
@@ -432,6 +438,7 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
     app.include_router(public)
     app.include_router(api)
     app.include_router(admin_api)
+    app.include_router(console.router)
     docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
