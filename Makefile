@@ -62,9 +62,9 @@ lint: $(VENV)/.installed-dev
 test: $(VENV)/.installed-dev lint
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
-# Regenerate the committed gRPC stubs from proto/gmt/v1/policy.proto (tests/proto checks they are current).
+# Regenerate the committed gRPC stubs from proto/gmt/v1/*.proto (tests/test_proto.py checks they are current).
 proto: $(VENV)/.installed-dev
-	cd proto && ../$(BIN)/python -m grpc_tools.protoc -I. --python_out=. --grpc_python_out=. --pyi_out=. gmt/v1/policy.proto
+	cd proto && ../$(BIN)/python -m grpc_tools.protoc -I. --python_out=. --grpc_python_out=. --pyi_out=. gmt/v1/policy.proto gmt/v1/admin.proto
 
 data: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env HalfCheetah-v5

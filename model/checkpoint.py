@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import re
 import subprocess
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError
+from safetensors.torch import load as load_tensors
+from safetensors.torch import save_file
 
 from gmt.model.config import GMTConfig
 from gmt.model.gmt import GMT
@@ -21,6 +25,7 @@ FORMAT_VERSION = 1
 WEIGHTS = "model.safetensors"
 META = "gmt.json"
 PICKLE_SUFFIXES = {".pt", ".pth", ".pkl", ".pickle", ".ckpt", ".bin"}
+VERSION_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")  # a served version: one URL path segment
 
 
 class CheckpointError(Exception):
@@ -49,6 +54,9 @@ class Checkpoint:
             their environment from it.
         default_action_mode: Action mode of sessions that name none (None: the engine's default), e.g.
             `sample` for a model whose goals differ in how often the data's agents acted at random.
+        fingerprint: sha256 hex of the weights and the metadata as loaded (`fingerprint`); empty for a
+            checkpoint built in memory.
+        version: The served version: gmt.json's `version`, else the fingerprint's first 12 hex digits.
     """
 
     name: str
@@ -64,6 +72,8 @@ class Checkpoint:
     action_noise: np.ndarray | None = None
     preprocessing: dict | None = None
     default_action_mode: str | None = None
+    fingerprint: str = ""
+    version: str = ""
 
     @property
     def config(self) -> GMTConfig:
@@ -139,11 +149,72 @@ def _refuse_pickle(path: Path) -> None:
         raise CheckpointError(f"refusing to load {path}: it is a pickle stream, not safetensors")
 
 
-def load_checkpoint(directory: str | Path, name: str | None = None) -> Checkpoint:
-    """Load a checkpoint directory; only safetensors and JSON are ever read.
+def fingerprint(weights: bytes, meta: dict) -> str:
+    """A checkpoint's identity: sha256 hex over its weights' bytes and its metadata (canonical JSON, so that
+    formatting does not count)."""
+    h = hashlib.sha256(b"gmt-checkpoint-fingerprint-v1\0")
+    h.update(hashlib.sha256(weights).digest())
+    h.update(hashlib.sha256(json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()).digest())
+    return h.hexdigest()
+
+
+def version_of(meta: dict, fp: str) -> str:
+    """The served version: gmt.json's `version` when it names one, else the fingerprint's first 12 hex digits.
 
     Raises:
-        CheckpointError: the directory, weights or metadata are missing or malformed, or a pickle is given.
+        CheckpointError: the named version is not 1 to 64 letters, digits, '.', '_' or '-'.
+    """
+    v = meta.get("version")
+    if v is None:
+        return fp[:12]
+    if not isinstance(v, str) or not VERSION_PATTERN.fullmatch(v):
+        raise CheckpointError(
+            f"gmt.json names version {v!r}: a version is 1 to 64 letters, digits, '.', '_' or '-' "
+            "(starting with a letter or digit)"
+        )
+    return v
+
+
+def read_meta(directory: str | Path) -> dict:
+    """A checkpoint directory's gmt.json.
+
+    Raises:
+        CheckpointError: it is missing, not JSON, or not a gmt checkpoint of this format.
+    """
+    meta_path = Path(directory) / META
+    try:
+        meta = json.loads(meta_path.read_text())
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {Path(directory)} has no {META}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{meta_path} is not valid JSON: {e}") from e
+    except OSError as e:
+        raise CheckpointError(f"{meta_path} cannot be read: {e.strerror}") from e
+    if (
+        not isinstance(meta, dict)
+        or meta.get("format") != FORMAT
+        or meta.get("format_version") != FORMAT_VERSION
+    ):
+        got = (meta.get("format"), meta.get("format_version")) if isinstance(meta, dict) else (None, None)
+        raise CheckpointError(
+            f"{meta_path}: expected format {FORMAT} v{FORMAT_VERSION}, got {got[0]} v{got[1]}"
+        )
+    return meta
+
+
+def load_checkpoint(
+    directory: str | Path, name: str | None = None, expect_fingerprint: str | None = None
+) -> Checkpoint:
+    """Load a checkpoint directory; only safetensors and JSON are ever read.
+
+    The weights are read once: the fingerprint is of the very bytes loaded.
+
+    Args:
+        expect_fingerprint: Refuse the checkpoint unless its fingerprint starts with this (12 to 64 hex digits).
+
+    Raises:
+        CheckpointError: the directory, weights or metadata are missing or malformed, the weights do not fit the
+            config, a pickle is given, or the fingerprint is not the expected one.
     """
     d = Path(directory)
     if d.is_file():
@@ -154,42 +225,66 @@ def load_checkpoint(directory: str | Path, name: str | None = None) -> Checkpoin
         if not p.is_file():
             raise CheckpointError(f"checkpoint {d} has no {p.name}")
     _refuse_pickle(weights)
+    meta = read_meta(d)
     try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
-        raise CheckpointError(f"{meta_path} is not valid JSON: {e}") from e
-    if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        data = weights.read_bytes()
+    except OSError as e:
+        raise CheckpointError(f"{weights} cannot be read: {e.strerror}") from e
+    fp = fingerprint(data, meta)
+    if expect_fingerprint is not None and not fp.startswith(expect_fingerprint.lower()):
         raise CheckpointError(
-            f"{meta_path}: expected format {FORMAT} v{FORMAT_VERSION}, "
-            f"got {meta.get('format')} v{meta.get('format_version')}"
+            f"checkpoint {d} has fingerprint {fp}, not the expected {expect_fingerprint} (a different or changed "
+            "checkpoint)"
         )
-    cfg = GMTConfig.from_dict(meta["model"])
+    try:
+        cfg = GMTConfig.from_dict(meta["model"])
+        env = meta["env"]
+        obs_norm = ObsNormalizer.from_dict(meta["normalization"]["observation"])
+        action_codec = ActionCodec.from_dict(meta["normalization"]["action"])
+        goals = [Goal(**g) for g in meta["goals"]]
+        env_id, observation_space, action_space = env["env_id"], env["observation_space"], env["action_space"]
+        statistic = meta["statistic"]
+    except KeyError as e:
+        raise CheckpointError(f"{meta_path}: unreadable metadata: missing field {e}") from None
+    except (TypeError, ValueError, AttributeError) as e:
+        raise CheckpointError(f"{meta_path}: unreadable metadata: {e}") from None
     model = GMT(cfg)
     try:
-        state = load_file(str(weights))
-    except Exception as e:  # safetensors raises its own error types
+        state = load_tensors(data)
+    except (SafetensorError, ValueError, OSError) as e:  # safetensors raises its own error types
         raise CheckpointError(f"{weights} is not a readable safetensors file: {e}") from e
+    expected = model.state_dict()
+    wrong = [
+        f"{k} {list(v.shape)} (config: {list(expected[k].shape)})"
+        for k, v in state.items()
+        if k in expected and tuple(v.shape) != tuple(expected[k].shape)
+    ]
+    if wrong:
+        raise CheckpointError(
+            f"{weights} does not match the config: wrong tensor shapes: {', '.join(wrong[:5])}"
+        )
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise CheckpointError(
             f"{weights} does not match the config: missing {missing}, unexpected {unexpected}"
         )
     model.eval()
-    env = meta["env"]
     return Checkpoint(
         name=name or meta.get("name") or d.name,
         model=model,
-        env_id=env["env_id"],
-        observation_space=env["observation_space"],
-        action_space=env["action_space"],
-        obs_norm=ObsNormalizer.from_dict(meta["normalization"]["observation"]),
-        action_codec=ActionCodec.from_dict(meta["normalization"]["action"]),
-        statistic=meta["statistic"],
-        goals=[Goal(**g) for g in meta["goals"]],
+        env_id=env_id,
+        observation_space=observation_space,
+        action_space=action_space,
+        obs_norm=obs_norm,
+        action_codec=action_codec,
+        statistic=statistic,
+        goals=goals,
         meta=meta,
         action_noise=_action_noise(meta, cfg, meta_path),
         preprocessing=env.get("preprocessing"),
         default_action_mode=meta.get("default_action_mode"),
+        fingerprint=fp,
+        version=version_of(meta, fp),
     )
 
 

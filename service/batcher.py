@@ -101,8 +101,17 @@ class MicroBatcher:
                 self._running = []
                 self._pending.clear()
 
-    async def close(self) -> None:
-        """Stop batching; queued requests are cancelled."""
+    @property
+    def idle(self) -> bool:
+        """Whether no request waits or runs."""
+        return not self._running and not self._live()
+
+    async def close(self, wait_s: float = 0.0) -> None:
+        """Stop batching, after the queued requests are answered if that takes at most `wait_s`; requests still
+        queued then are cancelled."""
+        deadline = time.monotonic() + wait_s
+        while not self.idle and time.monotonic() < deadline and self.healthy:
+            await asyncio.sleep(0.005)
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)

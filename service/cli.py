@@ -103,6 +103,11 @@ COMMANDS = (
         "Drive an agent remotely: send observations, apply actions, report each goal segment.",
     ),
     Entry(
+        "models",
+        "gmt.client.models:app",
+        "Model versions of a running server: list, load, promote, drain, unload.",
+    ),
+    Entry(
         "bench",
         "gmt.bench.cli:bench_command",
         "Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.",

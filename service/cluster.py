@@ -11,6 +11,10 @@ topology in containers). `up` returns once every process is ready (the Redis rep
 agreeing on the primary and knowing each other and the replicas, nginx answering on both ports); each
 process's pid is in `<run dir>/<name>.pid`, and `down` stops exactly those processes.
 
+`upgrade` rolls a new model version through the running replicas: it loads the checkpoint on each (over each
+replica's own REST port), promotes it on each, then drains the old default on each; sessions keep the version they
+started with (docs/models.md).
+
 The processes outlive the command that started them (each in a session of its own); their output goes to
 `<run dir>/<name>.log`, nginx's to `<run dir>/nginx/error.log` and `access.log` (which replica served what).
 """
@@ -583,6 +587,130 @@ def down(run_dir: Path = DEFAULT_RUN_DIR, *, timeout_s: float = 15.0, quiet: boo
     return outcome
 
 
+# ----- rolling upgrade -----------------------------------------------------------------------------------------
+def load_cluster(run_dir: Path = DEFAULT_RUN_DIR) -> Cluster:
+    """The cluster `up` started from `run_dir` (its `cluster.json`).
+
+    Raises:
+        ClusterError: no cluster was started there.
+    """
+    state = Path(run_dir) / "cluster.json"
+    try:
+        d = json.loads(state.read_text())
+    except FileNotFoundError:
+        raise ClusterError(
+            f"no cluster runs from {run_dir} (no {state}); start one with `gmt cluster up`"
+        ) from None
+    d["run_dir"] = Path(d["run_dir"])
+    d["replicas"] = [Replica(**r) for r in d["replicas"]]
+    return Cluster(**d)
+
+
+@dataclass
+class UpgradeReport:
+    """What `upgrade` did.
+
+    Attributes:
+        version: The new version.
+        old: The default version each replica had before, by replica.
+        done: Replicas that load, promote and drain all succeeded on.
+        failed: Replicas that could not be upgraded, with why (unreachable, or the server's refusal).
+    """
+
+    model: str
+    version: str = ""
+    old: dict[str, str] = field(default_factory=dict)
+    done: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+def upgrade(
+    checkpoint: Path,
+    run_dir: Path = DEFAULT_RUN_DIR,
+    *,
+    model: str | None = None,
+    token: str | None = None,
+    progress=None,
+) -> UpgradeReport:
+    """Roll a checkpoint through the cluster's replicas as the new default version of `model`: load it on every
+    replica, then promote it on every replica, then drain each replica's old default. A replica that fails a step
+    (killed, say) is reported and left out of the later steps; the others go on, and its sessions move to them
+    (they load their version by fingerprint where they lack it).
+
+    Args:
+        checkpoint: The checkpoint directory; it must be under the replicas' checkpoint roots.
+        model: The model name (default: the only model the replicas serve).
+        token: The replicas' admin token (else their auth token; none: the replicas are on this machine).
+        progress: Called with (step, replica, detail) after each step on each replica ("load", "promote", "drain").
+
+    Raises:
+        ClusterError: no cluster in `run_dir`, no replica answers, the model is ambiguous, or the replicas loaded
+            different versions (another checkpoint under the same path on one of them).
+    """
+    from gmt.client.errors import ServiceError
+    from gmt.client.models import AdminClient
+
+    c = load_cluster(run_dir)
+    path = str(Path(checkpoint).resolve())
+    h = f"[{c.host}]" if ":" in c.host else c.host
+    clients = {r.name: AdminClient(f"http://{h}:{r.rest_port}", token) for r in c.replicas}
+    report = UpgradeReport(model or "")
+    live: list[str] = []
+    try:
+        for name, client in clients.items():
+            try:
+                served = {m["name"]: m for m in client.models()}
+            except ServiceError as e:
+                report.failed[name] = str(e)
+                continue
+            if not report.model:
+                if len(served) != 1:
+                    raise ClusterError(
+                        f"{name} serves {sorted(served) or 'no model'}: name the model (--model)"
+                    )
+                report.model = next(iter(served))
+            if report.model not in served:
+                report.failed[name] = f"does not serve model {report.model!r}"
+                continue
+            report.old[name] = served[report.model]["default_version"]
+            live.append(name)
+        if not live:
+            raise ClusterError(f"no replica could be upgraded: {report.failed}")
+
+        def run_step(step: str, client, name: str) -> str:
+            if step == "load":
+                return client.load(report.model, path)["version"]
+            if step == "promote":
+                client.promote(report.model, report.version)
+                return report.version
+            if report.old[name] == report.version:
+                return "nothing to drain"
+            client.drain(report.model, report.old[name])
+            return report.old[name]
+
+        for step in ("load", "promote", "drain"):
+            for name in list(live):
+                try:
+                    detail = run_step(step, clients[name], name)
+                except ServiceError as e:
+                    report.failed[name] = f"{step}: {e}"
+                    live.remove(name)
+                    continue
+                if step == "load":
+                    if report.version and detail != report.version:
+                        raise ClusterError(
+                            f"{name} loaded version {detail}, another replica {report.version}"
+                        )
+                    report.version = detail
+                if progress is not None:
+                    progress(step, name, detail)
+        report.done = live
+    finally:
+        for client in clients.values():
+            client.http.close()
+    return report
+
+
 # ----- the command ---------------------------------------------------------------------------------------------
 app = typer.Typer(
     help="The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
@@ -647,3 +775,36 @@ def down_command(
 ) -> None:
     """Stop exactly the processes whose pids `up` wrote to <run dir>/*.pid."""
     down(run_dir, timeout_s=timeout)
+
+
+@app.command("upgrade")
+def upgrade_command(
+    checkpoint: Path = typer.Argument(
+        ..., help="The new checkpoint directory (under the replicas' checkpoint roots)."
+    ),
+    model: str = typer.Option(None, help="Model name (default: the only model the replicas serve)."),
+    run_dir: Path = typer.Option(DEFAULT_RUN_DIR, help="The run directory `up` used."),
+    token: str = typer.Option(
+        None,
+        envvar=["GMT_ADMIN_TOKEN", "GMT_AUTH_TOKEN"],
+        help="The replicas' admin token, else their auth token.",
+    ),
+) -> None:
+    """Roll a new model version through the replicas: load it on each, promote it on each, drain the old one on
+    each. Live sessions finish on the version they started with."""
+    try:
+        r = upgrade(
+            checkpoint,
+            run_dir,
+            model=model,
+            token=token,
+            progress=lambda step, name, detail: typer.echo(f"{name}: {step} {detail}"),
+        )
+    except ClusterError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"{r.model} {r.version} is the default on {', '.join(r.done) or 'no replica'}")
+    for name, why in r.failed.items():
+        typer.echo(f"error: {name} not upgraded: {why}", err=True)
+    if r.failed:
+        raise typer.Exit(1)

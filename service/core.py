@@ -1,4 +1,5 @@
-"""The transport-agnostic service: models, sessions, goals and batched actions. Both adapters call this."""
+"""The transport-agnostic service: models and their versions, sessions, goals and batched actions. Both adapters
+call this."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.model.checkpoint import Goal
+from gmt.model.checkpoint import VERSION_PATTERN, CheckpointError, Goal
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
 from gmt.service.batcher import MicroBatcher
@@ -27,12 +28,21 @@ from gmt.service.errors import (
     FailedPrecondition,
     InvalidArgument,
     NotFound,
+    PermissionDenied,
     ServiceError,
     Unavailable,
 )
 from gmt.service.metrics import Metrics
 from gmt.service.observations import MAX_ABS_VALUE, to_array
-from gmt.service.registry import LoadedModel, ModelRegistry
+from gmt.service.registry import (
+    DRAINING,
+    LoadedModel,
+    ModelRegistry,
+    ModelVersions,
+    find_by_fingerprint,
+    load_model,
+    model_key,
+)
 from gmt.service.sessions import Clock, MemorySessionStore, Session, SessionStore
 from gmt.service.settings import Settings
 from gmt.service.units import point_of_no_return, run_whole
@@ -80,13 +90,44 @@ def check_new_session_id(sid: str) -> str:
 
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
+UNLOAD_WAIT_S = 5.0  # longest wait, in a forced unload, for the acts already in the version's batcher
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
 GoalRef = int | str | None
+_HEX = re.compile(r"[0-9a-fA-F]{12,64}")
+_MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
+
+
+def check_version(version: object, what: str = "version") -> str:
+    """`version` if it can name a model version (1 to 64 letters, digits, '.', '_', '-').
+
+    Raises:
+        InvalidArgument: anything else.
+    """
+    if not isinstance(version, str) or not VERSION_PATTERN.fullmatch(version):
+        shown = repr(version) if isinstance(version, str) and len(version) <= 64 else "given"
+        raise InvalidArgument(f"{what} {shown} is not 1 to 64 letters, digits, '.', '_' or '-'")
+    return version
+
+
+@dataclass(frozen=True)
+class VersionView:
+    """One loaded version of a model.
+
+    Attributes:
+        sessions: Sessions of this version this server holds (all of them with sessions in memory; with a shared
+            store, those this replica created or served lately).
+        state: `serving` (new sessions may get it) or `draining` (its sessions only; unloaded when none is left).
+    """
+
+    version: str
+    sessions: int
+    state: str
+    fingerprint: str
 
 
 @dataclass(frozen=True)
 class ModelView:
-    """What clients learn about a model."""
+    """What clients learn about a model: its default version's spaces and goals, and its version table."""
 
     name: str
     env_id: str
@@ -98,6 +139,10 @@ class ModelView:
     discrete_actions: bool
     action_modes: tuple[str, ...]  # the first is the default
     preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
+    version: str = ""  # the version this view describes (the default)
+    versions: tuple[VersionView, ...] = ()
+    default_version: str = ""
+    canary: tuple[str, float] | None = None  # (version, share of new sessions)
 
 
 @dataclass(frozen=True)
@@ -113,6 +158,7 @@ class SessionView:
 
     session_id: str
     model: str
+    model_version: str
     goal: int
     goal_name: str
     step: int
@@ -161,8 +207,12 @@ class Core:
         self.started = False
         self.closing = False
         self._closed = False
-        self._batchers: dict[str, MicroBatcher] = {}
+        self._batchers: dict[str, MicroBatcher] = {}  # by `LoadedModel.key`
         self._executor: ThreadPoolExecutor | None = None
+        self._admin = asyncio.Lock()  # one model change (load, adopt, promote, drain, unload) at a time
+        self._adopting: dict[str, asyncio.Future] = {}  # key -> the load of a version a session needs
+        self._unloaded: set[str] = set()  # keys unloaded with force: their sessions are refused here
+        self._tasks: set[asyncio.Task] = set()  # unloads of drained versions in progress
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
         self._sweeper: asyncio.Task | None = None
         self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
@@ -198,20 +248,8 @@ class Core:
         self._executor = (
             None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
         )
-        for name, m in self.registry.models.items():
-            b = MicroBatcher(
-                m.engine,
-                self._executor,
-                max_batch=1 if s.naive else s.max_batch,
-                max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
-                expected=lambda n=name: self.store.local_count(n),
-                observe=lambda size, sec, n=name: self.metrics.observe_batch(n, size, sec),
-                inline_alone=m.engine.describe().kernel == "native",
-            )
-            b.start()
-            self.metrics.track_queue(name, lambda b=b: b.queued)
-            self._batchers[name] = b
-        self.metrics.models_loaded.set(len(self.registry.models))
+        for m in self.registry.loaded():
+            self._start_batcher(m)
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever(), name="session-sweeper")
         self.started = True
 
@@ -224,6 +262,9 @@ class Core:
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
         for b in self._batchers.values():
             await b.close()
         if self._executor is not None:
@@ -265,15 +306,18 @@ class Core:
         """Remove idle sessions now; returns how many expired."""
         gone = await self.store.sweep()
         for s in gone:
-            self._dropped(s.id, s.model)
+            self._dropped(s.id, s.key)
             self.events.end(s.id, "expired", {"session_id": s.id})
-            log.info("session expired", extra={"session": short_id(s.id), "model": s.model})
+            log.info("session expired", extra={"session": short_id(s.id), "model": s.key})
+        for m in self.registry.loaded():  # a shared store lets go of sessions it stopped seeing
+            self._unload_if_drained(m)
         self.metrics.sessions_expired.inc(len(gone))
         self.metrics.live_sessions.set(await self.store.count())
         return len(gone)
 
     # ----- models -------------------------------------------------------------------------------------------
-    def _view_model(self, m: LoadedModel) -> ModelView:
+    def _view_model(self, mv: ModelVersions) -> ModelView:
+        m = mv.versions[mv.default]
         c = m.checkpoint
         return ModelView(
             name=m.name,
@@ -286,15 +330,255 @@ class Core:
             discrete_actions=c.config.discrete_actions,
             action_modes=m.engine.describe().action_modes,
             preprocessing=c.preprocessing,
+            version=m.version,
+            versions=tuple(
+                VersionView(v.version, self.store.local_count(v.key), v.state, v.fingerprint)
+                for v in mv.versions.values()
+            ),
+            default_version=mv.default,
+            canary=mv.canary,
         )
 
     def list_models(self) -> list[ModelView]:
         """Every loaded model, by name."""
-        return [self._view_model(self.registry.models[n]) for n in sorted(self.registry.models)]
+        return [self._view_model(self.registry.names[n]) for n in sorted(self.registry.names)]
 
     def get_model(self, name: str) -> ModelView:
         """One model. Raises NotFound."""
-        return self._view_model(self.registry.get(name))
+        return self._view_model(self.registry.entry(name))
+
+    def _start_batcher(self, m: LoadedModel) -> None:
+        """Start the micro-batcher of a version newly in the registry."""
+        s = self.settings
+        b = MicroBatcher(
+            m.engine,
+            self._executor,
+            max_batch=1 if s.naive else s.max_batch,
+            max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
+            expected=lambda k=m.key: self.store.local_count(k),
+            observe=lambda size, sec, n=m.name, v=m.version: self.metrics.observe_batch(n, v, size, sec),
+            inline_alone=m.engine.describe().kernel == "native",
+        )
+        b.start()
+        self.metrics.track_queue(m.name, m.version, lambda b=b: b.queued)
+        self._batchers[m.key] = b
+        self._count_models()
+
+    def _count_models(self) -> None:
+        self.metrics.models_loaded.set(len(self.registry.names))
+        self.metrics.versions_loaded.set(len(self._batchers))
+
+    def _batcher(self, m: LoadedModel) -> MicroBatcher:
+        b = self._batchers.get(m.key)
+        if b is None:
+            raise FailedPrecondition(
+                f"version {m.version!r} of model {m.name!r} was unloaded from this server"
+            )
+        return b
+
+    async def _stop(self, m: LoadedModel, wait_s: float = 0.0) -> None:
+        """Stop serving a version taken out of the registry: its batcher ends (after the acts it holds, for up to
+        `wait_s`), and with the last reference the engine, its weights and its session pool are freed."""
+        b = self._batchers.pop(m.key, None)
+        self.metrics.untrack_queue(m.name, m.version)
+        self._count_models()
+        if b is not None:
+            await b.close(wait_s)
+        log.info("model version unloaded", extra={"model": m.name, "version": m.version})
+
+    def _unload_if_drained(self, m: LoadedModel) -> None:
+        """Unload a draining version once this server holds none of its sessions."""
+        if m.state != DRAINING or self.store.local_count(m.key) or self.closing:
+            return
+        if self.registry.find(m.name, m.version) is not m:
+            return  # already out
+        self.registry.remove(m.name, m.version)
+        task = asyncio.get_running_loop().create_task(self._stop(m), name=f"unload {m.key}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def checkpoint_path(self, path: object) -> Path:
+        """The checkpoint directory `path` names, if it is under a checkpoint root (`settings.checkpoints`).
+
+        A relative path is taken from the server's working directory, else from each root.
+
+        Raises:
+            InvalidArgument: not a non-empty string.
+            PermissionDenied: it is not under a checkpoint root (symbolic links resolved).
+        """
+        if not isinstance(path, str) or not path or "\0" in path:
+            raise InvalidArgument("path must name a checkpoint directory under the checkpoint roots")
+        roots = [r.resolve() for r in self.settings.checkpoints]
+        p = Path(path)
+        tries = [p] if p.is_absolute() else [Path.cwd() / p, *(r / p for r in roots)]
+        inside = [
+            t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)
+        ]
+        for t in inside:
+            if t.exists():
+                return t
+        if inside:
+            return inside[0]  # loading it says what is missing
+        shown = ", ".join(str(r) for r in self.settings.checkpoints)
+        raise PermissionDenied(
+            f"{path!r} is not under the checkpoint roots ({shown}): this server loads checkpoints from there only"
+        )
+
+    async def load_version(self, name: str, path: str, fingerprint: str | None = None) -> VersionView:
+        """Load the checkpoint at `path` as a version of model `name` (a new name starts a new model); the load
+        runs in a thread, so acts keep being answered. Loading the version again is answered the loaded one.
+
+        Args:
+            fingerprint: Refuse the checkpoint unless its fingerprint starts with this (12 to 64 hex digits).
+
+        Raises:
+            InvalidArgument: a bad name or fingerprint, a checkpoint that cannot be loaded (the message names the
+                problem), or spaces that differ from the model's default version.
+            PermissionDenied: `path` is not under a checkpoint root.
+            AlreadyExists: the version is loaded from another checkpoint (another fingerprint).
+        """
+        self._check_serving()
+        if not isinstance(name, str) or not (name in self.registry.names or _MODEL_NAME.fullmatch(name)):
+            raise InvalidArgument("a new model's name must be 1 to 128 letters, digits, '.', '_' or '-'")
+        if fingerprint is not None and not (isinstance(fingerprint, str) and _HEX.fullmatch(fingerprint)):
+            raise InvalidArgument(
+                "fingerprint must be 12 to 64 hex digits (a prefix of the checkpoint's sha256)"
+            )
+        d = self.checkpoint_path(path)
+        async with self._admin:
+            try:
+                m = await asyncio.to_thread(load_model, name, d, self.settings.naive, fingerprint)
+            except CheckpointError as e:
+                raise InvalidArgument(f"checkpoint refused: {e}") from None
+            have = self.registry.add(m)
+            self._unloaded.discard(m.key)
+            if have is m:
+                self._start_batcher(m)
+                log.info("model version added", extra={"model": name, "version": m.version, "path": str(d)})
+        return self._view_version(have)
+
+    def _view_version(self, m: LoadedModel) -> VersionView:
+        return VersionView(m.version, self.store.local_count(m.key), m.state, m.fingerprint)
+
+    async def promote(self, name: str, version: str, share: float = 1.0) -> ModelView:
+        """Make `version` the default of model `name` (share 1), or a canary that gets `share` of the new sessions
+        that name no version.
+
+        Raises:
+            InvalidArgument: share not in (0, 1], or a canary share for the default version.
+            NotFound: no such model or version on this server.
+        """
+        self._check_serving()
+        async with self._admin:
+            self.registry.promote(name, check_version(version), share)
+        log.info("model version promoted", extra={"model": name, "version": version, "share": share})
+        return self.get_model(name)
+
+    async def drain(self, name: str, version: str) -> ModelView:
+        """Give `version` no new sessions; it is unloaded once this server holds none of its sessions.
+
+        Raises:
+            FailedPrecondition: it is the default version.
+            NotFound: no such model or version on this server.
+        """
+        self._check_serving()
+        async with self._admin:
+            m = self.registry.drain(name, check_version(version))
+            log.info("model version draining", extra={"model": name, "version": version})
+            self._unload_if_drained(m)
+        return self.get_model(name) if name in self.registry.names else self._gone(name)
+
+    async def unload(self, name: str, version: str, force: bool = False) -> ModelView:
+        """Unload `version` now. With `force`, also while sessions use it: their next calls here answer
+        failed_precondition (until the version is loaded again).
+
+        Raises:
+            FailedPrecondition: sessions use it (and not `force`), or it is the default while other versions are
+                loaded.
+            NotFound: no such model or version on this server.
+        """
+        self._check_serving()
+        async with self._admin:
+            m = self.registry.version(name, check_version(version))
+            n = self.store.local_count(m.key)
+            if n and not force:
+                raise FailedPrecondition(
+                    f"{n} session(s) on this server use version {version!r} of model {name!r}: drain it (it is "
+                    "unloaded when they end), or unload with force=true (their next calls fail)"
+                )
+            self.registry.remove(name, version)
+            if n:
+                self._unloaded.add(m.key)
+            await self._stop(m, wait_s=UNLOAD_WAIT_S)
+        return self.get_model(name) if name in self.registry.names else self._gone(name)
+
+    @staticmethod
+    def _gone(name: str) -> ModelView:
+        """The view of a model whose last version was unloaded: no versions."""
+        return ModelView(name, "", {}, {}, 0, "", [], False, ())
+
+    async def _model_of(self, s: Session) -> LoadedModel:
+        """The loaded version a session runs; a version this server lacks is found under the checkpoint roots by
+        its fingerprint and loaded (in a thread).
+
+        Raises:
+            FailedPrecondition: this server does not serve the model, or the version was unloaded here with
+                force, or it cannot be found or loaded.
+        """
+        if s.model not in self.registry.names:
+            raise FailedPrecondition(
+                f"session {s.id!r} runs model {s.model!r}, which this server does not serve"
+            )
+        m = self.registry.find(s.model, s.model_version)
+        if m is not None:
+            if s.fingerprint and m.fingerprint and m.fingerprint != s.fingerprint:
+                raise FailedPrecondition(
+                    f"session {s.id!r} runs version {s.model_version!r} of model {s.model!r} with fingerprint "
+                    f"{s.fingerprint[:16]}..., but this server's version {m.version!r} has fingerprint "
+                    f"{m.fingerprint[:16]}..."
+                )
+            return m
+        key = model_key(s.model, s.model_version)
+        if key in self._unloaded:
+            raise FailedPrecondition(
+                f"session {s.id!r} runs version {s.model_version!r} of model {s.model!r}, which was unloaded from "
+                "this server (forced); create a new session"
+            )
+        fut = self._adopting.get(key)
+        if fut is None:
+            fut = self._adopting[key] = asyncio.ensure_future(
+                self._adopt(s.model, s.model_version, s.fingerprint)
+            )
+            fut.add_done_callback(lambda _: self._adopting.pop(key, None))
+        return await asyncio.shield(fut)
+
+    async def _adopt(self, name: str, version: str, fp: str) -> LoadedModel:
+        """Find version `version` (fingerprint `fp`) of model `name` under the checkpoint roots and load it, as a
+        draining version: it serves the sessions that need it and is unloaded when none is left here."""
+        roots = list(self.settings.checkpoints)
+        where = ", ".join(str(r) for r in roots)
+        path = await asyncio.to_thread(find_by_fingerprint, roots, version, fp)
+        if path is None:
+            raise FailedPrecondition(
+                f"version {version!r} of model {name!r} is not loaded on this server, and no checkpoint with its "
+                f"fingerprint ({fp[:16] or 'unknown'}...) is under the checkpoint roots ({where})"
+            )
+        async with self._admin:
+            m = self.registry.find(name, version)
+            if m is not None:
+                return m
+            try:
+                m = await asyncio.to_thread(load_model, name, path, self.settings.naive, fp or None, DRAINING)
+                self.registry.add(m)
+            except (CheckpointError, ServiceError) as e:
+                msg = e.message if isinstance(e, ServiceError) else str(e)
+                raise FailedPrecondition(
+                    f"version {version!r} of model {name!r} is not loaded on this server and could not be loaded "
+                    f"from {path}: {msg}"
+                ) from None
+            self._start_batcher(m)
+            log.info("model version adopted", extra={"model": name, "version": version, "path": str(path)})
+            return m
 
     # ----- goals --------------------------------------------------------------------------------------------
     @staticmethod
@@ -338,11 +622,14 @@ class Core:
             lock = self._locks[sid] = asyncio.Lock()
         return lock
 
-    def _dropped(self, sid: str, model: str) -> None:
-        """Free what this process holds for a session that is gone (closed, expired or swept)."""
-        m = self.registry.models.get(model) if self.registry else None
+    def _dropped(self, sid: str, key: str) -> None:
+        """Free what this process holds for a session that is gone (closed, expired or swept), and unload its
+        version when it was the last session of a draining one."""
+        name, _, version = key.rpartition("@")
+        m = self.registry.find(name, version) if self.registry else None
         if m is not None:
             m.engine.forget(sid)
+            self._unload_if_drained(m)
 
     @staticmethod
     def _live(m: LoadedModel, s: Session) -> Context:
@@ -359,21 +646,14 @@ class Core:
         if self.closing or not self.started:
             raise Unavailable("server is shutting down" if self.closing else "server is starting")
 
-    def _model_of(self, s: Session) -> LoadedModel:
-        try:
-            return self.registry.get(s.model)
-        except NotFound:
-            raise FailedPrecondition(
-                f"session {s.id!r} runs model {s.model!r}, which this server does not serve"
-            ) from None
-
     def _view_session(self, s: Session) -> SessionView:
         ctx = s.ctx
-        m = self.registry.models.get(s.model)
+        m = self.registry.find(s.model, s.model_version)
         names = {g.id: g.name for g in m.checkpoint.goals} if m else {}
         return SessionView(
             session_id=s.id,
             model=s.model,
+            model_version=s.model_version or (m.version if m else ""),
             goal=int(ctx.goal),
             goal_name=names.get(int(ctx.goal), ""),
             step=int(ctx.step),
@@ -394,21 +674,29 @@ class Core:
         seed: int | None = None,
         action_mode: str | None = None,
         session_id: str | None = None,
+        version: str | None = None,
     ) -> SessionView:
-        """A new session on `model` (optional when one model is loaded) pursuing the given goal.
+        """A new session on `model` (optional when one model is loaded) pursuing the given goal; it runs one
+        version of the model for its whole life.
 
         Args:
+            version: The model version (must be serving); none: the default, or the canary for its share of
+                session ids (a hash of the id and the canary version: a retried create gets the same version).
             session_id: The client's own id for the session (else the server draws one). Creating is then
                 idempotent: a retry with the same id and parameters answers the session the first call created.
 
         Raises:
-            InvalidArgument: bad goal, target, seed, action mode or session id.
-            NotFound: unknown model.
+            InvalidArgument: bad goal, target, seed, action mode, session id or version.
+            NotFound: unknown model or version.
+            FailedPrecondition: the named version is draining.
             AlreadyExists: `session_id` names a live session created with other parameters.
             ResourceExhausted: the maximum number of live sessions is reached.
         """
         self._check_serving()
-        m = self.registry.resolve(model)
+        sid = uuid.uuid4().hex if session_id is None else check_new_session_id(session_id)
+        if version is not None:
+            check_version(version)
+        m = self.registry.for_new_session(model, version, sid)
         g = self.resolve_goal(m, goal, target)
         try:
             mode = m.engine.check_mode(action_mode)
@@ -416,8 +704,9 @@ class Core:
             raise InvalidArgument(str(e)) from None
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
-        sid = uuid.uuid4().hex if session_id is None else check_new_session_id(session_id)
         request = f"{m.name}|{g}|{seed}|{mode}"  # what a retry must repeat to be answered the same session
+        if version:
+            request += f"|{version}"
         return await run_whole(self._create(m, sid, g, mode, seed, request, session_id is not None))
 
     async def _create(
@@ -430,7 +719,8 @@ class Core:
                 except NotFound:
                     pass
             now = self.clock()
-            s = Session(sid, m.name, m.engine.new_context(g, mode, seed, key=sid), now, now, request)
+            ctx = m.engine.new_context(g, mode, seed, key=sid)
+            s = Session(sid, m.name, ctx, now, now, request, m.version, m.fingerprint)
             point_of_no_return()
             try:
                 await self.store.create(s)
@@ -445,9 +735,9 @@ class Core:
                 # another replica: keep no slot here until this replica is asked to act for it.
                 s.ctx = s.ctx.to_stored()
                 m.engine.forget(sid)
-        self.metrics.sessions_created.labels(m.name).inc()
+        self.metrics.sessions_created.labels(m.name, m.version).inc()
         self.metrics.live_sessions.set(await self.store.count())
-        log.info("session created", extra={"session": short_id(s.id), "model": m.name, "goal": g})
+        log.info("session created", extra={"session": short_id(s.id), "model": m.key, "goal": g})
         return self._view_session(s)
 
     async def _existing(self, sid: str, request: str) -> Session:
@@ -546,7 +836,7 @@ class Core:
                 return repeat
             step, goal, version = ctx.step, ctx.goal, ctx.version
             try:
-                action = await self._batchers[m.name].act(ctx, x)
+                action = await self._batcher(m).act(ctx, x)
             except StepFailed as e:
                 raise InvalidArgument(str(e)) from None
             s.last_used = self.clock()
@@ -567,7 +857,7 @@ class Core:
     async def _prepare(self, sid: str, observation: object, step: int | None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
         s = await self.store.get(sid)
-        m = self._model_of(s)
+        m = await self._model_of(s)
         x = self.validate_observation(m, observation)
         ctx = self._live(m, s)
         return s, m, ctx, x, self._repeat(m, sid, ctx, step, x)
@@ -657,10 +947,10 @@ class Core:
                     out[i] = e
             by_model: dict[str, list] = {}
             for r in ready:
-                by_model.setdefault(r[2].name, []).append(r)
-            for name, rows in by_model.items():
+                by_model.setdefault(r[2].key, []).append(r)
+            for rows in by_model.values():
                 steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]
-                actions = await self._batchers[name].act_many([r[3] for r in rows], [r[4] for r in rows])
+                actions = await self._batcher(rows[0][2]).act_many([r[3] for r in rows], [r[4] for r in rows])
                 now = self.clock()
                 stepped = []
                 for (i, s, m, _, _), (step, goal, version), a in zip(rows, steps, actions, strict=True):
@@ -717,7 +1007,7 @@ class Core:
     async def _set_goal(self, sid: str, goal: GoalRef, target: float | None, blend_steps: int) -> SessionView:
         async with self._lock(sid):
             s = await self.store.get(sid)
-            m = self._model_of(s)
+            m = await self._model_of(s)
             g = self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
             version = ctx.version
@@ -746,7 +1036,7 @@ class Core:
     async def _reset(self, sid: str, goal: GoalRef, target: float | None) -> SessionView:
         async with self._lock(sid):
             s = await self.store.get(sid)
-            m = self._model_of(s)
+            m = await self._model_of(s)
             g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
             version = ctx.version

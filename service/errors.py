@@ -42,6 +42,13 @@ class Unauthenticated(ServiceError):
     code, http_status, grpc_code = "unauthenticated", 401, "UNAUTHENTICATED"
 
 
+class PermissionDenied(ServiceError):
+    """The caller is known (or needs no token) but may not do this: a management call from where it is not
+    allowed, a checkpoint path outside the checkpoint roots."""
+
+    code, http_status, grpc_code = "permission_denied", 403, "PERMISSION_DENIED"
+
+
 class NotFound(ServiceError):
     """No such model or session."""
 

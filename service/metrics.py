@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 
 from prometheus_client import (
@@ -48,12 +49,16 @@ class Metrics:
             registry=r,
         )
         self.batch_size = Histogram(
-            "gmt_batch_size", "Observations per forward pass.", ["model"], buckets=BATCH_BUCKETS, registry=r
+            "gmt_batch_size",
+            "Observations per forward pass, by model and version.",
+            ["model", "version"],
+            buckets=BATCH_BUCKETS,
+            registry=r,
         )
         self.forward_latency = Histogram(
             "gmt_forward_duration_seconds",
-            "Time of one batched forward pass.",
-            ["model"],
+            "Time of one batched forward pass, by model and version.",
+            ["model", "version"],
             buckets=LATENCY_BUCKETS,
             registry=r,
         )
@@ -69,14 +74,22 @@ class Metrics:
             self.in_flight.labels("grpc"),
         )
         self.live_sessions = Gauge("gmt_live_sessions", "Live sessions in the session store.", registry=r)
-        self.models_loaded = Gauge("gmt_models_loaded", "Models this server answers for.", registry=r)
+        self.models_loaded = Gauge("gmt_models_loaded", "Models (names) this server answers for.", registry=r)
+        self.versions_loaded = Gauge(
+            "gmt_model_versions_loaded", "Model versions loaded (serving or draining).", registry=r
+        )
         self.batch_queued = Gauge(
             "gmt_batch_queued",
-            "Act requests waiting in a model's micro-batcher for their forward pass, by model.",
-            ["model"],
+            "Act requests waiting in a model version's micro-batcher for their forward pass, by model and version.",
+            ["model", "version"],
             registry=r,
         )
-        self.sessions_created = Counter("gmt_sessions_created", "Sessions created.", ["model"], registry=r)
+        self.sessions_created = Counter(
+            "gmt_sessions_created",
+            "Sessions created, by model and version.",
+            ["model", "version"],
+            registry=r,
+        )
         self.sessions_expired = Counter(
             "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r
         )
@@ -99,14 +112,19 @@ class Metrics:
         """Record one answered request."""
         self._child(self.request_latency, transport, method, code).observe(seconds)
 
-    def observe_batch(self, model: str, size: int, seconds: float) -> None:
+    def observe_batch(self, model: str, version: str, size: int, seconds: float) -> None:
         """Record one forward pass."""
-        self._child(self.batch_size, model).observe(size)
-        self._child(self.forward_latency, model).observe(seconds)
+        self._child(self.batch_size, model, version).observe(size)
+        self._child(self.forward_latency, model, version).observe(seconds)
 
-    def track_queue(self, model: str, queued: Callable[[], int]) -> None:
-        """Report `queued()` as the model's `gmt_batch_queued`, read at each scrape."""
-        self.batch_queued.labels(model).set_function(queued)
+    def track_queue(self, model: str, version: str, queued: Callable[[], int]) -> None:
+        """Report `queued()` as the version's `gmt_batch_queued`, read at each scrape."""
+        self.batch_queued.labels(model, version).set_function(queued)
+
+    def untrack_queue(self, model: str, version: str) -> None:
+        """Stop reporting an unloaded version's queue (the gauge held its batcher)."""
+        with contextlib.suppress(KeyError):
+            self.batch_queued.remove(model, version)
 
     def _child(self, metric, *labels: str):
         """`metric.labels(*labels)`, looked up once (prometheus_client's lookup costs more than the observation)."""

@@ -145,7 +145,7 @@ class RedisSessionStore(SessionStore):
         self._epoch_key = f"{prefix}epoch"
         self._epoch: bytes | None = None  # the store's epoch when this replica last checked (None: not yet)
         self._held: dict[str, _Held] = {}
-        # id -> (model, last use) of every session created or read here: what this replica may soon serve (the
+        # id -> (`Session.key`, last use) of every session created or read here: what this replica may soon serve (the
         # micro-batcher waits for as many acts as there are such sessions).
         self._seen: dict[str, tuple[str, float]] = {}
         self._seen_per_model: Counter[str] = Counter()
@@ -223,7 +223,7 @@ class RedisSessionStore(SessionStore):
                         with contextlib.suppress(*self._errors):
                             await p.execute()
                     raise e
-                self._see(session.id, session.model, session.last_used)
+                self._see(session.id, session.key, session.last_used)
                 return
             if n == -2:
                 raise AlreadyExists(f"session {session.id!r} exists")
@@ -256,7 +256,7 @@ class RedisSessionStore(SessionStore):
             self._forget(sid)  # another replica used it meanwhile: adopt the stored copy, not ours
         if hold:
             self._held[sid] = _Held(s, s.ctx.version, s.ctx.step, s.last_used)
-        self._see(sid, s.model, s.last_used)
+        self._see(sid, s.key, s.last_used)
         return s
 
     async def _confirmed_read(self, sid: str) -> dict:
@@ -459,10 +459,14 @@ class RedisSessionStore(SessionStore):
             await self._call(p.execute())
         self._forget(sid)
 
-    def _see(self, sid: str, model: str, last_used: float) -> None:
-        if sid not in self._seen:
-            self._seen_per_model[model] += 1
-        self._seen[sid] = (model, last_used)
+    def _see(self, sid: str, key: str, last_used: float) -> None:
+        seen = self._seen.get(sid)
+        if seen is not None and seen[0] != key:
+            self._unsee(sid)  # the id names a new session now (created again after the last ended)
+            seen = None
+        if seen is None:
+            self._seen_per_model[key] += 1
+        self._seen[sid] = (key, last_used)
 
     def _unsee(self, sid: str) -> None:
         seen = self._seen.pop(sid, None)
@@ -473,7 +477,7 @@ class RedisSessionStore(SessionStore):
         self._unsee(sid)
         held = self._held.pop(sid, None)
         if held is not None:
-            self.on_remove(sid, held.session.model)
+            self.on_remove(sid, held.session.key)
 
     async def delete(self, sid: str) -> None:
         await self.get(sid)
@@ -523,8 +527,8 @@ class RedisSessionStore(SessionStore):
             self._unsee(sid)
         return gone
 
-    def local_count(self, model: str) -> int:
-        return self._seen_per_model[model]  # every held session was seen
+    def local_count(self, key: str) -> int:
+        return self._seen_per_model[key]  # every held session was seen
 
     async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
         """What `live` holds, most recently used first (as of the replicas' last sweeps): two round trips, and

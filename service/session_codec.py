@@ -1,8 +1,9 @@
 """A session as Redis hash fields, without pickle, written step by step.
 
 Fields (format 3):
-- `meta`: JSON written once at creation: id, model, created_at, the creating request, and the layout of a step
-  record (`H` held steps, the state's and the action's dtype and shape);
+- `meta`: JSON written once at creation: id, model, the model version and its checkpoint fingerprint (absent in
+  sessions stored before versions were: the model's default version), created_at, the creating request, and the
+  layout of a step record (`H` held steps, the state's and the action's dtype and shape);
 - `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
   matches a copy of its predecessor);
 - `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
@@ -92,6 +93,8 @@ def create_fields(session: Session) -> dict[str, bytes]:
         "v": FORMAT_VERSION,
         "id": session.id,
         "model": session.model,
+        "model_version": session.model_version,
+        "fingerprint": session.fingerprint,
         "created_at": session.created_at,
         "request": session.request,
         "layout": ctx.layout(),
@@ -155,6 +158,8 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             created_at=float(meta["created_at"]),
             last_used=float(st["last_used"]),
             request=str(meta.get("request", "")),
+            model_version=str(meta.get("model_version", "")),
+            fingerprint=str(meta.get("fingerprint", "")),
             activity=Activity.load(st.get("activity")),
         )
     except CodecError:

@@ -40,6 +40,9 @@ class Session:
         last_used: Clock time of the last act / set_goal / reset.
         request: What created it (model, goal, seed, action mode): a retried create must repeat it to be
             answered this session.
+        model_version: The model version it runs for its whole life ('' for a session stored before versions
+            were: the model's default version).
+        fingerprint: That version's checkpoint fingerprint (how a replica that lacks the version finds it).
         activity: Acts/s and last latency (the console's listing).
     """
 
@@ -49,7 +52,14 @@ class Session:
     created_at: float
     last_used: float
     request: str = ""
+    model_version: str = ""
+    fingerprint: str = ""
     activity: Activity = field(default_factory=Activity)
+
+    @property
+    def key(self) -> str:
+        """`model@version`: the engine, batcher and per-version count it belongs to."""
+        return f"{self.model}@{self.model_version}"
 
 
 def brief(s: Session, held_here: bool = True) -> SessionBrief:
@@ -82,8 +92,8 @@ class SessionStore(abc.ABC):
         self.idle_timeout_s = idle_timeout_s
         self.max_sessions = max_sessions
         self.clock = clock
-        # Told (session id, model) of every session this store drops, so the engine can free its slot.
-        self.on_remove: Callable[[str, str], None] = lambda sid, model: None
+        # Told (session id, `Session.key`) of every session this store drops, so the engine can free its slot.
+        self.on_remove: Callable[[str, str], None] = lambda sid, key: None
 
     def is_idle(self, session: Session) -> bool:
         """Whether `session` has been unused for longer than the idle timeout."""
@@ -158,8 +168,9 @@ class SessionStore(abc.ABC):
         """Remove expired sessions and return them."""
 
     @abc.abstractmethod
-    def local_count(self, model: str) -> int:
-        """Sessions of `model` that this process may serve (exact in memory, an upper estimate otherwise)."""
+    def local_count(self, key: str) -> int:
+        """Sessions of model version `key` (`Session.key`) that this process may serve (exact in memory, an upper
+        estimate otherwise)."""
 
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release connections."""
@@ -196,7 +207,7 @@ class MemorySessionStore(SessionStore):
                 "close a session or retry later"
             )
         self._sessions[session.id] = session
-        self._per_model[session.model] += 1
+        self._per_model[session.key] += 1
 
     def _lookup(self, sid: str) -> Session:
         s = self._sessions.get(sid)
@@ -211,8 +222,8 @@ class MemorySessionStore(SessionStore):
 
     def _remove(self, s: Session, expired: bool) -> None:
         del self._sessions[s.id]
-        self._per_model[s.model] -= 1
-        self.on_remove(s.id, s.model)
+        self._per_model[s.key] -= 1
+        self.on_remove(s.id, s.key)
         if expired:
             self._expired[s.id] = None
             while len(self._expired) > TOMBSTONES:
@@ -239,8 +250,8 @@ class MemorySessionStore(SessionStore):
             self._remove(s, expired=True)
         return gone
 
-    def local_count(self, model: str) -> int:
-        return self._per_model[model]
+    def local_count(self, key: str) -> int:
+        return self._per_model[key]
 
     async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
         page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)

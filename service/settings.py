@@ -30,6 +30,9 @@ class Settings(BaseSettings):
         inference_threads: Worker threads running forward passes (and torch intra-op threads).
         max_request_bytes: Largest REST body / gRPC message accepted.
         auth_token: Bearer token required on every call except health checks (None = no auth).
+        admin_token: Bearer token of the model management calls (load, promote, drain, unload a version); None:
+            the auth token, and with no token at all only a client on this machine, not through a proxy
+            (`gmt.service.admin`).
         redis_url: Keep sessions in this Redis instead of in memory: one server (redis://localhost:6379/0) or the
             primary that Redis Sentinel watches (redis+sentinel://h1:26379,h2:26379,h3:26379/<service-name>, a
             database number may follow: /<service-name>/1).
@@ -80,6 +83,7 @@ class Settings(BaseSettings):
     inference_threads: int = Field(1, ge=1)
     max_request_bytes: int = Field(1 << 20, ge=1024)
     auth_token: SecretStr | None = None
+    admin_token: SecretStr | None = None
     redis_url: str | None = None
     store_min_replicas: int = Field(0, ge=0)
     store_wait_timeout_s: float = Field(1.0, gt=0, le=4.0)
@@ -107,7 +111,7 @@ class Settings(BaseSettings):
             return [p.strip() for p in v.split(",") if p.strip()]
         return v
 
-    @field_validator("auth_token", "redis_url", mode="before")
+    @field_validator("auth_token", "admin_token", "redis_url", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
@@ -149,3 +153,8 @@ class Settings(BaseSettings):
     def token(self) -> str | None:
         """The bearer token in clear, or None when auth is off."""
         return self.auth_token.get_secret_value() if self.auth_token else None
+
+    @property
+    def management_token(self) -> str | None:
+        """The bearer token of model management calls in clear (the admin token, else the auth token), or None."""
+        return self.admin_token.get_secret_value() if self.admin_token else self.token

@@ -1,4 +1,4 @@
-"""The committed gRPC stubs are exactly what `make proto` generates from policy.proto."""
+"""The committed gRPC stubs are exactly what `make proto` generates from policy.proto and admin.proto."""
 
 import subprocess
 import sys
@@ -19,10 +19,11 @@ def test_generated_stubs_are_current(tmp_path):
             f"--grpc_python_out={tmp_path}",
             f"--pyi_out={tmp_path}",
             "gmt/v1/policy.proto",
+            "gmt/v1/admin.proto",
         ],
         check=True,
     )
-    for name in ("policy_pb2.py", "policy_pb2_grpc.py", "policy_pb2.pyi"):
+    for name in [f"{p}_pb2{s}" for p in ("policy", "admin") for s in (".py", "_grpc.py", ".pyi")]:
         fresh = (tmp_path / "gmt/v1" / name).read_text()
         committed = (PROTO / "gmt/v1" / name).read_text()
         assert fresh == committed, f"proto/gmt/v1/{name} is stale: run `make proto`"

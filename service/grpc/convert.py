@@ -42,7 +42,19 @@ def model_info(v: ModelView) -> pb.ModelInfo:
         goals=[pb.Goal(**asdict(g)) for g in v.goals],
         preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
         action_modes=list(v.action_modes),
+        **versions(v),
     )
+
+
+def versions(v: ModelView) -> dict:
+    """A model view's version table as ModelInfo fields."""
+    out = {
+        "versions": [pb.ModelVersion(**asdict(x)) for x in v.versions],
+        "default_version": v.default_version,
+    }
+    if v.canary is not None:
+        out["canary"] = pb.Canary(version=v.canary[0], share=v.canary[1])
+    return out
 
 
 def session_info(v: SessionView) -> pb.SessionInfo:
@@ -60,6 +72,7 @@ def session_info(v: SessionView) -> pb.SessionInfo:
         context_goals=v.context_goals,
         expires_in_s=v.expires_in_s,
         blend_from=v.blend_from,
+        model_version=v.model_version,
     )
 
 

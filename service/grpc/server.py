@@ -1,4 +1,5 @@
-"""The grpc.aio server: PolicyService, standard health checking, server reflection, optional bearer auth."""
+"""The grpc.aio server: PolicyService, ModelAdmin, standard health checking, server reflection, optional bearer
+auth."""
 
 from __future__ import annotations
 
@@ -9,14 +10,17 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from gmt.service import admin
 from gmt.service.core import Core
 from gmt.service.errors import Unauthenticated
+from gmt.service.grpc.admin_servicer import ModelAdminServicer
 from gmt.service.grpc.servicer import PolicyServicer, Undecodable
 from gmt.service.limits import connection_caps
 from gmt.service.settings import Settings
-from gmt.v1 import policy_pb2, policy_pb2_grpc
+from gmt.v1 import admin_pb2, admin_pb2_grpc, policy_pb2, policy_pb2_grpc
 
 POLICY_SERVICE = policy_pb2.DESCRIPTOR.services_by_name["PolicyService"].full_name
+ADMIN_SERVICE = admin_pb2.DESCRIPTOR.services_by_name["ModelAdmin"].full_name
 OPEN_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
 
 
@@ -180,13 +184,14 @@ async def _responses(out):
 
 
 class BearerAuth(grpc.aio.ServerInterceptor):
-    """Requires `authorization: Bearer <token>` metadata on every call except health and reflection."""
+    """Requires `authorization: Bearer <token>` metadata on every call except health, reflection and ModelAdmin's
+    (which `gmt.service.admin` authorises per call)."""
 
     def __init__(self, token: str) -> None:
         self._token = token.encode()
 
     def _ok(self, details: grpc.HandlerCallDetails) -> bool:
-        if details.method.startswith(OPEN_PREFIXES):
+        if details.method.startswith((*OPEN_PREFIXES, admin.GRPC_SERVICE)):
             return True
         for key, value in details.invocation_metadata or ():
             if key == "authorization":
@@ -266,9 +271,10 @@ class GrpcServer:
         )
         self.servicer = PolicyServicer(core)
         policy_pb2_grpc.add_PolicyServiceServicer_to_server(self.servicer, self.server)
+        admin_pb2_grpc.add_ModelAdminServicer_to_server(ModelAdminServicer(core, self.servicer), self.server)
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
-        names = (POLICY_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME)
+        names = (POLICY_SERVICE, ADMIN_SERVICE, health.SERVICE_NAME, reflection.SERVICE_NAME)
         reflection.enable_server_reflection(names, self.server)
         address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
         self.port = self.server.add_insecure_port(address)

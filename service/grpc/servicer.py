@@ -102,7 +102,13 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             seed = request.seed if request.HasField("seed") else None
             sid = request.session_id if request.HasField("session_id") else None
             v = await self.core.create_session(
-                request.model or None, goal, target, seed, request.action_mode or None, sid
+                request.model or None,
+                goal,
+                target,
+                seed,
+                request.action_mode or None,
+                sid,
+                request.version or None,
             )
             return convert.session_info(v)
 

@@ -17,11 +17,12 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from gmt.service import examples
+from gmt.service import admin, examples
 from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from gmt.service.rest import docs, media, openapi
+from gmt.service.rest.models_admin import admin_api
 from gmt.service.rest.routes import act_answer, api, public, session_header
 from gmt.service.settings import Settings
 
@@ -152,19 +153,24 @@ class BodyLimit:
 
 
 class AuthFirst:
-    """With auth on, refuses a request without the right bearer token before anything reads its body.
+    """Refuses a request that may not be answered before anything reads its body.
 
-    Health checks, the API docs (their pages and assets) and the console's page and assets (no data: the page
-    sends the token on every call it makes) stay open; every other path (unknown ones included) needs the token.
+    Model management paths follow `gmt.service.admin` (the admin token, else the bearer token, else loopback
+    only). With auth on, health checks, the API docs (their pages and assets) and the console's page and assets
+    (no data: the page sends the token on every call it makes) stay open; every other path (unknown ones
+    included) needs the token.
     """
 
     OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS | console.PATHS
 
-    def __init__(self, app: ASGIApp, token: str | None) -> None:
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
-        self.token = None if token is None else token.encode()
+        self.settings = settings
+        self.token = None if settings.token is None else settings.token.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and admin.is_management_path(scope.get("path", "")):
+            return await self._management(scope, receive, send)
         if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
             return await self.app(scope, receive, send)
         auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
@@ -176,6 +182,21 @@ class AuthFirst:
             return await self.app(scope, receive, send)
         headers = {"WWW-Authenticate": "Bearer", **session_header(_path_session(scope.get("path", "")))}
         await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
+
+    async def _management(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
+        client = scope.get("client")
+        try:
+            admin.authorize(
+                self.settings,
+                headers.get("authorization"),
+                client[0] if client else None,
+                any(h in headers for h in admin.PROXY_HEADERS),
+            )
+        except ServiceError as e:
+            extra = {"WWW-Authenticate": "Bearer"} if e.http_status == 401 else {}
+            return await error_response(e.http_status, e.code, e.message, extra)(scope, receive, send)
+        await self.app(scope, receive, send)
 
 
 def _path_session(path: str) -> str | None:
@@ -328,7 +349,7 @@ class _App(FastAPI):
 
     def build_middleware_stack(self) -> ASGIApp:
         inner = FastAct(super().build_middleware_stack(), self.settings)
-        return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings.token)), self.replica_id)
+        return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings)), self.replica_id)
 
     def openapi(self) -> dict:
         """The document for the loaded models and the auth setting (`gmt.service.rest.openapi`), built once the
@@ -391,8 +412,11 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
         c = core or Core(settings)
         if not c.started:
             await c.start()  # models load here, never at import time
-        loaded = {name: m.checkpoint for name, m in (c.registry.models if c.registry else {}).items()}
-        app.state.examples = await asyncio.to_thread(examples.examples_of, loaded)
+        # No local keeps the checkpoints: this frame lives as long as the app, and an unloaded version must go.
+        app.state.examples = await asyncio.to_thread(
+            examples.examples_of,
+            {n: m.checkpoint for n, m in (c.registry.models if c.registry else {}).items()},
+        )
         app.state.core = c
         try:
             yield
@@ -413,6 +437,7 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
+    app.include_router(admin_api)
     app.include_router(console.router)
     docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)

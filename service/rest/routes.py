@@ -96,7 +96,7 @@ async def get_model(name: str, core: CoreDep, request: Request) -> S.ModelOut:
 async def create_session(body: S.CreateSession, core: CoreDep, response: Response) -> S.SessionOut:
     """Create a session on a model with a goal id, goal name, or target statistic value."""
     v = await core.create_session(
-        body.model, body.goal, body.target, body.seed, body.action_mode, body.session_id
+        body.model, body.goal, body.target, body.seed, body.action_mode, body.session_id, body.version
     )
     response.headers[SESSION_HEADER] = v.session_id
     return S.SessionOut.of(v)

@@ -56,8 +56,44 @@ class GoalOut(BaseModel):
     count: int
 
 
-class ModelSummary(BaseModel):
-    """A loaded model, briefly."""
+class VersionOut(BaseModel):
+    """One loaded version of a model."""
+
+    version: str = Field(
+        description="gmt.json's `version`, else the checkpoint fingerprint's first 12 hex digits."
+    )
+    sessions: int = Field(description="Sessions of this version the answering server holds.")
+    state: Literal["serving", "draining"] = Field(
+        description="`serving`: new sessions may get it; `draining`: its sessions only, unloaded once none is left."
+    )
+    fingerprint: str = Field(description="sha256 hex of the checkpoint's weights and metadata.")
+
+
+class CanaryOut(BaseModel):
+    """A version that gets `share` of the new sessions that name no version (by a hash of the session id)."""
+
+    version: str
+    share: float
+
+
+class _Versions(BaseModel):
+    """A model's version table."""
+
+    versions: list[VersionOut] = Field(default_factory=list)
+    default_version: str = Field("", description="The version new sessions get unless they name one.")
+    canary: CanaryOut | None = Field(None, description="Set while a canary runs.")
+
+
+def _versions(v: ModelView) -> dict:
+    return {
+        "versions": [VersionOut(**asdict(x)) for x in v.versions],
+        "default_version": v.default_version,
+        "canary": None if v.canary is None else CanaryOut(version=v.canary[0], share=v.canary[1]),
+    }
+
+
+class ModelSummary(_Versions):
+    """A loaded model, briefly (its default version's fields, and its versions)."""
 
     name: str
     env_id: str
@@ -88,8 +124,8 @@ class ExampleObservation(BaseModel):
     )
 
 
-class ModelOut(BaseModel):
-    """`GET /models/{name}`: spaces, goal table and context length K."""
+class ModelOut(_Versions):
+    """`GET /models/{name}`: spaces, goal table and context length K (of the default version), and the versions."""
 
     name: str
     env_id: str
@@ -125,6 +161,7 @@ class ModelOut(BaseModel):
             action_modes=list(v.action_modes),
             preprocessing=v.preprocessing,
             example_observation=None if example is None else ExampleObservation(**asdict(example)),
+            **_versions(v),
         )
 
 
@@ -138,6 +175,7 @@ def summary(v: ModelView) -> ModelSummary:
         n_goals=len(v.goals),
         goal_names=[g.name for g in v.goals],
         discrete_actions=v.discrete_actions,
+        **_versions(v),
     )
 
 
@@ -165,6 +203,11 @@ class CreateSession(_Request):
         "the first attempt created (a different body answers 409 already_exists).",
         examples=["bot-7-episode-12"],
     )
+    version: StrictStr | None = Field(
+        None,
+        description="The model version to run for the session's whole life (a serving one); omitted: the model's "
+        "default version, or its canary for the canary's share of session ids.",
+    )
 
 
 class SetGoal(_Request):
@@ -191,6 +234,7 @@ class SessionOut(BaseModel):
 
     session_id: str
     model: str
+    model_version: str = Field(description="The model version the session runs for its whole life.")
     goal: int
     goal_name: str
     step: int
@@ -317,3 +361,48 @@ class Readiness(BaseModel):
     reason: str | None
     models: list[str]
     errors: dict[str, str]
+
+
+# ----- model management -----------------------------------------------------------------------------------------
+class LoadVersion(_Request):
+    """`POST /models/{name}/versions`: a checkpoint directory to load as a version of the model."""
+
+    path: StrictStr = Field(
+        description="A checkpoint directory under the server's checkpoint roots (relative paths: from the server's "
+        "working directory, else from each root).",
+        examples=["checkpoints/halfcheetah-gmt-v2"],
+    )
+    fingerprint: StrictStr | None = Field(
+        None,
+        description="Refuse the checkpoint unless its fingerprint starts with these 12 to 64 hex digits.",
+    )
+
+
+class LoadVersionOut(VersionOut):
+    """The loaded version (the one already loaded, when the same checkpoint is loaded again)."""
+
+    name: str
+
+
+class Promote(_Request):
+    """`PUT /models/{name}/default`."""
+
+    version: StrictStr
+    share: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="1: the default version of new sessions. Below 1: a canary that gets this share of the new "
+        "sessions that name no version (the default keeps the rest).",
+    )
+
+
+class ModelVersionsOut(_Versions):
+    """A model's versions after a change (empty once its last version is unloaded)."""
+
+    name: str
+
+    @classmethod
+    def of(cls, v: ModelView) -> ModelVersionsOut:
+        """From the core's view."""
+        return cls(name=v.name, **_versions(v))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from gmt.model.checkpoint import load_checkpoint
 from gmt.service.core import MAX_ACT_ITEMS
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
@@ -337,11 +338,12 @@ def test_act_many_requires_the_token(make_server):
 
 
 # ----- one forward pass per call ----------------------------------------------------------------------------------
-def test_one_call_is_one_forward_pass_even_beyond_max_batch(make_server):
+def test_one_call_is_one_forward_pass_even_beyond_max_batch(make_server, ckpt_root):
     server = make_server(max_batch=4)
     n = 8
     obs = observations_for([17] * n, 2, seed=12)
-    key = (("model", "tiny-gmt"),)
+    version = load_checkpoint(ckpt_root / "tiny-gmt").version
+    key = (("model", "tiny-gmt"), ("version", version))
     with httpx.Client(base_url=server.url) as http:
         sids = [rest_create(http, goal=i % 3, seed=i) for i in range(n)]
         r = rest_act_many(http, zip(sids, obs[0], strict=True))
@@ -358,4 +360,6 @@ def test_one_call_is_one_forward_pass_even_beyond_max_batch(make_server):
         batches = metric_samples(http, "gmt_batch_size")
     assert batches[("gmt_batch_size_count", key)] == 2
     assert batches[("gmt_batch_size_sum", key)] == 2 * n
-    assert batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt")))] == 0
+    assert (
+        batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    )

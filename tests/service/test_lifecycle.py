@@ -9,6 +9,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
 
+from gmt.model.checkpoint import load_checkpoint
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
@@ -120,7 +121,7 @@ async def _act_all(url, sids, observations):
     return rs
 
 
-def test_concurrent_sessions_share_one_forward_pass(make_server, engine):
+def test_concurrent_sessions_share_one_forward_pass(make_server, engine, ckpt_root):
     server = make_server(batch_wait_ms=10_000, max_batch=64)
     n = 8
     rng = np.random.default_rng(3)
@@ -129,11 +130,14 @@ def test_concurrent_sessions_share_one_forward_pass(make_server, engine):
         sids = [create(http, goal=i % 3) for i in range(n)]
         got = [asyncio.run(_act_all(server.url, sids, obs[t])) for t in range(2)]
         batches = metric_samples(http, "gmt_batch_size")
-    key = (("model", "tiny-gmt"),)
+    version = load_checkpoint(ckpt_root / "tiny-gmt").version
+    key = (("model", "tiny-gmt"), ("version", version))
     # All 8 requests of each round went through one forward pass: 2 batches, 16 observations.
     assert batches[("gmt_batch_size_count", key)] == 2
     assert batches[("gmt_batch_size_sum", key)] == 2 * n
-    assert batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt")))] == 0
+    assert (
+        batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
+    )
     # Batching changes nothing: every session's actions are the engine's for that session alone.
     for i in range(n):
         ctx = engine.new_context(i % 3)
@@ -165,7 +169,7 @@ def test_a_bad_row_inside_a_batch_fails_only_its_own_request(make_server, tmp_pa
         assert [r.status_code for r in rs] == [200, 400, 200]
         assert rs[1].json()["error"]["code"] == "invalid_argument"
         batches = metric_samples(http, "gmt_batch_size")
-        key = (("model", "tiny-gmt"),)
+        key = (("model", "tiny-gmt"), ("version", load_checkpoint(tmp_path / "tiny-gmt").version))
         assert batches[("gmt_batch_size_count", key)] == 1 and batches[("gmt_batch_size_sum", key)] == 3
         retry = act(http, sids[1], obs[1])  # the failed session is where it was: its step 0 again
         assert retry.status_code == 200 and retry.json()["step"] == 0
@@ -322,5 +326,9 @@ def test_openapi_lists_exactly_the_designed_routes(http):
         ("GET", "/healthz"),
         ("GET", "/readyz"),
         ("GET", "/metrics"),
+        ("POST", "/models/{name}/versions"),  # model management (docs/models.md)
+        ("PUT", "/models/{name}/default"),
+        ("POST", "/models/{name}/versions/{version}/drain"),
+        ("DELETE", "/models/{name}/versions/{version}"),
     }
     assert http.get("/docs").status_code == 200

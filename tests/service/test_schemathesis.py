@@ -78,6 +78,10 @@ def test_schemathesis_finds_no_failure(served, tmp_path):
         "--generation-database",
         "none",
         "--no-color",
+        # Model management changes what the server serves (a fuzzed DELETE ?force=true unloads the model the other
+        # operations are fuzzed against); tests/service/test_model_versions.py tests it.
+        "--exclude-tag",
+        "model management",
     ]
     if token is not None:
         cmd += ["--header", f"Authorization: Bearer {token}"]
@@ -85,6 +89,6 @@ def test_schemathesis_finds_no_failure(served, tmp_path):
     out = r.stdout + r.stderr
     assert r.returncode == 0, out[-8000:]
     assert "No issues found" in out, out[-8000:]
-    assert re.search(r"Selected: 14/14\s+Tested: 14", out), out[-3000:]
+    assert re.search(r"Selected: 14/18\s+Tested: 14", out), out[-3000:]
     generated = re.search(r"(\d+) generated, (\d+) passed", out)
     assert generated and generated[1] == generated[2] and int(generated[1]) >= 12 * EXAMPLES, out[-3000:]

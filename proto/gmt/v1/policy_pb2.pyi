@@ -75,7 +75,7 @@ class Goal(_message.Message):
     def __init__(self, id: _Optional[int] = ..., name: _Optional[str] = ..., mean: _Optional[float] = ..., std: _Optional[float] = ..., min: _Optional[float] = ..., max: _Optional[float] = ..., count: _Optional[int] = ...) -> None: ...
 
 class ModelInfo(_message.Message):
-    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json", "action_modes")
+    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json", "action_modes", "versions", "default_version", "canary")
     NAME_FIELD_NUMBER: _ClassVar[int]
     ENV_ID_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_SPACE_FIELD_NUMBER: _ClassVar[int]
@@ -85,6 +85,9 @@ class ModelInfo(_message.Message):
     GOALS_FIELD_NUMBER: _ClassVar[int]
     PREPROCESSING_JSON_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODES_FIELD_NUMBER: _ClassVar[int]
+    VERSIONS_FIELD_NUMBER: _ClassVar[int]
+    DEFAULT_VERSION_FIELD_NUMBER: _ClassVar[int]
+    CANARY_FIELD_NUMBER: _ClassVar[int]
     name: str
     env_id: str
     observation_space: Space
@@ -94,10 +97,33 @@ class ModelInfo(_message.Message):
     goals: _containers.RepeatedCompositeFieldContainer[Goal]
     preprocessing_json: str
     action_modes: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ..., action_modes: _Optional[_Iterable[str]] = ...) -> None: ...
+    versions: _containers.RepeatedCompositeFieldContainer[ModelVersion]
+    default_version: str
+    canary: Canary
+    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ..., action_modes: _Optional[_Iterable[str]] = ..., versions: _Optional[_Iterable[_Union[ModelVersion, _Mapping]]] = ..., default_version: _Optional[str] = ..., canary: _Optional[_Union[Canary, _Mapping]] = ...) -> None: ...
+
+class ModelVersion(_message.Message):
+    __slots__ = ("version", "sessions", "state", "fingerprint")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SESSIONS_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
+    version: str
+    sessions: int
+    state: str
+    fingerprint: str
+    def __init__(self, version: _Optional[str] = ..., sessions: _Optional[int] = ..., state: _Optional[str] = ..., fingerprint: _Optional[str] = ...) -> None: ...
+
+class Canary(_message.Message):
+    __slots__ = ("version", "share")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SHARE_FIELD_NUMBER: _ClassVar[int]
+    version: str
+    share: float
+    def __init__(self, version: _Optional[str] = ..., share: _Optional[float] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from")
+    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from", "model_version")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
@@ -110,6 +136,7 @@ class SessionInfo(_message.Message):
     CONTEXT_GOALS_FIELD_NUMBER: _ClassVar[int]
     EXPIRES_IN_S_FIELD_NUMBER: _ClassVar[int]
     BLEND_FROM_FIELD_NUMBER: _ClassVar[int]
+    MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     model: str
     goal: int
@@ -122,7 +149,8 @@ class SessionInfo(_message.Message):
     context_goals: _containers.RepeatedScalarFieldContainer[int]
     expires_in_s: float
     blend_from: int
-    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ..., context_goals: _Optional[_Iterable[int]] = ..., expires_in_s: _Optional[float] = ..., blend_from: _Optional[int] = ...) -> None: ...
+    model_version: str
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ..., context_goals: _Optional[_Iterable[int]] = ..., expires_in_s: _Optional[float] = ..., blend_from: _Optional[int] = ..., model_version: _Optional[str] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()
@@ -141,18 +169,20 @@ class GetModelRequest(_message.Message):
     def __init__(self, name: _Optional[str] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("model", "goal", "seed", "action_mode", "session_id")
+    __slots__ = ("model", "goal", "seed", "action_mode", "session_id", "version")
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
     model: str
     goal: GoalSelector
     seed: int
     action_mode: str
     session_id: str
-    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ..., session_id: _Optional[str] = ...) -> None: ...
+    version: str
+    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ..., session_id: _Optional[str] = ..., version: _Optional[str] = ...) -> None: ...
 
 class GetSessionRequest(_message.Message):
     __slots__ = ("session_id",)
