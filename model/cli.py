@@ -35,10 +35,37 @@ def train_command(
     from gmt.model.checkpoint import Goal
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import GoalTable, relabel
+    from gmt.model.data.served import step_labels, switch_count
     from gmt.model.data.statistics import per_trajectory
     from gmt.model.train import train
 
     ds = load_dataset(dataset)
+    served = step_labels(ds) if labels is None else None
+    if (
+        served is not None
+    ):  # served sessions (`gmt data import-sessions`): per-step labels from their timelines
+        per_step, table = served
+        goals = [Goal(**g) for g in table]
+        n_switches, n_eps = switch_count(per_step)
+        typer.echo(
+            f"{len(ds.episodes)} episodes with per-step goal labels ({n_switches} goal switches in {n_eps} "
+            f"episodes), k = {len(goals)} goals: " + ", ".join(f"{g.name}={g.mean:.2f}" for g in goals)
+        )
+        stat = ds.goal_labels.get("statistic") or flags["statistic"]
+        tc = TrainConfig(**{**pick(flags, TRAIN_FLAGS), "statistic": stat, "k": len(goals)})
+        command = "gmt train " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+        ckpt = train(
+            ds,
+            per_step,
+            goals,
+            out,
+            tc,
+            pick(flags, MODEL_FLAGS),
+            resume=resume,
+            extra_meta={"goal_labels": ds.goal_labels, "command": command},
+        )
+        _trained(ckpt, out)
+        return
     if labels is not None:
         rel = GoalTable.load(labels)
         if len(rel.labels) != len(ds.episodes):
@@ -69,6 +96,10 @@ def train_command(
             "command": command,
         },
     )
+    _trained(ckpt, out)
+
+
+def _trained(ckpt, out: Path) -> None:
     if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
         return
     info = ckpt.meta["training"]
