@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
 import orjson
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
@@ -252,8 +253,9 @@ _META = (
 
 
 def recording_json(rec) -> bytes:
-    """A recording as `S.RecordingOut` JSON (NaN, a value not reported, becomes null)."""
-    a = rec.arrays
+    """A recording as `S.RecordingOut` JSON (NaN, a value not reported, becomes null). Float32 values are written
+    as the act answers write them (their exact float64 value), so that both compare equal."""
+    a = {k: v.astype(np.float64) if v.dtype == np.float32 else v for k, v in rec.arrays.items()}
     body = {k: rec.meta.get(k) for k in _META}
     body["steps"] = rec.steps
     for k in (
