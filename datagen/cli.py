@@ -598,9 +598,10 @@ def import_sessions(
     except (FileNotFoundError, FileExistsError, RecordingError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None
+    also = f"; {res.included} from {include}" if include else ""
     typer.echo(
         f"wrote {res.path}: {res.episodes} episodes ({res.episodes - res.included} recorded in {res.recordings} "
-        f"sessions, {res.switches} goal switches; {res.included} from {include}), {res.transitions} transitions"
+        f"sessions, {res.switches} goal switches{also}), {res.transitions} transitions"
     )
     if res.skipped:
         typer.echo(f"left out {len(res.skipped)} short episodes: {', '.join(res.skipped[:10])}")

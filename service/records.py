@@ -162,6 +162,7 @@ class Ledger:
         recorded: Steps recorded so far.
         new_timeline: Timeline entries (JSON) the change in flight appends.
         new_records: Step records the change in flight appends.
+        last_changed: The change in flight changed `last` (a shared store writes it with the change).
         timeline: Every entry, where the store keeps the ledger in this process (memory), else None.
         records: Every step record, likewise.
     """
@@ -174,6 +175,7 @@ class Ledger:
     recorded: int = 0
     new_timeline: list[bytes] = field(default_factory=list)
     new_records: list[bytes] = field(default_factory=list)
+    last_changed: bool = False
     timeline: list[bytes] | None = None
     records: list[bytes] | None = None
 
@@ -215,7 +217,7 @@ class Ledger:
         ):
             return False
         entry |= {"by": by, "at": now, "n": self.entries}
-        self.last = entry
+        self.last, self.last_changed = entry, True
         if self.entries < MAX_TIMELINE:
             self.new_timeline.append(orjson.dumps(entry))
         self.entries += 1
@@ -250,7 +252,7 @@ class Ledger:
             self.timeline += self.new_timeline
         if self.records is not None:
             self.records += self.new_records
-        self.new_timeline, self.new_records = [], []
+        self.new_timeline, self.new_records, self.last_changed = [], [], False
 
     # ----- stored form ----------------------------------------------------------------------------------------
     def meta(self) -> dict | None:

@@ -123,7 +123,7 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     if not isinstance(ctx, Context):
         raise ValueError("only a live context has changes to write")
     out = {"ver": cas_token(session, ctx.version), "st": _state(session, ctx)}
-    if session.ledger.new_timeline:
+    if session.ledger.last_changed:
         out["tl"] = orjson.dumps(session.ledger.last)
     t1 = ctx.step
     for t in range(max(since_step if since_step <= t1 else 0, t1 - ctx.size), t1):
