@@ -1,7 +1,7 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
-Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `cluster`,
-`failover`, `training`, `alternatives`.
+Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `store`,
+`cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
 
 - `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
   a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
@@ -11,8 +11,12 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
-- `cluster`: wrk's REST load through `gmt cluster` (nginx, two replicas, Redis with Sentinel): errors, latency,
-  each replica's memory.
+- `cluster`: {sessions, cores, points: [{deployment, rest, rest_batch}]}: one in-memory `gmt serve`, then
+  `gmt cluster` with 1 and 2 replicas behind nginx (Redis with Sentinel), same load, same run.
+- `soak`: wrk's REST load through `gmt cluster` (nginx, two replicas) for 120 s: errors, latency, each
+  replica's memory through two waves of sessions.
+- `console`: {rounds: [{without_console, with_console, console_events, console_listings}], median_acts_per_s,
+  with_vs_without}: REST acts/s with and without an open server console (`/ui`), same server, rounds alternated.
 - `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.bench.failover`): {sessions, killed,
   promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.

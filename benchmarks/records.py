@@ -38,7 +38,9 @@ def recorded_steps(url: str, sids: list[str]) -> int:
     from gmt.common.recording import Recording
 
     with httpx.Client(base_url=url, timeout=60) as c:
-        return sum(Recording.from_npz(c.get(f"/sessions/{s}/recording?format=npz").content).steps for s in sids)
+        return sum(
+            Recording.from_npz(c.get(f"/sessions/{s}/recording?format=npz").content).steps for s in sids
+        )
 
 
 def bench_records(checkpoint: Path, sessions: int = 64, seconds: float = 8.0, rounds: int = 2) -> dict:

@@ -9,7 +9,8 @@ import tempfile
 from pathlib import Path
 
 from gmt.bench.alternatives import bench_alternatives
-from gmt.bench.cluster import bench_cluster
+from gmt.bench.cluster import bench_cluster, bench_scaleout
+from gmt.bench.console import bench_console
 from gmt.bench.engine import bench_engine
 from gmt.bench.failover import bench_failover
 from gmt.bench.harness import SESSIONS, default_size_checkpoint
@@ -76,9 +77,13 @@ def run(
             else:
                 result["records"] = bench_records(checkpoint or _default(tmp), 64, seconds)
         if "cluster" in sections:
-            result["cluster"] = bench_cluster(
+            result["cluster"] = bench_scaleout(checkpoint or _default(tmp), max(sessions), seconds)
+        if "soak" in sections:
+            result["soak"] = bench_cluster(
                 checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
             )
+        if "console" in sections:
+            result["console"] = bench_console(checkpoint or _default(tmp), max(sessions), seconds)
         if "failover" in sections:
             result["failover"] = bench_failover(checkpoint or _default(tmp), max(sessions))
         if "training" in sections:

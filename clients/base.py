@@ -152,6 +152,13 @@ class ActResult:
     goal: int
 
 
+def batch_routing_key(session_ids: Sequence[str]) -> str:
+    """The routing key of a many-session call (`X-Session-Id` / `x-session-id`): the same for the same sessions
+    whatever their order, so a proxy that hashes on it sends every tick of a game server to one replica, which
+    then holds those sessions and acts without reading the shared store."""
+    return min(session_ids)
+
+
 def new_session_id() -> str:
     """A fresh session id drawn by the client (what makes a retried create safe)."""
     return uuid.uuid4().hex

@@ -17,7 +17,9 @@ from gmt.common.extras import MissingExtra
 
 # Options from the configuration they fill (`RunConfig`) and the clients' defaults; goal and schedule are parsed.
 RUN_FLAGS = dataclass_flags(
-    RunConfig, skip=("goal", "schedule", "random_schedule", "transport"), names={"env_id": ("--env",)}
+    RunConfig,
+    skip=("goal", "schedule", "random_schedule", "transport"),
+    names={"env_id": ("--env",), "live_port": ("--port",)},
 )
 
 

@@ -23,6 +23,7 @@ from gmt.client.base import (
     Timeline,
     TimelineEntry,
     as_observation,
+    batch_routing_key,
     goal_selector,
     new_session_id,
     report_fields,
@@ -353,7 +354,10 @@ class GrpcClient(PolicyClient):
             ]
         )
         try:
-            results = self._call("ActBatch", req, safe=all(t is not None for t in steps)).results
+            key = batch_routing_key([sid for sid, _ in items]) if items else None  # as `RestClient.act_many`
+            results = self._call(
+                "ActBatch", req, session_id=key, safe=all(t is not None for t in steps)
+            ).results
         except ServiceError as e:
             for sid, *_ in items:
                 self._seen_act(sid, e)

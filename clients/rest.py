@@ -20,6 +20,7 @@ from gmt.client.base import (
     Timeline,
     TimelineEntry,
     as_observation,
+    batch_routing_key,
     goal_selector,
     new_session_id,
     report_fields,
@@ -170,6 +171,7 @@ class RestClient(PolicyClient):
         *,
         safe: bool = False,
         gone_ok_on_retry: bool = False,
+        headers: dict[str, str] | None = None,
     ) -> Any:
         """Send one request and decode its answer.
 
@@ -181,7 +183,7 @@ class RestClient(PolicyClient):
         maybe_applied = False  # an earlier attempt may have been applied
 
         def send() -> httpx.Response:
-            r = self._http.request(method, path, json=json)
+            r = self._http.request(method, path, json=json, headers=headers)
             if _worth_retrying(r, safe):
                 raise _RetryableAnswer(r)
             return r
@@ -303,7 +305,12 @@ class RestClient(PolicyClient):
                 requests[-1]["step"] = step
         safe = all("step" in r for r in requests)
         try:
-            results = self._request("POST", "/act", {"requests": requests}, safe=safe).get("results")
+            # Routed as one session would be (the same key every tick for the same sessions): behind a proxy that
+            # hashes on the session id, a game server's calls keep landing on the replica that holds its sessions.
+            key = {"X-Session-Id": batch_routing_key([sid for sid, _ in items])} if items else None
+            results = self._request("POST", "/act", {"requests": requests}, safe=safe, headers=key).get(
+                "results"
+            )
         except ServiceError as e:
             for sid, *_ in items:
                 self._seen_act(sid, e)

@@ -24,6 +24,7 @@ from gmt.common.statistics import signal_from_step
 if TYPE_CHECKING:
     import gymnasium as gym
 
+    from gmt.client.live import LiveView
     from gmt.client.video import VideoWriter
 
 StepHook = Callable[[int, Session], None]
@@ -113,6 +114,10 @@ class RunConfig:
         random_schedule: (LO, HI): instead of `goal` and `schedule`, each episode starts with a random goal and
             changes to another random goal every LO..HI steps (drawn from the episode's seed).
         transport: Description of how the server is reached, for the summary.
+        live: Serve a local page (`gmt.client.live`) showing the frames as they render, the running statistic
+            against the goal bands, and goal buttons that change the goal through the policy server.
+        live_port: Port of the --live page (0: any free port).
+        live_host: Address the --live page listens on.
     """
 
     env_id: str | None = None
@@ -128,6 +133,9 @@ class RunConfig:
     record: bool = False
     random_schedule: tuple[int, int] | None = None
     transport: str = ""
+    live: bool = False
+    live_port: int = 8765
+    live_host: str = "127.0.0.1"
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or self.steps < 1:
@@ -215,6 +223,7 @@ def run_episode(
     on_step: StepHook | None = None,
     status: StatusLine | None = None,
     video: VideoWriter | None = None,
+    live: LiveView | None = None,
 ) -> tuple[Trace, bool]:
     """Step one episode; returns its trace and whether the environment terminated early.
 
@@ -233,6 +242,8 @@ def run_episode(
         for t in range(cfg.steps):
             if t in schedule:
                 session.set_goal(schedule[t])
+            if live is not None:
+                live.apply_goals(session)  # the page's clicks
             if on_step is not None:
                 on_step(t, session)
             res = session.act(obs, **report)
@@ -246,8 +257,11 @@ def run_episode(
                 }
             sig = signal_from_step(spec.statistic, reward, info)
             trace.append(t, res.step, res.goal, sig, reward, res.action)
+            frame = env.render() if video is not None or (live is not None and live.wants_frame()) else None
             if video is not None:
-                video.append(env.render(), f"step {t}  goal {spec.goal(res.goal).name}")
+                video.append(frame, f"step {t}  goal {spec.goal(res.goal).name}")
+            if live is not None:
+                live.step(t, res.goal, float(moving_average(trace.signal[-MOVING_AVERAGE:])[-1]), frame)
             if status is not None:
                 g, recent = spec.goal(res.goal), trace.signal[-MOVING_AVERAGE:]
                 status.update(
@@ -321,10 +335,16 @@ def run(
     spec = resolve_model(client, cfg.model, cfg.env_id)
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)
-    env = make_env(spec, env_id, max_steps=cfg.steps, render=cfg.video)
+    env = make_env(spec, env_id, max_steps=cfg.steps, render=cfg.video or cfg.live)
     if cfg.out is not None:
         cfg.out.mkdir(parents=True, exist_ok=True)
     results = []
+    live = None
+    if cfg.live:
+        from gmt.client.live import LiveView
+
+        live = LiveView(spec, env_id, cfg.transport, cfg.live_host, cfg.live_port)
+        echo(f"live view at {live.url}")
     try:
         for ep in range(cfg.episodes):
             seed = cfg.seed + ep
@@ -340,8 +360,12 @@ def run(
             record = True if cfg.record else None
             with client.create_session(spec.name, goal, seed=seed, record=record) as session:
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
+                if live is not None:
+                    live.episode(ep, session.id)
                 try:
-                    trace, terminated = run_episode(session, env, spec, cfg, seed, on_step, status, video)
+                    trace, terminated = run_episode(
+                        session, env, spec, cfg, seed, on_step, status, video, live
+                    )
                 finally:
                     files = [video.close(), video.write_strip()] if video is not None else []
                     files = [f for f in files if f is not None]
@@ -363,4 +387,6 @@ def run(
             results.append(res)
     finally:
         env.close()
+        if live is not None:
+            live.close()
     return results

@@ -34,7 +34,7 @@ import typer
 
 NGINX_TEMPLATE = Path(__file__).resolve().parents[1] / "docker" / "nginx.conf"
 DEFAULT_RUN_DIR = Path("run/cluster")
-REPLICAS = ("gmt-1", "gmt-2")
+REPLICAS = ("gmt-1", "gmt-2")  # the default cluster's gmt replicas (`up(replicas=N)` names gmt-1 .. gmt-N)
 REDIS_NODES = ("redis", "redis-replica", "redis-replica-2")  # the primary `up` starts, then its replicas
 SENTINELS = ("sentinel-1", "sentinel-2", "sentinel-3")
 SENTINEL_SERVICE = "gmt"  # the name the sentinels monitor the primary under
@@ -45,7 +45,7 @@ INSTALL_HINT = "apt-get install nginx redis-server (.ci/run installs both)"
 _PLACEHOLDER = re.compile(r"\$\{(GMT_[A-Z0-9_]+)\}")
 # The order `down` stops them in: no new calls first, then the replicas (graceful), then the sentinels (so that
 # stopping the primary starts no failover), the Redis servers last.
-_STOP_ORDER = ("nginx", *REPLICAS, *SENTINELS, *REDIS_NODES)
+_STOP_ORDER = ("nginx", *(f"gmt-{i}" for i in range(1, 65)), *SENTINELS, *REDIS_NODES)
 
 # Processes this Python process started: polled (and so reaped) instead of probed by pid.
 _children: dict[int, subprocess.Popen] = {}
@@ -120,13 +120,34 @@ def _check_free(host: str, port: int, what: str) -> None:
             raise ClusterError(f"{what} port {host}:{port} is taken ({e.strerror}); choose another") from None
 
 
+_UPSTREAM_SERVER = re.compile(
+    r"^(?P<indent>[ \t]*)server \$\{GMT_(?P<kind>REST|GRPC)_(?P<i>\d+)\}(?P<rest>.*)\n", re.M
+)
+
+
+def for_replicas(text: str, n: int) -> str:
+    """`docker/nginx.conf`'s text with each upstream's `server ${GMT_REST_i} ...` lines repeated for `n` replicas
+    (the template, like `docker/compose.yaml`, names two)."""
+
+    def block(m: re.Match) -> str:
+        if m.group("i") != "1":
+            return ""  # the first line of an upstream stands for all of them
+        return "".join(
+            f"{m.group('indent')}server ${{GMT_{m.group('kind')}_{i}}}{m.group('rest')}\n"
+            for i in range(1, n + 1)
+        )
+
+    return _UPSTREAM_SERVER.sub(block, text)
+
+
 def render_nginx_conf(values: Mapping[str, str], template: Path = NGINX_TEMPLATE) -> str:
     """`docker/nginx.conf` with every `${GMT_*}` placeholder replaced by `values[name]`.
 
     Raises:
         ClusterError: a placeholder without a value (or a value for no placeholder).
     """
-    text = template.read_text()
+    replicas = sum(1 for k in values if k.startswith("GMT_REST_") and k[len("GMT_REST_") :].isdigit())
+    text = for_replicas(template.read_text(), replicas) if replicas else template.read_text()
     names = set(_PLACEHOLDER.findall(text))
     missing, unknown = sorted(names - set(values)), sorted(set(values) - names)
     if missing or unknown:
@@ -141,9 +162,11 @@ def nginx_values(
     grpc_port: int,
     replicas: Sequence[tuple[int, int]],
 ) -> dict[str, str]:
-    """The template's values for a loopback cluster: nginx on (rest_port, grpc_port), replicas' (REST, gRPC)."""
-    if len(replicas) != 2:
-        raise ClusterError(f"docker/nginx.conf names two replicas, got {len(replicas)}")
+    """The template's values for a loopback cluster: nginx on (rest_port, grpc_port), replicas' (REST, gRPC).
+
+    The template names two replicas (`docker/compose.yaml` runs two); `for_replicas` adapts it to any number."""
+    if not replicas:
+        raise ClusterError("a cluster needs at least one gmt replica")
     nginx_dir = (run_dir / "nginx").resolve()
     h = f"[{host}]" if ":" in host else host
     values = {
@@ -374,6 +397,7 @@ def up(
     grpc_port: int = 50051,
     redis_port: int = 0,
     store_min_replicas: int = 1,
+    replicas: int = len(REPLICAS),
     checkpoints: Sequence[Path] = (),
     serve_args: Sequence[str] = (),
     env: Mapping[str, str] | None = None,
@@ -389,6 +413,7 @@ def up(
         redis_port: The Redis primary's port (0 = a free port); the other ports are always free ones.
         store_min_replicas: Each replica's `--store-min-replicas` (Redis replicas that must hold a step before
             it is acknowledged; at most the two there are).
+        replicas: gmt serve replicas behind nginx (`gmt-1` .. `gmt-N`; 2 by default, as in docker/compose.yaml).
         checkpoints: Passed to each replica as --checkpoints (none: its default, GMT_CHECKPOINTS or checkpoints/).
         serve_args: More `gmt serve` flags for both replicas (e.g. ["--batch-wait-ms", "5"]).
         env: The replicas' environment (default: this process's; GMT_* variables apply where no flag is given).
@@ -421,7 +446,10 @@ def up(
     redis_port = redis_port or free_port(host)
     _check_free(host, redis_port, "Redis")
     ports = {"redis": redis_port} | {n: free_port(host) for n in (*REDIS_NODES[1:], *SENTINELS)}
-    gmt_ports = [(free_port(host), free_port(host)) for _ in REPLICAS]
+    if not 1 <= replicas <= 64:
+        raise ClusterError(f"replicas must be 1 to 64, got {replicas}")
+    names = [f"gmt-{i}" for i in range(1, replicas + 1)]
+    gmt_ports = [(free_port(host), free_port(host)) for _ in names]
     h = f"[{host}]" if ":" in host else host
     redis_url = f"redis+sentinel://{','.join(f'{h}:{ports[n]}' for n in SENTINELS)}/{SENTINEL_SERVICE}"
     deadline = time.monotonic() + timeout_s
@@ -458,13 +486,13 @@ def up(
         exe = Path(sys.executable).parent / "gmt"
         gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]
         ckpt = [a for c in checkpoints for a in ("--checkpoints", str(c))]
-        replicas = []
-        for name, (rest, grpc_) in zip(REPLICAS, gmt_ports, strict=True):
+        started = []
+        for name, (rest, grpc_) in zip(names, gmt_ports, strict=True):
             cmd = [*gmt, "serve", "--replica-id", name, "--host", host, "--rest-port", str(rest)]
             cmd += ["--grpc-port", str(grpc_), "--redis-url", redis_url]
             cmd += ["--store-min-replicas", str(store_min_replicas), *ckpt, *serve_args]
             pids[name] = _spawn(name, cmd, run_dir, env)
-            replicas.append(Replica(name, pids[name], rest, grpc_))
+            started.append(Replica(name, pids[name], rest, grpc_))
 
         conf = run_dir / "nginx" / "nginx.conf"
         conf.write_text(
@@ -478,7 +506,7 @@ def up(
         for name in SENTINELS:
             ready = lambda n=name: _sentinel_ready(host, ports[n], redis_port, replica_count)  # noqa: E731
             _wait(name, ready, pids[name], run_dir / f"{name}.log", deadline)
-        for r in replicas:
+        for r in started:
             log = run_dir / f"{r.name}.log"
             _wait(r.name, lambda r=r: _http_ready(f"http://{h}:{r.rest_port}/readyz"), r.pid, log, deadline)
         rest_url, grpc_target = f"http://{h}:{rest_port}", f"{h}:{grpc_port}"
@@ -488,7 +516,7 @@ def up(
     except BaseException:
         down(run_dir, quiet=True)
         raise
-    cluster = Cluster(run_dir, rest_url, grpc_target, redis_url, pids, replicas, ports)
+    cluster = Cluster(run_dir, rest_url, grpc_target, redis_url, pids, started, ports)
     state = {**asdict(cluster), "run_dir": str(run_dir)}
     (run_dir / "cluster.json").write_text(json.dumps(state, indent=2) + "\n")
     return cluster
@@ -575,6 +603,7 @@ def up_command(
     store_min_replicas: int = typer.Option(
         1, help="Redis replicas that must hold a step before a gmt replica acknowledges it (0, 1 or 2)."
     ),
+    replicas: int = typer.Option(2, help="gmt serve replicas behind nginx (gmt-1 .. gmt-N)."),
     checkpoints: list[Path] = typer.Option(
         None, "--checkpoints", "-c", help="Checkpoints for both replicas (default: theirs, checkpoints/)."
     ),
@@ -590,6 +619,7 @@ def up_command(
             grpc_port=grpc_port,
             redis_port=redis_port,
             store_min_replicas=store_min_replicas,
+            replicas=replicas,
             checkpoints=checkpoints or (),
             serve_args=list(ctx.args),
             timeout_s=timeout,

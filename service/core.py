@@ -22,6 +22,8 @@ from gmt.model.checkpoint import Goal
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
 from gmt.service.batcher import MicroBatcher
+from gmt.service.console.activity import SessionRow
+from gmt.service.console.events import EventHub
 from gmt.service.errors import (
     Aborted,
     AlreadyExists,
@@ -82,6 +84,7 @@ def check_new_session_id(sid: str) -> str:
 
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
+MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
 GoalRef = int | str | None
 
 
@@ -190,6 +193,7 @@ class Core:
         self._executor: ThreadPoolExecutor | None = None
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
         self._sweeper: asyncio.Task | None = None
+        self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
         self._fingerprints: dict[str, str] = {}
         self._archives: set[asyncio.Task] = set()  # recordings being written (expired sessions)
 
@@ -247,6 +251,7 @@ class Core:
         if self._closed:
             return
         self._closed = self.closing = True
+        self.events.close()
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
@@ -300,6 +305,7 @@ class Core:
         gone = await self.store.sweep()
         for s in gone:
             self._dropped(s.id, s.model)
+            self.events.end(s.id, "expired", {"session_id": s.id})
             log.info("session expired", extra={"session": short_id(s.id), "model": s.model})
         self.metrics.sessions_expired.inc(len(gone))
         self.metrics.live_sessions.set(await self.store.count())
@@ -543,6 +549,42 @@ class Core:
         async with self._lock(sid):
             return self._view_session(await self.store.get(sid, hold=False))
 
+    async def list_sessions(self, offset: int = 0, limit: int = 100) -> tuple[int, list[SessionRow]]:
+        """The store's live sessions, newest first: (how many there are, the page from `offset`).
+
+        Acts/s and last latency are as of the session's last act (in a shared store, as of the act before).
+
+        Raises:
+            InvalidArgument: `offset` is negative or `limit` is not in 1..`MAX_LIST_SESSIONS`.
+        """
+        if isinstance(offset, bool) or not isinstance(offset, int) or offset < 0:
+            raise InvalidArgument(f"offset must be an integer >= 0, got {offset!r}")
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST_SESSIONS:
+            raise InvalidArgument(f"limit must be an integer in 1..{MAX_LIST_SESSIONS}, got {limit!r}")
+        total, briefs = await self.store.list_page(offset, limit)
+        now, here = self.clock(), self.settings.replica_id
+        rows, goal_names = [], {}
+        for b in briefs:
+            names = goal_names.get(b.model)
+            if names is None:
+                m = self.registry.models.get(b.model)
+                names = goal_names[b.model] = {g.id: g.name for g in m.checkpoint.goals} if m else {}
+            a = b.activity
+            rows.append(
+                SessionRow(
+                    session_id=b.session_id,
+                    model=b.model,
+                    goal=b.goal,
+                    goal_name=names.get(b.goal, ""),
+                    step=b.step,
+                    idle_s=max(now - b.last_used, 0.0),
+                    acts_per_s=a.rate(now) if a.count else None,
+                    last_latency_ms=None if a.latency_s is None else a.latency_s * 1000.0,
+                    served_by=a.by or (here if b.held_here else None),
+                )
+            )
+        return total, rows
+
     def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
         """The raw observation checked and normalised, once, into what the engine consumes.
 
@@ -585,6 +627,7 @@ class Core:
         return await run_whole(self._act(sid, observation, step, report))
 
     async def _act(self, sid: str, observation: object, step: int | None, report: Report | None) -> ActResult:
+        t0 = time.perf_counter()
         async with self._lock(sid):
             s, m, ctx, x, repeat = await self._prepare(sid, observation, step, report)
             if repeat is not None:
@@ -597,7 +640,18 @@ class Core:
             s.last_used = self.clock()
             self._note_step(m, s, ctx, step, observation, action, report)
             await self._save(m, s, version)
-        return self._result(m, sid, action, step, goal)
+            result = self._result(m, sid, action, step, goal)
+            self._acted(s, result, t0)
+        return result
+
+    def _acted(self, s: Session, r: ActResult, t0: float) -> None:
+        """Account for an answered act begun at `perf_counter()` `t0`: the session's activity, its watchers."""
+        latency = time.perf_counter() - t0
+        s.activity.record(s.last_used, latency, self.settings.replica_id)
+        if s.id in self.events:
+            action = r.action if r.action is not None else r.discrete_action
+            data = {"step": r.step, "goal": r.goal, "action": action, "latency_ms": latency * 1000.0}
+            self.events.publish(s.id, "act", data)
 
     async def _prepare(self, sid: str, observation: object, step: int | None, report: Report | None = None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
@@ -677,6 +731,7 @@ class Core:
         return await run_whole(self._act_many(items))
 
     async def _act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
+        t0 = time.perf_counter()
         out: list[ActResult | ServiceError | None] = [None] * len(items)
         seen: set[str] = set()
         order: list[int] = []
@@ -733,6 +788,8 @@ class Core:
                 for (i, s, m, _, result), e in zip(stepped, saved, strict=True):
                     if e is not None:
                         m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
+                    else:
+                        self._acted(s, result, t0)
                     out[i] = e if e is not None else result
         return out
 
@@ -799,7 +856,11 @@ class Core:
             s.last_used = now
             await self._save(m, s, version)
             log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})
-            return dataclasses.replace(self._view_session(s), effective_step=step)
+            view = dataclasses.replace(self._view_session(s), effective_step=step)
+            if sid in self.events:
+                data = {"goal": g, "goal_name": view.goal_name, "step": view.step, "given": given}
+                self.events.publish(sid, "goal", {**data, "blend_steps": blend_steps})
+            return view
 
     async def reset(self, sid: str, goal: GoalRef = None, target: float | None = None) -> SessionView:
         """Start a new episode in the session, keeping its goal unless one is given.
@@ -827,9 +888,7 @@ class Core:
                 and last["by"] in ("create", "reset")
                 and (g is None or g == ctx.goal)
             ):
-                return self._view_session(
-                    s
-                )  # an episode not begun yet: a reset (or its retry) changes nothing
+                return self._view_session(s)  # an episode not begun: a reset (or its retry) changes nothing
             version = ctx.version
             m.engine.reset(ctx, g)
             lg.episode += 1
@@ -837,7 +896,10 @@ class Core:
             lg.note_goal(0, int(ctx.goal), given, 0, "reset", now)
             s.last_used = now
             await self._save(m, s, version)
-            return self._view_session(s)
+            view = self._view_session(s)
+            if sid in self.events:
+                self.events.publish(sid, "reset", {"goal": view.goal, "goal_name": view.goal_name, "step": 0})
+            return view
 
     async def close_session(self, sid: str) -> None:
         """Forget the session. Raises NotFound / SessionExpired."""
@@ -852,6 +914,7 @@ class Core:
                 await self.store.delete(sid)
             else:
                 await self._close_recorded(sid)
+            self.events.end(sid, "closed", {"session_id": sid})
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session closed", extra={"session": short_id(sid)})
 

@@ -60,7 +60,7 @@ class Metrics:
         self.in_flight = Gauge(
             "gmt_requests_in_flight",
             "Requests (and Control stream commands) received and not yet answered, by transport; scrapes of "
-            "/metrics are not counted.",
+            "/metrics and event streams (GET /sessions/{id}/events) are not counted.",
             ["transport"],
             registry=r,
         )

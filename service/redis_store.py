@@ -30,7 +30,10 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 
+import orjson
+
 from gmt.service import resp, session_codec
+from gmt.service.console.activity import Activity, SessionBrief
 from gmt.service.errors import (
     Aborted,
     AlreadyExists,
@@ -41,7 +44,7 @@ from gmt.service.errors import (
     SessionExpired,
     Unavailable,
 )
-from gmt.service.sessions import Clock, Session, SessionStore, expired_message, not_found_message
+from gmt.service.sessions import Clock, Session, SessionStore, brief, expired_message, not_found_message
 from gmt.service.settings import Settings
 
 TOMBSTONE_TTL_S = 86_400
@@ -609,6 +612,41 @@ class RedisSessionStore(SessionStore):
 
     def local_count(self, model: str) -> int:
         return self._seen_per_model[model]  # every held session was seen
+
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        """What `live` holds, most recently used first (as of the replicas' last sweeps): two round trips, and
+        only each session's `meta` and `st` are read (a session this replica holds is described from its copy)."""
+        async with self.redis.pipeline(transaction=False) as p:
+            p.zcard(self._live).zrevrange(self._live, offset, offset + limit - 1)
+            total, raw_ids = await self._call(p.execute())
+        ids = [raw.decode() for raw in raw_ids]
+        async with self.redis.pipeline(transaction=False) as p:
+            for sid in ids:
+                p.hmget(self._key(sid), "meta", "st")
+            stored = await self._call(p.execute()) if ids else []
+        out = []
+        for sid, (meta, st) in zip(ids, stored, strict=True):
+            held = self._held.get(sid)
+            if held is not None:
+                out.append(brief(held.session))
+                continue
+            try:
+                m, s = orjson.loads(meta), orjson.loads(st)
+                out.append(
+                    SessionBrief(
+                        sid,
+                        str(m["model"]),
+                        int(s["goal"]),
+                        int(s["step"]),
+                        float(m["created_at"]),
+                        float(s["last_used"]),
+                        Activity.load(s.get("activity")),
+                        held_here=False,
+                    )
+                )
+            except (TypeError, KeyError, ValueError, orjson.JSONDecodeError):
+                continue  # gone since the index was read (or unreadable): not listed
+        return int(total), out
 
     async def close(self) -> None:
         if self._fast is not None:

@@ -195,6 +195,7 @@ class Server:
         """Stop taking work, let in-flight calls finish (up to the grace period), then close the core."""
         log.info("shutting down", extra={"grace_s": self.settings.shutdown_grace_s})
         self.core.closing = True
+        self.core.events.close()  # event streams end now: uvicorn waits for open requests
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
         waits = [self._uvicorn_task] if self._uvicorn_task is not None else []

@@ -5,7 +5,8 @@ Fields (format 3):
   record (`H` held steps, the state's and the action's dtype and shape);
 - `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
   matches a copy of its predecessor);
-- `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version) and `last_used`;
+- `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
+  last latency and replica of the console's listing, `console.activity`: as of the act before the write);
 - `r:<t mod H>`: the record of held step `t`: t, goal token, blend target and weight, state, action, as raw
   little-endian bytes;
 - `tl`: the last entry of the session's goal timeline (JSON, `gmt.service.records`), written with each entry.
@@ -29,6 +30,7 @@ import numpy as np
 import orjson
 
 from gmt.model.context import Context, StoredContext
+from gmt.service.console.activity import Activity
 from gmt.service.records import Ledger
 from gmt.service.sessions import Session
 
@@ -71,6 +73,7 @@ def _record_of(sd: str, ss: tuple, ad: str, ash: tuple) -> np.dtype:
 def _state(session: Session, ctx: Context) -> bytes:
     st = ctx.scalars()
     st["last_used"] = session.last_used
+    st["activity"] = session.activity.dump()
     st["lg"] = session.ledger.state()
     return orjson.dumps(st)
 
@@ -170,6 +173,7 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             created_at=float(meta["created_at"]),
             last_used=float(st["last_used"]),
             request=str(meta.get("request", "")),
+            activity=Activity.load(st.get("activity")),
             ledger=Ledger.restore(meta.get("record"), st.get("lg", {}), f.get("tl")),
         )
     except CodecError:

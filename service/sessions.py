@@ -7,12 +7,21 @@ number of live sessions (`ResourceExhausted`). It does not order calls: the core
 from __future__ import annotations
 
 import abc
+import itertools
 from collections import Counter, OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.errors import AlreadyExists, NotFound, ResourceExhausted, ServiceError, SessionExpired
+from gmt.service.console.activity import Activity, SessionBrief
+from gmt.service.errors import (
+    AlreadyExists,
+    FailedPrecondition,
+    NotFound,
+    ResourceExhausted,
+    ServiceError,
+    SessionExpired,
+)
 from gmt.service.records import Ledger
 
 Clock = Callable[[], float]
@@ -35,6 +44,7 @@ class Session:
         last_used: Clock time of the last act / set_goal / reset.
         request: What created it (model, goal, seed, action mode): a retried create must repeat it to be
             answered this session.
+        activity: Acts/s and last latency (the console's listing).
         ledger: Its goal timeline and recording (`gmt.service.records`).
     """
 
@@ -44,7 +54,15 @@ class Session:
     created_at: float
     last_used: float
     request: str = ""
+    activity: Activity = field(default_factory=Activity)
     ledger: Ledger = field(default_factory=Ledger)
+
+
+def brief(s: Session, held_here: bool = True) -> SessionBrief:
+    """The listing's view of a session held as a `Session`."""
+    return SessionBrief(
+        s.id, s.model, int(s.ctx.goal), int(s.ctx.step), s.created_at, s.last_used, s.activity, held_here
+    )
 
 
 def expired_message(sid: str, idle_timeout_s: float) -> str:
@@ -169,6 +187,14 @@ class SessionStore(abc.ABC):
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release connections."""
 
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        """(live sessions held, up to `limit` of them from `offset`), newest first.
+
+        Raises:
+            FailedPrecondition: this store cannot list its sessions.
+        """
+        raise FailedPrecondition(f"the session store {type(self).__name__} cannot list its sessions")
+
 
 class MemorySessionStore(SessionStore):
     """Sessions in a dict of this process (the default; lost on restart)."""
@@ -252,3 +278,7 @@ class MemorySessionStore(SessionStore):
 
     def local_count(self, model: str) -> int:
         return self._per_model[model]
+
+    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+        page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)
+        return len(self._sessions), [brief(s) for s in page]

@@ -1,6 +1,7 @@
 """Shared fixtures: tiny random-weight checkpoints built in milliseconds."""
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -35,3 +36,37 @@ def imports_of():
         return set(json.loads(out))
 
     return run
+
+
+@pytest.fixture(scope="session")
+def chromium():
+    """A headless Chromium: the system's (Debian `chromium`, `chromium-driver`) through Selenium, which is given
+    both paths so that it downloads nothing. Its performance log records every request a page makes
+    (`browser_support.external_requests`)."""
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    browser, driver = shutil.which("chromium"), shutil.which("chromedriver")
+    if browser is None or driver is None:
+        pytest.skip("needs the system Chromium and its driver (apt-get install chromium chromium-driver)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",  # as root in a container
+        "--disable-dev-shm-usage",
+        "--disable-gpu",
+        "--window-size=1100,860",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-default-apps",
+        "--disable-sync",
+    ):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
+    d = webdriver.Chrome(service=Service(driver), options=options)
+    d.set_page_load_timeout(60)
+    d.set_script_timeout(60)
+    yield d
+    d.quit()

@@ -18,6 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gmt.service import examples
+from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from gmt.service.rest import docs, media, openapi
@@ -153,11 +154,11 @@ class BodyLimit:
 class AuthFirst:
     """With auth on, refuses a request without the right bearer token before anything reads its body.
 
-    Health checks and the API docs (their pages and assets) stay open; every other path (unknown ones included)
-    needs the token.
+    Health checks, the API docs (their pages and assets) and the console's page and assets (no data: the page
+    sends the token on every call it makes) stay open; every other path (unknown ones included) needs the token.
     """
 
-    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS
+    OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS | console.PATHS
 
     def __init__(self, app: ASGIApp, token: str | None) -> None:
         self.app = app
@@ -359,7 +360,11 @@ class RequestMetrics:
             await send(message)
 
         core = getattr(scope["app"].state, "core", None) if "app" in scope else None
-        in_flight = core.metrics.in_flight_rest if core is not None and scope["path"] != "/metrics" else None
+        path = scope["path"]
+        counted = path != "/metrics" and not path.endswith(
+            "/events"
+        )  # a scrape; an event stream (long-lived)
+        in_flight = core.metrics.in_flight_rest if core is not None and counted else None
         if in_flight is not None:
             in_flight.inc()
         try:
@@ -408,6 +413,7 @@ def create_app(settings: Settings | None = None, core: Core | None = None) -> Fa
     app.replica_id, app.settings = settings.replica_id, settings
     app.include_router(public)
     app.include_router(api)
+    app.include_router(console.router)
     docs.add_docs(app)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)

@@ -556,3 +556,49 @@ def test_grpc_client_sends_the_session_id_and_the_expected_step(recording_grpc_s
         ("Control.act", "s-1", 2),
         ("CloseSession", "s-1", None),
     ]
+
+
+class Headers(httpx.HTTPTransport):
+    """Records each request's (path, X-Session-Id header)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[tuple[str, str | None]] = []
+
+    def handle_request(self, request):
+        self.seen.append((request.url.path, request.headers.get("x-session-id")))
+        return super().handle_request(request)
+
+
+class Metadata:
+    """Wraps a PolicyService stub: records each call's x-session-id metadata."""
+
+    def __init__(self, stub) -> None:
+        self.stub, self.seen = stub, []
+
+    def __getattr__(self, name):
+        rpc = getattr(self.stub, name)
+
+        def call(request, **kw):
+            self.seen.append((name, dict(kw.get("metadata") or ()).get("x-session-id")))
+            return rpc(request, **kw)
+
+        return call
+
+
+def test_many_session_calls_carry_one_routing_key_whatever_the_order(live_server):
+    """A proxy hashing on the session id sends every tick of the same sessions to one replica (which then holds
+    them): `act_many` names the smallest of its session ids, on both transports."""
+    obs = np.zeros(17, np.float32)
+    headers = Headers()
+    with (
+        RestClient(live_server.rest_url, transport=headers) as rest,
+        GrpcClient(live_server.grpc_target) as g,
+    ):
+        g.stub = meta = Metadata(g.stub)
+        for client, seen in ((rest, headers.seen), (g, meta.seen)):
+            ids = [client.create_session(goal=0).id for _ in range(3)]
+            client.act_many([(s, obs) for s in ids])
+            client.act_many([(s, obs) for s in reversed(ids)])
+            keys = [key for what, key in seen if what in ("/act", "ActBatch")]
+            assert keys == [min(ids), min(ids)]

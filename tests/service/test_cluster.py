@@ -355,3 +355,18 @@ def test_cluster_down_stops_exactly_its_processes(running):
     assert not any(cluster._alive(pid) for pid in pids.values())
     assert (running.run_dir / "redis" / "appendonlydir").is_dir()  # Redis kept an AOF
     assert cluster.down(running.run_dir, quiet=True) == {}
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_the_nginx_template_serves_any_number_of_replicas(tmp_path, n):
+    """`gmt cluster up --replicas N` renders one upstream server line per replica, for both transports."""
+    replicas = [(9000 + i, 9100 + i) for i in range(n)]
+    text = cluster.render_nginx_conf(cluster.nginx_values(tmp_path, "127.0.0.1", 8000, 50051, replicas))
+    for kind, ports in (("gmt_rest", [r for r, _ in replicas]), ("gmt_grpc", [g for _, g in replicas])):
+        block = text[text.index(f"upstream {kind} {{") :]
+        block = block[: block.index("}")]
+        assert re.findall(r"server 127\.0\.0\.1:(\d+) ", block) == [str(p) for p in ports]
+    if cluster.find_executable("nginx") is not None:
+        (tmp_path / "nginx.conf").write_text(text)
+        (tmp_path / "nginx").mkdir()
+        assert cluster.nginx_test(tmp_path / "nginx.conf").returncode == 0

@@ -311,7 +311,9 @@ def test_openapi_lists_exactly_the_designed_routes(http):
         ("GET", "/models"),
         ("GET", "/models/{name}"),
         ("POST", "/sessions"),
+        ("GET", "/sessions"),  # the console's listing (docs/ui.md)
         ("GET", "/sessions/{session_id}"),
+        ("GET", "/sessions/{session_id}/events"),  # the console's event stream
         ("POST", "/sessions/{session_id}/act"),
         ("POST", "/act"),
         ("PUT", "/sessions/{session_id}/goal"),
