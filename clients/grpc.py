@@ -354,7 +354,7 @@ class GrpcClient(PolicyClient):
             ]
         )
         try:
-            key = batch_routing_key([sid for sid, _ in items]) if items else None  # as `RestClient.act_many`
+            key = batch_routing_key([sid for sid, *_ in items]) if items else None  # as `RestClient.act_many`
             results = self._call(
                 "ActBatch", req, session_id=key, safe=all(t is not None for t in steps)
             ).results

@@ -307,7 +307,7 @@ class RestClient(PolicyClient):
         try:
             # Routed as one session would be (the same key every tick for the same sessions): behind a proxy that
             # hashes on the session id, a game server's calls keep landing on the replica that holds its sessions.
-            key = {"X-Session-Id": batch_routing_key([sid for sid, _ in items])} if items else None
+            key = {"X-Session-Id": batch_routing_key([sid for sid, *_ in items])} if items else None
             results = self._request("POST", "/act", {"requests": requests}, safe=safe, headers=key).get(
                 "results"
             )

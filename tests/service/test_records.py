@@ -320,3 +320,46 @@ def test_record_share_draws_sessions_by_their_id(make_server, tmp_path):
             "/sessions", json={"model": MODEL, "goal": 0, "record": False, "session_id": ids[got.index(True)]}
         )
         assert r.status_code == 409  # the id is taken by a session created otherwise (recorded)
+
+
+@pytest.mark.parametrize("transport", ["rest", "grpc", "stream"])
+def test_python_clients_record_report_and_read_the_timeline(make_server, tmp_path, transport):
+    from gmt.client.grpc import GrpcClient
+    from gmt.client.rest import RestClient
+
+    server = make_server(record_dir=tmp_path)
+    if transport == "rest":
+        client = RestClient(server.url)
+    else:
+        client = GrpcClient(server.target, stream=transport == "stream")
+    with client, httpx.Client(base_url=server.url, timeout=30) as http:
+        s = client.create_session(MODEL, "low", seed=2, record=True)
+        other = client.create_session(MODEL, 0, seed=3, record=True)
+        assert s.info.recording and other.info.recording
+        s.act(OBS[0])
+        s.act(OBS[1], reward=0.5, terminated=False, info={"x_velocity": 0.25})
+        assert s.set_goal("high", blend_steps=3).effective_step == 2
+        s.act(OBS[2], reward=0.75)
+        tl = s.timeline()
+        assert (tl.step, tl.entries) == (3, 2)
+        assert [(e.step, e.goal, e.given, e.blend_steps) for e in tl.goals] == [
+            (0, 0, {"goal": "low"}, 0),
+            (2, 2, {"goal": "high"}, 3),
+        ]
+        assert tl.goals[1].by == {"rest": "rest", "grpc": "grpc", "stream": "stream"}[transport]
+        out = client.act_many(
+            [(other.id, OBS[0]), (s.id, OBS[3], {"reward": 1.0, "info": {"x_velocity": 2.0}})]
+        )
+        assert [r.step for r in out] == [0, 3]
+        rec = http.get(f"/sessions/{s.id}/recording").json()
+        assert rec["rewards"] == [0.5, 0.75, 1.0, None] and rec["infos"]["x_velocity"] == [
+            0.25,
+            None,
+            2.0,
+            None,
+        ]
+        if transport == "rest":
+            assert client.get_recording(s.id).steps == 4
+        s.close()
+        other.close()
+    assert {p.name for p in tmp_path.glob("*.json")} == {f"{s.id}.json", f"{other.id}.json"}
