@@ -11,6 +11,8 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from gmt.service.records import MAX_RECORD_STEPS
+
 _REPLICA_ID = re.compile(r"[\x21-\x7e]{1,128}")  # valid in an HTTP header and in gRPC metadata
 
 
@@ -106,7 +108,7 @@ class Settings(BaseSettings):
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
     record_dir: Path | None = None
     record_share: float = Field(0.0, ge=0.0, le=1.0)
-    record_max_steps: int = Field(10_000, ge=1, le=10_000_000)
+    record_max_steps: int = Field(10_000, ge=1, le=MAX_RECORD_STEPS)
 
     @field_validator("checkpoints", mode="before")
     @classmethod
