@@ -125,7 +125,7 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
             "session_id": {"type": "string"},
             "observation": {"anyOf": [{"type": "array"}, {"$ref": "#/components/schemas/Tensor"}]},
             "step": _nullable(_STEP),
-            **_report(described["Act"]),
+            **_report(described["Act"], exact=False),
         },
         "required": ["session_id", "observation"],
     }
@@ -169,11 +169,16 @@ _STEP = {"type": "integer", "minimum": 0}
 _REPORTED = {"type": "number", "minimum": -MAX_REPORTED, "maximum": MAX_REPORTED}
 
 
-def _report(described: dict) -> dict:
-    """The act's optional report on the previous action (`records.check_report`'s rules)."""
+def _report(described: dict, exact: bool = True) -> dict:
+    """The act's optional report on the previous action: `records.check_report`'s rules when `exact`, else only
+    the types (an item of `POST /act` whose report breaks a rule fails alone, not the call)."""
     key = INFO_KEY.pattern
+    number = _REPORTED if exact else {"type": "number"}
+    info = {"type": "object", "additionalProperties": number}
+    if exact:
+        info |= {"propertyNames": {"pattern": f"^{key}$"}, "maxProperties": MAX_INFO_KEYS}
     return {
-        "reward": {**_nullable(_REPORTED), "description": described.get("reward", {}).get("description", "")},
+        "reward": {**_nullable(number), "description": described.get("reward", {}).get("description", "")},
         "terminated": {
             **_nullable({"type": "boolean"}),
             "description": described.get("terminated", {}).get("description", ""),
@@ -182,17 +187,7 @@ def _report(described: dict) -> dict:
             **_nullable({"type": "boolean"}),
             "description": described.get("truncated", {}).get("description", ""),
         },
-        "info": {
-            **_nullable(
-                {
-                    "type": "object",
-                    "additionalProperties": _REPORTED,
-                    "propertyNames": {"pattern": f"^{key}$"},
-                    "maxProperties": MAX_INFO_KEYS,
-                }
-            ),
-            "description": described.get("info", {}).get("description", ""),
-        },
+        "info": {**_nullable(info), "description": described.get("info", {}).get("description", "")},
     }
 
 
