@@ -139,7 +139,7 @@ def import_sessions(
     n_served = len(episodes)
     switches = sum(m["switches"] for m in meta)
     if include is not None:
-        extra = _included(include, first)
+        extra = _included(include, first, data_dir)
         for ep in extra:
             ep.episode_id = len(episodes)
             episodes.append(ep)
@@ -189,13 +189,13 @@ def import_sessions(
     )
 
 
-def _included(dataset: str, served: dict) -> list[Episode]:
+def _included(dataset: str, served: dict, data_dir: str | Path | None = None) -> list[Episode]:
     """Every episode of `dataset`, with the per-step goal label of its trajectory (relabelled as `gmt train`
     does), after checking that its goal table is the served model's."""
     from gmt.model.data.relabel import relabel
     from gmt.model.data.statistics import per_trajectory
 
-    ds = load_dataset(dataset)
+    ds = load_dataset(dataset, data_dir)
     if ds.env_id != served["env_id"]:
         raise ValueError(f"{dataset} is {ds.env_id}, the recordings are {served['env_id']}")
     goals = served["goals"]

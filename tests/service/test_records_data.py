@@ -153,3 +153,45 @@ def test_replay_reproduces_its_own_checkpoint_exactly_and_measures_another(serve
 
     r = _gmt("replay", str(tmp_path / "nothing-here"), "--checkpoint", str(ckpt), data_dir=tmp_path)
     assert r.returncode == 2 and "no such recording" in r.stderr
+
+
+def _offline(data_dir: Path, dataset_id: str, speeds: list[float]) -> None:
+    """A small HalfCheetah-shaped dataset whose episode i moves at speeds[i] m/s throughout."""
+    import gymnasium as gym
+
+    from gmt.model.data.minari_io import Episode, write_dataset
+
+    rng = np.random.default_rng(5)
+    env = gym.make("HalfCheetah-v5")
+    eps = [
+        Episode(
+            observations=rng.normal(size=(20, 17)),
+            actions=rng.uniform(-1, 1, (20, 6)).astype(np.float32),
+            rewards=np.full(20, v, np.float32),
+            terminated=False,
+            truncated=True,
+            infos={"x_velocity": np.full(20, v)},
+            final_observation=rng.normal(size=17),
+            episode_id=i,
+        )
+        for i, v in enumerate(speeds)
+    ]
+    write_dataset(dataset_id, eps, "HalfCheetah-v5", env.observation_space, env.action_space, data_dir)
+    env.close()
+
+
+def test_import_sessions_includes_offline_data_whose_goals_are_the_served_models(served, tmp_path):
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.model.data.served import import_sessions, step_labels
+
+    rec_dir = served[0]
+    _offline(tmp_path, "test/cheetah/offline-v0", [0.0, 0.0005, 1.0, 1.0005, 2.0, 2.0005])
+    res = import_sessions([rec_dir], "test/cheetah/both-v0", tmp_path, include="test/cheetah/offline-v0")
+    assert (res.episodes, res.included, res.transitions) == (EPISODES + 6, 6, EPISODES * STEPS + 120)
+    labels, goals = step_labels(load_dataset("test/cheetah/both-v0", tmp_path))
+    assert [g["name"] for g in goals] == ["low", "medium", "high"]
+    assert [lab.tolist() for lab in labels[EPISODES:]] == [[g] * 20 for g in (0, 0, 1, 1, 2, 2)]
+    # An offline dataset whose goals mean other speeds would give the labels another meaning: refused.
+    _offline(tmp_path, "test/cheetah/faster-v0", [0.0, 0.0005, 1.5, 1.5005, 3.0, 3.0005])
+    with pytest.raises(ValueError, match="would not mean the same goals"):
+        import_sessions([rec_dir], "test/cheetah/both-v1", tmp_path, include="test/cheetah/faster-v0")
