@@ -155,7 +155,10 @@ class EpisodeResult:
     files: list[Path] = field(default_factory=list)
 
     def summary(self, spec: ModelInfo, cfg: RunConfig, env_id: str) -> dict:
-        """JSON-ready description (without the trace)."""
+        """JSON-ready description (without the trace); a random schedule is given as the episode drew it."""
+        goal, schedule = cfg.goal, cfg.schedule
+        if cfg.random_schedule is not None:
+            goal, schedule = random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, self.seed)
         return {
             "model": spec.name,
             "env_id": env_id,
@@ -164,8 +167,8 @@ class EpisodeResult:
             "episode": self.episode,
             "seed": self.seed,
             "session_id": self.session_id,
-            "goal": cfg.goal,
-            "schedule": [[s, g] for s, g in cfg.schedule],
+            "goal": goal,
+            "schedule": [[s, g] for s, g in schedule],
             "steps": len(self.trace),
             "terminated": self.terminated,
             "goals": [g.__dict__ for g in spec.goals],
