@@ -13,7 +13,8 @@ def bench_command(
     ),
     sections: str = typer.Option(
         "engine,serving,training,alternatives",
-        help="Comma-separated: engine, serving, store, cluster, soak, console, failover, training, alternatives.",
+        help="Comma-separated: engine, serving, store, records, cluster, soak, console, failover, training, "
+        "alternatives.",
     ),
     seconds: float = typer.Option(8.0, help="Load duration per serving measurement point."),
     sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),

@@ -181,12 +181,13 @@ def obs_json() -> str:
     return json.dumps([round(float(x), 4) for x in np.random.default_rng(0).normal(size=OBS_DIM) * 0.1])
 
 
-def bench_rest(url: str, sids: list[str], seconds: float) -> dict:
-    """One call per act, one connection per session."""
+def bench_rest(url: str, sids: list[str], seconds: float, extra: dict | None = None) -> dict:
+    """One call per act, one connection per session; `extra` adds fields to every act's body."""
     ids = ",".join(f'"{s}"' for s in sids)
+    more = "".join(f', "{k}": {json.dumps(v)}' for k, v in (extra or {}).items())
     script = f"""
 local ids = {{{ids}}}
-local body = '{{"observation": {obs_json()}}}'
+local body = '{{"observation": {obs_json()}{more}}}'
 local i = 0
 request = function()
   i = i + 1

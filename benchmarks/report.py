@@ -58,6 +58,21 @@ def to_markdown(result: dict) -> str:
             f"GEMM rate {t['gemm_gflops']['fp32']} GFLOP/s fp32, {t['gemm_gflops']['bf16']} GFLOP/s bf16.",
             "",
         ]
+    rec = result.get("records", {})
+    if "stores" in rec:
+        lines += [
+            f"### Recording: REST acts/s (p50 / p99 ms) at {rec['sessions']} sessions, recorded and not, same server",
+            "",
+            "| store | not recorded | recorded | recorded / not |",
+            "|---|---|---|---|",
+        ]
+        for store, res in rec["stores"].items():
+            cells = [
+                " / ".join(f"{r['acts_per_s']:.0f} ({r['p50_ms']:.1f} / {r['p99_ms']:.1f})" for r in res[k])
+                for k in ("plain", "recorded")
+            ]
+            lines.append(f"| {store} | {cells[0]} | {cells[1]} | {res['recorded_vs_plain']} |")
+        lines.append("")
     alt = result.get("alternatives", {})
     if alt:
         lines += ["### What a user would deploy instead", ""]

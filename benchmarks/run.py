@@ -14,6 +14,7 @@ from gmt.bench.console import bench_console
 from gmt.bench.engine import bench_engine
 from gmt.bench.failover import bench_failover
 from gmt.bench.harness import SESSIONS, default_size_checkpoint
+from gmt.bench.records import bench_records
 from gmt.bench.serving import bench_serving
 from gmt.bench.store import bench_store
 from gmt.bench.training import bench_training
@@ -68,6 +69,13 @@ def run(
                 }
             else:
                 result["store"] = bench_store(checkpoint or _default(tmp), max(sessions), seconds)
+        if "records" in sections:
+            if shutil.which("wrk") is None or shutil.which("redis-server") is None:
+                result["records"] = {
+                    "skipped": "wrk and redis-server are needed (apt-get install wrk redis-server)"
+                }
+            else:
+                result["records"] = bench_records(checkpoint or _default(tmp), 64, seconds)
         if "cluster" in sections:
             result["cluster"] = bench_scaleout(checkpoint or _default(tmp), max(sessions), seconds)
         if "soak" in sections:

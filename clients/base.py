@@ -19,10 +19,12 @@ Every other answer (invalid argument, not found, ...) is final.
 from __future__ import annotations
 
 import abc
+import math
+import re
 import time
 import uuid
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import numpy as np
@@ -48,6 +50,8 @@ class SessionInfo:
         blend_from: Goal being faded out (equal to `goal` when no blend runs).
         context_goals: Goal token of each step in the context, oldest first.
         expires_in_s: Seconds left before the idle timeout ends the session.
+        recording: Whether the session records its episode.
+        effective_step: In the answer to a goal change: the step of the first act that uses the new goal.
     """
 
     session_id: str
@@ -62,6 +66,75 @@ class SessionInfo:
     expires_in_s: float = 0.0
     action_mode: str = ""
     context_goals: tuple[int, ...] = ()
+    recording: bool = False
+    effective_step: int | None = None
+
+
+@dataclass(frozen=True)
+class TimelineEntry:
+    """One goal a session had, from `step` (of `episode`) on; `given` is how it was asked for, `by` who asked
+    (create, reset, rest, grpc or stream), `at` the server's clock."""
+
+    step: int
+    episode: int
+    goal: int
+    given: dict
+    blend_steps: int
+    by: str
+    at: float
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """Every goal a session had (`GET /sessions/{id}/timeline`, gRPC `GetTimeline`)."""
+
+    session_id: str
+    model: str
+    fingerprint: str | None
+    step: int
+    episode: int
+    entries: int
+    goals: list[TimelineEntry] = field(default_factory=list)
+
+
+_INFO_KEY = re.compile(r"[A-Za-z0-9_.:/-]{1,64}")  # what the server accepts as an info key
+
+
+def report_info(info: Mapping[str, Any] | None, limit: int = 32) -> dict[str, float]:
+    """The part of an environment's `info` a server accepts with an act: finite scalar numbers (at most
+    `limit`) under keys of 1 to 64 letters, digits, '_', '.', ':', '/' or '-'; anything else is left out."""
+    out: dict[str, float] = {}
+    for k, v in (info or {}).items():
+        if len(out) >= limit:
+            break
+        if isinstance(v, bool) or not isinstance(k, str) or not _INFO_KEY.fullmatch(k):
+            continue
+        if isinstance(v, int | float | np.integer | np.floating) or (
+            isinstance(v, np.ndarray) and v.ndim == 0
+        ):
+            x = float(v)
+            if math.isfinite(x) and abs(x) <= 1e12:
+                out[k] = x
+    return out
+
+
+def report_fields(
+    reward: float | None = None,
+    terminated: bool | None = None,
+    truncated: bool | None = None,
+    info: Mapping[str, float] | None = None,
+) -> dict[str, Any]:
+    """The report on the previous action as the fields an act carries (those given only)."""
+    out: dict[str, Any] = {}
+    if reward is not None:
+        out["reward"] = float(reward)
+    if terminated is not None:
+        out["terminated"] = bool(terminated)
+    if truncated is not None:
+        out["truncated"] = bool(truncated)
+    if info:
+        out["info"] = {k: float(v) for k, v in info.items()}
+    return out
 
 
 @dataclass(frozen=True)
@@ -185,9 +258,15 @@ class Session:
         """The session id."""
         return self.info.session_id
 
-    def act(self, observation: Any) -> ActResult:
-        """Send one observation; get the action, the step and the goal it was chosen for."""
-        return self._client.act(self.id, observation)
+    def act(self, observation: Any, **report: Any) -> ActResult:
+        """Send one observation; get the action, the step and the goal it was chosen for.
+
+        Args:
+            observation: What the environment returned.
+            **report: The outcome of the previous action (`reward`, `terminated`, `truncated`, `info`), which a
+                recorded session keeps.
+        """
+        return self._client.act(self.id, observation, **report)
 
     def set_goal(
         self, goal: int | str | None = None, *, target: float | None = None, blend_steps: int = 0
@@ -200,6 +279,10 @@ class Session:
         """Start a new episode, keeping the goal unless one is given."""
         self.info = self._client.reset(self.id, goal, target=target)
         return self.info
+
+    def timeline(self) -> Timeline:
+        """Every goal the session had."""
+        return self._client.get_timeline(self.id)
 
     def refresh(self) -> SessionInfo:
         """Fetch the session's current state from the server."""
@@ -274,11 +357,13 @@ class PolicyClient(abc.ABC):
         seed: int | None = None,
         action_mode: str | None = None,
         session_id: str | None = None,
+        record: bool | None = None,
     ) -> Session:
         """Open a session on `model` (None: the server's only model) pursuing a goal (id, name or target).
 
         The client names the session (`session_id`, default a fresh random id), so that a create whose answer
-        was lost is retried safely: the server answers the session the first attempt created.
+        was lost is retried safely: the server answers the session the first attempt created. `record` asks the
+        server to record the episode (None: as its --record-share draws it).
         """
 
     @abc.abstractmethod
@@ -286,15 +371,31 @@ class PolicyClient(abc.ABC):
         """A session's current state."""
 
     @abc.abstractmethod
-    def act(self, session_id: str, observation: Any) -> ActResult:
-        """One step: observation in, action out."""
+    def act(
+        self,
+        session_id: str,
+        observation: Any,
+        *,
+        reward: float | None = None,
+        terminated: bool | None = None,
+        truncated: bool | None = None,
+        info: Mapping[str, float] | None = None,
+    ) -> ActResult:
+        """One step: observation in, action out; optionally the outcome of the previous action (reward,
+        terminated, truncated, info: `report_info` picks what a server accepts), which a recorded session
+        keeps."""
 
     @abc.abstractmethod
-    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
+    def get_timeline(self, session_id: str) -> Timeline:
+        """Every goal a session had."""
+
+    @abc.abstractmethod
+    def act_many(self, items: Sequence[tuple]) -> list[ActResult | ServiceError]:
         """One step for each of many sessions in one call (one forward pass on the server).
 
         Args:
-            items: (session id, observation) pairs; a session may appear once per call.
+            items: (session id, observation) pairs, or (session id, observation, report) with the report a dict
+                of `reward`, `terminated`, `truncated`, `info`; a session may appear once per call.
 
         Returns:
             One entry per item, in order: the `ActResult` that `act` would return, or, for an item that failed

@@ -17,7 +17,9 @@ from gmt.common.extras import MissingExtra
 
 # Options from the configuration they fill (`RunConfig`) and the clients' defaults; goal and schedule are parsed.
 RUN_FLAGS = dataclass_flags(
-    RunConfig, skip=("goal", "schedule", "transport"), names={"env_id": ("--env",), "live_port": ("--port",)}
+    RunConfig,
+    skip=("goal", "schedule", "random_schedule", "transport"),
+    names={"env_id": ("--env",), "live_port": ("--port",)},
 )
 
 
@@ -32,6 +34,11 @@ def run_command(
     schedule: str = typer.Option(
         "", help='Goal changes GOAL@STEP, comma-separated, e.g. "2@500,1@800" or "high@500".'
     ),
+    random_schedule: str = typer.Option(
+        "",
+        help="LO:HI: a random first goal, then another random goal every LO..HI steps (from the episode's seed), "
+        'e.g. "50:300"; instead of --goal and --schedule.',
+    ),
     timeout: float = typer.Option(DEFAULT_TIMEOUT_S, help="Seconds per request."),
     retries: int = typer.Option(
         DEFAULT_RETRIES,
@@ -45,7 +52,7 @@ def run_command(
     import gymnasium as gym
 
     from gmt.client.errors import ConnectionFailed, ServiceError
-    from gmt.client.runner import StatusLine, parse_goal, parse_schedule, run
+    from gmt.client.runner import StatusLine, parse_every, parse_goal, parse_schedule, run
     from gmt.common.envs import SpaceMismatch
 
     if flags["video"] and flags["out"] is None:
@@ -54,9 +61,15 @@ def run_command(
         sched = parse_schedule(schedule)
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="--schedule") from None
+    try:
+        every = parse_every(random_schedule)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--random-schedule") from None
     transport = f"grpc{' stream' if stream else ''} {grpc}" if grpc else f"rest {server}"
     try:
-        cfg = RunConfig(**flags, goal=parse_goal(goal), schedule=sched, transport=transport)
+        cfg = RunConfig(
+            **flags, goal=parse_goal(goal), schedule=sched, random_schedule=every, transport=transport
+        )
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
     if grpc:

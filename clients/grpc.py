@@ -6,7 +6,7 @@ import json
 import math
 import queue
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import grpc
@@ -20,10 +20,13 @@ from gmt.client.base import (
     PolicyClient,
     Session,
     SessionInfo,
+    Timeline,
+    TimelineEntry,
     as_observation,
     batch_routing_key,
     goal_selector,
     new_session_id,
+    report_fields,
     with_retries,
 )
 from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
@@ -134,6 +137,29 @@ def session_from_proto(s: pb.SessionInfo) -> SessionInfo:
         expires_in_s=s.expires_in_s,
         action_mode=s.action_mode,
         context_goals=tuple(s.context_goals),
+        recording=s.recording,
+        effective_step=s.effective_step if s.HasField("effective_step") else None,
+    )
+
+
+def timeline_from_proto(t: pb.Timeline) -> Timeline:
+    """A `Timeline` from the gRPC message (`given` as the REST body spells it)."""
+
+    def given(sel: pb.GoalSelector) -> dict:
+        kind = sel.WhichOneof("kind")
+        return {} if kind is None else {"target" if kind == "target" else "goal": getattr(sel, kind)}
+
+    return Timeline(
+        session_id=t.session_id,
+        model=t.model,
+        fingerprint=t.fingerprint or None,
+        step=t.step,
+        episode=t.episode,
+        entries=t.entries,
+        goals=[
+            TimelineEntry(e.step, e.episode, e.goal, given(e.given), e.blend_steps, e.by, e.at)
+            for e in t.goals
+        ],
     )
 
 
@@ -161,9 +187,11 @@ def goal_proto(goal: int | str | None, target: float | None) -> pb.GoalSelector 
     return pb.GoalSelector(**{kind: value})
 
 
-def act_request(session_id: str, observation: Any, step: int | None = None) -> pb.ActRequest:
+def act_request(
+    session_id: str, observation: Any, step: int | None = None, report: Mapping[str, Any] | None = None
+) -> pb.ActRequest:
     """Float observations as float32 values; other dtypes (images) as a raw little-endian tensor; `step` is the
-    step the act is for (None: not checked)."""
+    step the act is for (None: not checked); `report` the outcome of the previous action (`report_fields`)."""
     x = as_observation(observation)
     if x.dtype == np.float32:
         req = pb.ActRequest(session_id=session_id, values=pb.FloatVector(values=x.ravel()))
@@ -173,6 +201,11 @@ def act_request(session_id: str, observation: Any, step: int | None = None) -> p
         req = pb.ActRequest(session_id=session_id, tensor=tensor)
     if step is not None:
         req.step = step
+    for k, v in (report or {}).items():
+        if k == "info":
+            req.info.update(v)
+        else:
+            setattr(req, k, v)
     return req
 
 
@@ -271,6 +304,7 @@ class GrpcClient(PolicyClient):
         seed: int | None = None,
         action_mode: str | None = None,
         session_id: str | None = None,
+        record: bool | None = None,
     ) -> Session:
         req = pb.CreateSessionRequest(
             model=model or "",
@@ -280,6 +314,8 @@ class GrpcClient(PolicyClient):
         )
         if seed is not None:
             req.seed = seed
+        if record is not None:
+            req.record = record
         info = self._seen_session(session_from_proto(self._call("CreateSession", req, safe=True)))
         return StreamSession(self, info) if self.stream else Session(self, info)
 
@@ -289,9 +325,18 @@ class GrpcClient(PolicyClient):
             session_from_proto(self._call("GetSession", req, session_id=session_id, safe=True))
         )
 
-    def act(self, session_id: str, observation: Any) -> ActResult:
+    def act(
+        self,
+        session_id: str,
+        observation: Any,
+        *,
+        reward: float | None = None,
+        terminated: bool | None = None,
+        truncated: bool | None = None,
+        info: Mapping[str, float] | None = None,
+    ) -> ActResult:
         step = self.expected_step(session_id)
-        req = act_request(session_id, observation, step)
+        req = act_request(session_id, observation, step, report_fields(reward, terminated, truncated, info))
         try:
             result = act_from_proto(self._call("Act", req, session_id=session_id, safe=step is not None))
         except ServiceError as e:
@@ -300,24 +345,27 @@ class GrpcClient(PolicyClient):
         self._seen_act(session_id, result)
         return result
 
-    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
-        steps = [self.expected_step(sid) for sid, _ in items]
+    def act_many(self, items: Sequence[tuple]) -> list[ActResult | ServiceError]:
+        steps = [self.expected_step(sid) for sid, *_ in items]
         req = pb.ActBatchRequest(
-            requests=[act_request(sid, o, t) for (sid, o), t in zip(items, steps, strict=True)]
+            requests=[
+                act_request(sid, o, t, report_fields(**rep[0]) if rep and rep[0] else None)
+                for (sid, o, *rep), t in zip(items, steps, strict=True)
+            ]
         )
         try:
-            key = batch_routing_key([sid for sid, _ in items]) if items else None  # as `RestClient.act_many`
+            key = batch_routing_key([sid for sid, *_ in items]) if items else None  # as `RestClient.act_many`
             results = self._call(
                 "ActBatch", req, session_id=key, safe=all(t is not None for t in steps)
             ).results
         except ServiceError as e:
-            for sid, _ in items:
+            for sid, *_ in items:
                 self._seen_act(sid, e)
             raise
         if len(results) != len(items):
             raise ProtocolError(f"ActBatch answered {len(results)} results for {len(items)} requests")
         out = [act_batch_item_from_proto(r) for r in results]
-        for (sid, _), r in zip(items, out, strict=True):
+        for (sid, *_), r in zip(items, out, strict=True):
             self._seen_act(sid, r)
         return out
 
@@ -340,6 +388,10 @@ class GrpcClient(PolicyClient):
         req = pb.ResetSessionRequest(session_id=session_id, goal=goal_proto(goal, target))
         answer = self._call("ResetSession", req, session_id=session_id, safe=True)
         return self._seen_session(session_from_proto(answer))
+
+    def get_timeline(self, session_id: str) -> Timeline:
+        req = pb.GetTimelineRequest(session_id=session_id)
+        return timeline_from_proto(self._call("GetTimeline", req, session_id=session_id, safe=True))
 
     def close_session(self, session_id: str) -> None:
         self._forget(session_id)
@@ -466,10 +518,10 @@ class StreamSession(Session):
         super().__init__(client, info)
         self._stream = ControlStream(client, info.session_id)
 
-    def act(self, observation: Any) -> ActResult:
+    def act(self, observation: Any, **report: Any) -> ActResult:
         client = self._client
         step = client.expected_step(self.id)
-        request = pb.ControlRequest(act=act_request(self.id, observation, step))
+        request = pb.ControlRequest(act=act_request(self.id, observation, step, report_fields(**report)))
         try:
             r = self._stream.call(request, safe=step is not None)
         except ServiceError as e:

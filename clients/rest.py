@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import base64
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import httpx
@@ -17,10 +17,13 @@ from gmt.client.base import (
     PolicyClient,
     Session,
     SessionInfo,
+    Timeline,
+    TimelineEntry,
     as_observation,
     batch_routing_key,
     goal_selector,
     new_session_id,
+    report_fields,
     with_retries,
 )
 from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
@@ -82,6 +85,20 @@ def session_from_json(d: dict) -> SessionInfo:
     fields = {k: d[k] for k in SessionInfo.__dataclass_fields__ if d.get(k) is not None}
     fields["context_goals"] = tuple(fields.get("context_goals", ()))
     return SessionInfo(**fields)
+
+
+def timeline_from_json(d: dict) -> Timeline:
+    """A `Timeline` from a `GET /sessions/{id}/timeline` body."""
+    fields = TimelineEntry.__dataclass_fields__
+    return Timeline(
+        session_id=d["session_id"],
+        model=d["model"],
+        fingerprint=d.get("fingerprint"),
+        step=int(d["step"]),
+        episode=int(d.get("episode", 0)),
+        entries=int(d.get("entries", len(d["goals"]))),
+        goals=[TimelineEntry(**{k: e[k] for k in fields}) for e in d["goals"]],
+    )
 
 
 def act_from_json(d: dict) -> ActResult:
@@ -234,6 +251,7 @@ class RestClient(PolicyClient):
         seed: int | None = None,
         action_mode: str | None = None,
         session_id: str | None = None,
+        record: bool | None = None,
     ) -> Session:
         body: dict[str, Any] = _goal_body(goal, target)
         if model:
@@ -242,6 +260,8 @@ class RestClient(PolicyClient):
             body["seed"] = seed
         if action_mode:
             body["action_mode"] = action_mode
+        if record is not None:
+            body["record"] = record
         body["session_id"] = session_id or new_session_id()
         info = self._seen_session(session_from_json(self._request("POST", "/sessions", body, safe=True)))
         return Session(self, info)
@@ -251,8 +271,18 @@ class RestClient(PolicyClient):
             session_from_json(self._request("GET", f"/sessions/{session_id}", safe=True))
         )
 
-    def act(self, session_id: str, observation: Any) -> ActResult:
+    def act(
+        self,
+        session_id: str,
+        observation: Any,
+        *,
+        reward: float | None = None,
+        terminated: bool | None = None,
+        truncated: bool | None = None,
+        info: Mapping[str, float] | None = None,
+    ) -> ActResult:
         body: dict[str, Any] = {"observation": encode_observation(observation)}
+        body |= report_fields(reward, terminated, truncated, info)
         step = self.expected_step(session_id)
         if step is not None:
             body["step"] = step
@@ -266,28 +296,29 @@ class RestClient(PolicyClient):
         self._seen_act(session_id, result)
         return result
 
-    def act_many(self, items: Sequence[tuple[str, Any]]) -> list[ActResult | ServiceError]:
+    def act_many(self, items: Sequence[tuple]) -> list[ActResult | ServiceError]:
         requests = []
-        for sid, o in items:
+        for sid, o, *report in items:
             requests.append({"session_id": sid, "observation": encode_observation(o)})
+            requests[-1] |= report_fields(**report[0]) if report and report[0] else {}
             if (step := self.expected_step(sid)) is not None:
                 requests[-1]["step"] = step
         safe = all("step" in r for r in requests)
         try:
             # Routed as one session would be (the same key every tick for the same sessions): behind a proxy that
             # hashes on the session id, a game server's calls keep landing on the replica that holds its sessions.
-            key = {"X-Session-Id": batch_routing_key([sid for sid, _ in items])} if items else None
+            key = {"X-Session-Id": batch_routing_key([sid for sid, *_ in items])} if items else None
             results = self._request("POST", "/act", {"requests": requests}, safe=safe, headers=key).get(
                 "results"
             )
         except ServiceError as e:
-            for sid, _ in items:
+            for sid, *_ in items:
                 self._seen_act(sid, e)
             raise
         if not isinstance(results, list) or len(results) != len(items):
             raise ProtocolError(f"POST /act answered {results!r:.200} for {len(items)} requests")
         out = [act_item_from_json(d) for d in results]
-        for (sid, _), r in zip(items, out, strict=True):
+        for (sid, *_), r in zip(items, out, strict=True):
             self._seen_act(sid, r)
         return out
 
@@ -313,6 +344,18 @@ class RestClient(PolicyClient):
     ) -> SessionInfo:
         answer = self._request("POST", f"/sessions/{session_id}/reset", _goal_body(goal, target), safe=True)
         return self._seen_session(session_from_json(answer))
+
+    def get_timeline(self, session_id: str) -> Timeline:
+        return timeline_from_json(self._request("GET", f"/sessions/{session_id}/timeline", safe=True))
+
+    def get_recording(self, session_id: str):
+        """The session's recording so far, as a `gmt.common.recording.Recording` (fetched as npz)."""
+        from gmt.common.recording import Recording
+
+        r = self._http.get(f"/sessions/{session_id}/recording", params={"format": "npz"})
+        if not r.is_success:
+            raise self._error(r)
+        return Recording.from_npz(r.content)
 
     def close_session(self, session_id: str) -> None:
         self._forget(session_id)

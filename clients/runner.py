@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from gmt.client.base import ModelInfo, PolicyClient, Session
+import numpy as np
+
+from gmt.client.base import ModelInfo, PolicyClient, Session, report_info
 from gmt.client.trace import Trace
 from gmt.common.extras import require_module
 from gmt.common.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
@@ -56,6 +58,40 @@ def parse_schedule(text: str | None) -> list[tuple[int, int | str]]:
     return sorted(out.items())
 
 
+def parse_every(text: str | None) -> tuple[int, int] | None:
+    """Parse "LO:HI" (steps between random goal changes) into (LO, HI); None for an empty text.
+
+    Raises:
+        ValueError: not two integers with 1 <= LO <= HI.
+    """
+    if not text or not text.strip():
+        return None
+    lo, sep, hi = text.strip().partition(":")
+    if not sep or not lo.strip().isdigit() or not hi.strip().isdigit() or not 1 <= int(lo) <= int(hi):
+        raise ValueError(f"random schedule {text!r} is not LO:HI with 1 <= LO <= HI (e.g. 50:300)")
+    return int(lo), int(hi)
+
+
+def random_schedule(
+    n_goals: int, steps: int, every: tuple[int, int], seed: int
+) -> tuple[int, list[tuple[int, int]]]:
+    """A random goal and its changes for one episode: (first goal, [(step, goal), ...]).
+
+    The first goal is drawn uniformly; each next change comes after a uniform LO..HI steps and picks uniformly
+    among the other goals. A function of `seed`.
+    """
+    rng = np.random.default_rng([seed, 39])
+    goal = int(rng.integers(n_goals))
+    first, changes, t = goal, [], 0
+    while n_goals > 1:
+        t += int(rng.integers(every[0], every[1] + 1))
+        if t >= steps:
+            break
+        goal = int(rng.choice([g for g in range(n_goals) if g != goal]))
+        changes.append((t, goal))
+    return first, changes
+
+
 @dataclass
 class RunConfig:
     """What `run` does.
@@ -72,6 +108,11 @@ class RunConfig:
         video: Also record episode-<i>.mp4 into `out` (MuJoCo renders offscreen).
         strip_every: With `video`, also write episode-<i>-strip.png: every Nth frame side by side, captioned
             with its step and goal (0 = no strip).
+        record: Ask the server to record each episode (it needs --record-dir). A recorded session is sent the
+            outcome of each action (reward, terminated, truncated, the numeric info) with the next act, and after
+            the last action one more act carrying the final observation (its action is not applied).
+        random_schedule: (LO, HI): instead of `goal` and `schedule`, each episode starts with a random goal and
+            changes to another random goal every LO..HI steps (drawn from the episode's seed).
         transport: Description of how the server is reached, for the summary.
         live: Serve a local page (`gmt.client.live`) showing the frames as they render, the running statistic
             against the goal bands, and goal buttons that change the goal through the policy server.
@@ -89,6 +130,8 @@ class RunConfig:
     out: Path | None = None
     video: bool = False
     strip_every: int = 0
+    record: bool = False
+    random_schedule: tuple[int, int] | None = None
     transport: str = ""
     live: bool = False
     live_port: int = 8765
@@ -112,7 +155,10 @@ class EpisodeResult:
     files: list[Path] = field(default_factory=list)
 
     def summary(self, spec: ModelInfo, cfg: RunConfig, env_id: str) -> dict:
-        """JSON-ready description (without the trace)."""
+        """JSON-ready description (without the trace); a random schedule is given as the episode drew it."""
+        goal, schedule = cfg.goal, cfg.schedule
+        if cfg.random_schedule is not None:
+            goal, schedule = random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, self.seed)
         return {
             "model": spec.name,
             "env_id": env_id,
@@ -121,8 +167,8 @@ class EpisodeResult:
             "episode": self.episode,
             "seed": self.seed,
             "session_id": self.session_id,
-            "goal": cfg.goal,
-            "schedule": [[s, g] for s, g in cfg.schedule],
+            "goal": goal,
+            "schedule": [[s, g] for s, g in schedule],
             "steps": len(self.trace),
             "terminated": self.terminated,
             "goals": [g.__dict__ for g in spec.goals],
@@ -182,11 +228,19 @@ def run_episode(
     video: VideoWriter | None = None,
     live: LiveView | None = None,
 ) -> tuple[Trace, bool]:
-    """Step one episode; returns its trace and whether the environment terminated early."""
+    """Step one episode; returns its trace and whether the environment terminated early.
+
+    A recorded session gets the outcome of each action with the next act, and one more act with the final
+    observation (`RunConfig.record`).
+    """
     schedule = dict(cfg.schedule)
+    if cfg.random_schedule is not None:
+        schedule = dict(random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, seed)[1])
+    recorded = session.info.recording
     trace = Trace()
     obs, _ = env.reset(seed=seed)
-    terminated = False
+    terminated = truncated = False
+    report: dict = {}
     try:
         for t in range(cfg.steps):
             if t in schedule:
@@ -195,8 +249,15 @@ def run_episode(
                 live.apply_goals(session)  # the page's clicks
             if on_step is not None:
                 on_step(t, session)
-            res = session.act(obs)
+            res = session.act(obs, **report)
             obs, reward, terminated, truncated, info = env.step(res.action)
+            if recorded:
+                report = {
+                    "reward": float(reward),
+                    "terminated": bool(terminated),
+                    "truncated": bool(truncated) or t == cfg.steps - 1,
+                    "info": report_info(info),
+                }
             sig = signal_from_step(spec.statistic, reward, info)
             trace.append(t, res.step, res.goal, sig, reward, res.action)
             frame = env.render() if video is not None or (live is not None and live.wants_frame()) else None
@@ -213,6 +274,8 @@ def run_episode(
                 )
             if terminated or truncated:
                 break
+        if recorded and report:
+            session.act(obs, **report)  # the final observation and the last action's outcome
     finally:
         if status is not None:
             status.done()
@@ -222,6 +285,8 @@ def run_episode(
 def _check_goals(spec: ModelInfo, cfg: RunConfig) -> None:
     for g in [cfg.goal, *(g for _, g in cfg.schedule)]:
         spec.goal(g)  # KeyError naming the model's goals
+    if cfg.random_schedule is not None and cfg.schedule:
+        raise ValueError("give a schedule or a random schedule, not both")
     late = [s for s, _ in cfg.schedule if s >= cfg.steps]
     if late:
         raise ValueError(f"schedule steps {late} are past the episode length ({cfg.steps} steps)")
@@ -292,7 +357,11 @@ def run(
 
                 fps = env.metadata.get("render_fps") or 30
                 video = VideoWriter(cfg.out / f"episode-{ep}.mp4", fps=fps, strip_every=cfg.strip_every)
-            with client.create_session(spec.name, cfg.goal, seed=seed) as session:
+            goal = cfg.goal
+            if cfg.random_schedule is not None:
+                goal = random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, seed)[0]
+            record = True if cfg.record else None
+            with client.create_session(spec.name, goal, seed=seed, record=record) as session:
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
                 if live is not None:
                     live.episode(ep, session.id)

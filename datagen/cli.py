@@ -1,7 +1,8 @@
-"""`gmt data ...`: train behaviour agents, collect, describe and relabel offline datasets.
+"""`gmt data ...`: train behaviour agents, collect, describe and relabel offline datasets, import served sessions.
 
 Heavy imports (torch, gymnasium, sklearn, matplotlib) stay inside the commands so `gmt --help` is fast. `collect`,
-`describe` and `relabel` need the `data` extra, `behaviour` and `refine` the `train` extra; `statistics` nothing.
+`describe`, `relabel` and `import-sessions` need the `data` extra, `behaviour` and `refine` the `train` extra;
+`statistics` nothing.
 """
 
 from __future__ import annotations
@@ -483,12 +484,12 @@ def collect(
         )
 
 
-def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None):
+def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None, ds=None):
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import relabel
     from gmt.model.data.statistics import MissingInfoError, per_trajectory
 
-    ds = load_dataset(dataset, data_dir)
+    ds = ds or load_dataset(dataset, data_dir)
     try:
         values = per_trajectory(statistic, ds)
     except (MissingInfoError, KeyError) as e:
@@ -507,12 +508,41 @@ def describe(
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
     plot: Path = typer.Option(None, help="Save a histogram of the statistic coloured by goal here."),
 ) -> None:
-    """Print size, silhouette scores, chosen k and the goal table of a dataset."""
-    from gmt.model.data.relabel import separation
+    """Print size, goal switches, silhouette scores, chosen k and the goal table of a dataset."""
+    import numpy as np
 
-    ds, table = _relabel(dataset, statistic, k, seed, data_dir)
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.model.data.relabel import separation
+    from gmt.model.data.served import step_labels, switch_count
+
+    ds = load_dataset(dataset, data_dir)
     typer.echo(f"{ds.dataset_id} ({ds.env_id}): {len(ds.episodes)} episodes, {ds.n_transitions} transitions")
-    typer.echo(f"fingerprint {ds.fingerprint}\n")
+    typer.echo(f"fingerprint {ds.fingerprint}")
+    served = step_labels(ds)
+    if served is None:
+        typer.echo("goal switches: 0 (one goal per trajectory, from relabelling)\n")
+    else:
+        per_step, goals = served
+        n, eps = switch_count(per_step)
+        counts = np.bincount(np.concatenate(per_step), minlength=len(goals))
+        typer.echo(
+            f"goal switches: {n} in {eps} of {len(per_step)} episodes (per-step labels from served sessions' "
+            f"timelines, {ds.goal_labels.get('models')}); steps per goal: "
+            + ", ".join(f"{g['id']}={g['name']}: {c}" for g, c in zip(goals, counts, strict=False))
+            + "\n"
+        )
+    if served is not None:  # relabelling by the statistic is for comparison only: it may not apply
+        from gmt.model.data.relabel import relabel
+        from gmt.model.data.statistics import MissingInfoError, per_trajectory
+
+        try:
+            table = relabel(per_trajectory(statistic, ds), statistic=statistic, k=k, seed=seed)
+        except (MissingInfoError, ValueError) as e:
+            typer.echo(f"(no relabelling by {statistic}: {e})")
+            return
+        typer.echo(f"for comparison, relabelled per trajectory by {statistic}:")
+    else:
+        ds, table = _relabel(dataset, statistic, k, seed, data_dir, ds)
     typer.echo(table.format())
     seps = separation(table)
     if seps:
@@ -540,6 +570,41 @@ def relabel(
     table.save(out)
     typer.echo(table.format())
     typer.echo(f"\nwrote {out}")
+
+
+@app.command("import-sessions")
+@needs("data", "gmt data import-sessions")
+def import_sessions(
+    recordings: list[Path] = typer.Argument(
+        ..., help="Recordings (<session_id>.json / .npz from gmt serve --record-dir) or directories of them."
+    ),
+    out_id: str = typer.Option(..., help="The new dataset's id, e.g. gmt/halfcheetah/served-v0."),
+    include: str = typer.Option(
+        None,
+        help="Also take every episode of this dataset (e.g. the served model's training data), relabelled.",
+    ),
+    min_steps: int = typer.Option(1, min=1, help="Leave out recorded episodes with fewer transitions."),
+    overwrite: bool = typer.Option(False, help="Replace an existing dataset with this id."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Turn served sessions' recordings into a Minari dataset with per-step goal labels from their timelines."""
+    from gmt.common.recording import RecordingError
+    from gmt.model.data.served import import_sessions as run_import
+
+    try:
+        res = run_import(
+            recordings, out_id, data_dir, include=include, min_steps=min_steps, overwrite=overwrite
+        )
+    except (FileNotFoundError, FileExistsError, RecordingError, ValueError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    also = f"; {res.included} from {include}" if include else ""
+    typer.echo(
+        f"wrote {res.path}: {res.episodes} episodes ({res.episodes - res.included} recorded in {res.recordings} "
+        f"sessions, {res.switches} goal switches{also}), {res.transitions} transitions"
+    )
+    if res.skipped:
+        typer.echo(f"left out {len(res.skipped)} short episodes: {', '.join(res.skipped[:10])}")
 
 
 @app.command()

@@ -1,4 +1,5 @@
-"""`gmt train` and `gmt eval`: train a GMT on a Minari dataset, evaluate a checkpoint's goal switching."""
+"""`gmt train`, `gmt eval` and `gmt replay`: train a GMT on a Minari dataset, evaluate a checkpoint's goal switching,
+replay served sessions' recordings against a checkpoint."""
 
 from __future__ import annotations
 
@@ -35,10 +36,37 @@ def train_command(
     from gmt.model.checkpoint import Goal
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import GoalTable, relabel
+    from gmt.model.data.served import step_labels, switch_count
     from gmt.model.data.statistics import per_trajectory
     from gmt.model.train import train
 
     ds = load_dataset(dataset)
+    served = step_labels(ds) if labels is None else None
+    if (
+        served is not None
+    ):  # served sessions (`gmt data import-sessions`): per-step labels from their timelines
+        per_step, table = served
+        goals = [Goal(**g) for g in table]
+        n_switches, n_eps = switch_count(per_step)
+        typer.echo(
+            f"{len(ds.episodes)} episodes with per-step goal labels ({n_switches} goal switches in {n_eps} "
+            f"episodes), k = {len(goals)} goals: " + ", ".join(f"{g.name}={g.mean:.2f}" for g in goals)
+        )
+        stat = ds.goal_labels.get("statistic") or flags["statistic"]
+        tc = TrainConfig(**{**pick(flags, TRAIN_FLAGS), "statistic": stat, "k": len(goals)})
+        command = "gmt train " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+        ckpt = train(
+            ds,
+            per_step,
+            goals,
+            out,
+            tc,
+            pick(flags, MODEL_FLAGS),
+            resume=resume,
+            extra_meta={"goal_labels": ds.goal_labels, "command": command},
+        )
+        _trained(ckpt, out)
+        return
     if labels is not None:
         rel = GoalTable.load(labels)
         if len(rel.labels) != len(ds.episodes):
@@ -69,6 +97,10 @@ def train_command(
             "command": command,
         },
     )
+    _trained(ckpt, out)
+
+
+def _trained(ckpt, out: Path) -> None:
     if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
         return
     info = ckpt.meta["training"]
@@ -136,3 +168,57 @@ def eval_command(
     if plot:
         plot_eval(result, plot)
         typer.echo(f"plot: {plot}")
+
+
+@needs("eval", "gmt replay")
+def replay_command(
+    recordings: list[Path] = typer.Argument(
+        ...,
+        help="Recordings (<session_id>.json or .npz) or directories of them (e.g. gmt serve's --record-dir).",
+    ),
+    checkpoint: Path = typer.Option(..., help="The checkpoint to replay them against."),
+    plot: Path = typer.Option(None, help="Write a figure (PNG) of the per-step differences here."),
+    json_out: Path = typer.Option(None, "--json", help="Write the JSON result (per step and summary) here."),
+    action_mode: str = typer.Option(None, help="Override the recorded action mode."),
+    seed: int = typer.Option(None, help="Override each recording's sampler seed."),
+    window: int = typer.Option(25, min=1, help="Steps measured on each side of a goal change."),
+    threads: int = typer.Option(1, help="torch threads."),
+) -> None:
+    """Replay recorded sessions against a checkpoint: how far its actions are from the recorded ones.
+
+    Every recorded episode's observations and goal timeline are fed to the checkpoint in lockstep through the
+    engine; the difference is reported per step and around each goal change (0 against the recording's own
+    checkpoint with its seed and action mode).
+    """
+    import torch
+
+    from gmt.common.recording import RecordingError, find_recordings, read_recording
+    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.replay import ReplayError, plot_replay, replay
+    from gmt.service.records import fingerprint
+
+    torch.set_num_threads(threads)
+    try:
+        recs = [read_recording(p) for p in find_recordings(recordings)]
+    except (FileNotFoundError, RecordingError) as e:
+        raise typer.BadParameter(str(e), param_hint="RECORDING") from None
+    ckpt = load_checkpoint(checkpoint)
+    try:
+        result = replay(
+            recs,
+            ckpt,
+            action_mode=action_mode,
+            seed=seed,
+            window=window,
+            fingerprint=fingerprint(ckpt.model.state_dict(), ckpt.meta),
+        )
+    except (ReplayError, ValueError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(result.text())
+    if json_out:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(result.to_dict()) + "\n")
+        typer.echo(f"wrote {json_out}")
+    if plot:
+        typer.echo(f"plot: {plot_replay(result, plot)}")

@@ -180,7 +180,7 @@ class WindowSampler:
         self,
         states: list[np.ndarray],
         actions: list[np.ndarray],
-        goals: list[int],
+        goals: list[int | np.ndarray],
         K: int,
         rewards: list[np.ndarray] | None = None,
     ) -> None:
@@ -189,7 +189,7 @@ class WindowSampler:
         Args:
             states: per episode [T, *obs_shape] normalised states.
             actions: per episode [T, A] encoded actions (or [T] ids).
-            goals: per episode goal label.
+            goals: per episode its goal label, or [T] labels per step (served sessions with goal switches).
             K: Window length.
             rewards: per episode [T] rewards; windows then carry returns-to-go (the sum of the rewards from
                 each step to the episode's end).
@@ -198,7 +198,13 @@ class WindowSampler:
         self.K = K
         self.states = torch.from_numpy(np.concatenate(states))  # [N, *obs_shape]
         self.actions = torch.from_numpy(np.concatenate(actions))  # [N, A] or [N]
-        self.goals = torch.from_numpy(np.repeat(np.asarray(goals, dtype=np.int64), lengths))  # [N]
+        per_step = [
+            np.full(n, g, dtype=np.int64) if np.ndim(g) == 0 else np.asarray(g, dtype=np.int64)
+            for g, n in zip(goals, lengths, strict=True)
+        ]
+        if any(len(g) != n for g, n in zip(per_step, lengths, strict=True)):
+            raise ValueError("per-step goal labels must have one label per step of their episode")
+        self.goals = torch.from_numpy(np.concatenate(per_step) if per_step else np.zeros(0, np.int64))  # [N]
         starts = np.repeat(np.cumsum(lengths) - lengths, lengths)  # [N] start index of each row's episode
         self.start = torch.from_numpy(starts)
         self.timesteps = torch.from_numpy(np.arange(len(starts)) - starts)  # [N]

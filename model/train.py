@@ -47,7 +47,7 @@ def model_config_for(dataset, n_goals: int, **overrides) -> GMTConfig:
 
 
 def build_sampler(
-    dataset, labels: list[int], cfg: GMTConfig, sequence_steps: int | None = None
+    dataset, labels: list[int | np.ndarray], cfg: GMTConfig, sequence_steps: int | None = None
 ) -> tuple[WindowSampler, ObsNormalizer, ActionCodec]:
     """Normalise a dataset's episodes and wrap them in a sampler of `sequence_steps`-step sequences (default K)."""
     import gymnasium as gym
@@ -118,7 +118,7 @@ def _load_resume(d: Path, model: GMT, opt: torch.optim.Optimizer, gen: torch.Gen
 
 def train(
     dataset,
-    labels: list[int],
+    labels: list[int | np.ndarray],
     goals: list[Goal],
     out_dir: str | Path,
     tc: TrainConfig,
@@ -132,7 +132,7 @@ def train(
 
     Args:
         dataset: An `OfflineDataset` (`gmt.model.data.minari_io`).
-        labels: Goal label per episode.
+        labels: Goal label per episode, or per step ([T] per episode: served sessions that switched goals).
         goals: Goal table.
         out_dir: Checkpoint directory (created); `_resume/` inside holds the resumable state.
         tc: Training configuration.
@@ -162,6 +162,10 @@ def train(
     if tc.default_action_mode is not None and tc.default_action_mode not in modes:
         raise ValueError(
             f"default_action_mode {tc.default_action_mode!r} is not one of {modes} for this model"
+        )
+    if cfg.conditioning == "return" and any(np.ndim(x) for x in labels):
+        raise ValueError(
+            "a Decision Transformer is conditioned on returns: it takes one goal label per episode"
         )
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
     model = GMT(cfg).to(par.device)

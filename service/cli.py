@@ -86,6 +86,11 @@ COMMANDS = (
         "Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.",
     ),
     Entry(
+        "replay",
+        "gmt.model.cli:replay_command",
+        "Replay recorded sessions against a checkpoint: how far its actions are from the recorded ones.",
+    ),
+    Entry(
         "serve",
         "gmt.service.serve_cli:serve_command",
         "Serve every checkpoint under checkpoints/ over REST (OpenAPI at /docs) and gRPC.",

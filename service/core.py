@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import re
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gmt.common.recording import Recording
 from gmt.model.checkpoint import VERSION_PATTERN, CheckpointError, Goal
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
@@ -24,6 +26,7 @@ from gmt.service.batcher import MicroBatcher
 from gmt.service.console.activity import SessionRow
 from gmt.service.console.events import EventHub
 from gmt.service.errors import (
+    Aborted,
     AlreadyExists,
     FailedPrecondition,
     InvalidArgument,
@@ -34,6 +37,7 @@ from gmt.service.errors import (
 )
 from gmt.service.metrics import Metrics
 from gmt.service.observations import MAX_ABS_VALUE, to_array
+from gmt.service.records import BY, Layout, Report, assemble, decode_timeline, fingerprint, record_drawn
 from gmt.service.registry import (
     DRAINING,
     LoadedModel,
@@ -154,6 +158,8 @@ class SessionView:
         blend_from: The goal being faded out (equal to `goal` when no blend runs).
         context_goals: Goal token of each step in the context, oldest first.
         expires_in_s: Seconds left before the idle timeout ends the session.
+        recording: Whether the session records its episode.
+        effective_step: For a goal change, the step of the first act that uses the new goal (else None).
     """
 
     session_id: str
@@ -169,6 +175,28 @@ class SessionView:
     idle_timeout_s: float
     expires_in_s: float
     context_goals: list[int]
+    recording: bool = False
+    effective_step: int | None = None
+
+
+@dataclass(frozen=True)
+class TimelineView:
+    """Every goal a session had (`gmt.service.records`).
+
+    Attributes:
+        step: The session's step now (the step of its next act).
+        episode: The session's episode now.
+        goals: The timeline entries in order: step, episode, goal, given, blend_steps, by, at.
+        entries: How many entries there were (more than `goals` once the timeline was full).
+    """
+
+    session_id: str
+    model: str
+    fingerprint: str | None
+    step: int
+    episode: int
+    goals: list[dict]
+    entries: int
 
 
 @dataclass(frozen=True)
@@ -216,6 +244,8 @@ class Core:
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
         self._sweeper: asyncio.Task | None = None
         self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
+        self._fingerprints: dict[str, str] = {}
+        self._archives: set[asyncio.Task] = set()  # recordings being written (expired sessions)
 
     # ----- lifecycle ----------------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -244,6 +274,7 @@ class Core:
             else:
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
         self.store.on_remove = self._dropped
+        self.store.on_expire = self._expiring
         # The naive server is the reference: one request at a time, computed on the event loop.
         self._executor = (
             None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
@@ -267,6 +298,14 @@ class Core:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         for b in self._batchers.values():
             await b.close()
+        if isinstance(self.store, MemorySessionStore) and self.settings.record_dir is not None:
+            for s in self.store.live():  # sessions in memory end with the process: keep their recordings
+                if s.ledger.recording:
+                    self._archive_soon(
+                        s, list(s.ledger.timeline or ()), list(s.ledger.records or ()), "shutdown"
+                    )
+        if self._archives:
+            await asyncio.gather(*self._archives, return_exceptions=True)
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
         if self.store is not None:
@@ -664,6 +703,7 @@ class Core:
             idle_timeout_s=self.settings.idle_timeout_s,
             expires_in_s=max(self.settings.idle_timeout_s - (self.clock() - s.last_used), 0.0),
             context_goals=[] if ctx.goals is None else [int(g) for g in ctx.goals],
+            recording=s.ledger.recording,
         )
 
     async def create_session(
@@ -675,6 +715,7 @@ class Core:
         action_mode: str | None = None,
         session_id: str | None = None,
         version: str | None = None,
+        record: bool | None = None,
     ) -> SessionView:
         """A new session on `model` (optional when one model is loaded) pursuing the given goal; it runs one
         version of the model for its whole life.
@@ -684,12 +725,14 @@ class Core:
                 session ids (a hash of the id and the canary version: a retried create gets the same version).
             session_id: The client's own id for the session (else the server draws one). Creating is then
                 idempotent: a retry with the same id and parameters answers the session the first call created.
+            record: Record the session's episode (True), never (False), or as `--record-share` draws it (None).
 
         Raises:
             InvalidArgument: bad goal, target, seed, action mode, session id or version.
             NotFound: unknown model or version.
             FailedPrecondition: the named version is draining.
             AlreadyExists: `session_id` names a live session created with other parameters.
+            FailedPrecondition: `record` asked of a server without a recordings directory.
             ResourceExhausted: the maximum number of live sessions is reached.
         """
         self._check_serving()
@@ -704,13 +747,46 @@ class Core:
             raise InvalidArgument(str(e)) from None
         if seed is not None and (isinstance(seed, bool) or not 0 <= seed < 2**63):
             raise InvalidArgument(f"seed must be an integer in [0, 2**63), got {seed!r}")
+        if record is not None and not isinstance(record, bool):
+            raise InvalidArgument(f"record must be true or false, got {record!r:.40}")
+        records = self._records(sid, record)
         request = f"{m.name}|{g}|{seed}|{mode}"  # what a retry must repeat to be answered the same session
         if version:
             request += f"|{version}"
-        return await run_whole(self._create(m, sid, g, mode, seed, request, session_id is not None))
+        if records:
+            request += "|record"
+        given = {"goal": goal} if target is None else {"target": target}
+        return await run_whole(
+            self._create(m, sid, g, mode, seed, request, session_id is not None, records, given)
+        )
+
+    def _records(self, sid: str, record: bool | None) -> bool:
+        """Whether a new session records: asked, or drawn by `--record-share`.
+
+        Raises:
+            FailedPrecondition: asked, and the server has no recordings directory.
+        """
+        s = self.settings
+        if record is None:
+            return s.record_dir is not None and record_drawn(sid, s.record_share)
+        if record and s.record_dir is None:
+            raise FailedPrecondition(
+                "this server keeps no recordings: start gmt serve with --record-dir DIR (GMT_RECORD_DIR) to "
+                "create sessions with record"
+            )
+        return record
 
     async def _create(
-        self, m: LoadedModel, sid: str, g: int, mode: str, seed: int | None, request: str, named: bool
+        self,
+        m: LoadedModel,
+        sid: str,
+        g: int,
+        mode: str,
+        seed: int | None,
+        request: str,
+        named: bool,
+        records: bool,
+        given: dict,
     ) -> SessionView:
         async with self._lock(sid):
             if named:  # perhaps a retried create: answer the session the first attempt made
@@ -721,6 +797,13 @@ class Core:
             now = self.clock()
             ctx = m.engine.new_context(g, mode, seed, key=sid)
             s = Session(sid, m.name, ctx, now, now, request, m.version, m.fingerprint)
+            if records:
+                cfg = m.checkpoint.config
+                s.ledger.layout = Layout.of_model(
+                    cfg.obs_shape, cfg.is_image, cfg.discrete_actions, cfg.act_dim
+                )
+                s.ledger.max_steps = self.settings.record_max_steps
+            s.ledger.note_goal(0, g, given, 0, "create", now)
             point_of_no_return()
             try:
                 await self.store.create(s)
@@ -804,7 +887,9 @@ class Core:
         except InvalidObservation as e:
             raise InvalidArgument(str(e)) from None
 
-    async def act(self, sid: str, observation: object, step: int | None = None) -> ActResult:
+    async def act(
+        self, sid: str, observation: object, step: int | None = None, report: Report | None = None
+    ) -> ActResult:
         """Append the observation to the session's context and answer the action (batched with others).
 
         The act is one unit with its stored answer: a caller that gives up (deadline, cancel) does not stop it,
@@ -816,22 +901,25 @@ class Core:
             step: The step the client expects to act at (the index the answer reports; None = don't check).
                 A repeat of the last answered step with the same observation returns that answer again without
                 stepping (a safe retry).
+            report: The client's report on the outcome of the previous action (`records.check_report`), kept
+                by a recorded session with this step.
 
         Raises:
             InvalidArgument: bad observation (the session is unchanged).
             FailedPrecondition: `step` is neither the session's next step nor a repeat of its last one, or it
-                repeats the last step with another observation.
+                repeats the last step with another observation, or a report comes with the first act of an
+                episode (it has no previous action).
             NotFound / SessionExpired: no such session.
             Aborted: another replica changed the session meanwhile (retry).
         """
         self._check_serving()
         check_session_id(sid)
-        return await run_whole(self._act(sid, observation, step))
+        return await run_whole(self._act(sid, observation, step, report))
 
-    async def _act(self, sid: str, observation: object, step: int | None) -> ActResult:
+    async def _act(self, sid: str, observation: object, step: int | None, report: Report | None) -> ActResult:
         t0 = time.perf_counter()
         async with self._lock(sid):
-            s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
+            s, m, ctx, x, repeat = await self._prepare(sid, observation, step, report)
             if repeat is not None:
                 return repeat
             step, goal, version = ctx.step, ctx.goal, ctx.version
@@ -840,6 +928,7 @@ class Core:
             except StepFailed as e:
                 raise InvalidArgument(str(e)) from None
             s.last_used = self.clock()
+            self._note_step(m, s, ctx, step, observation, action, report)
             await self._save(m, s, version)
             result = self._result(m, sid, action, step, goal)
             self._acted(s, result, t0)
@@ -854,13 +943,32 @@ class Core:
             data = {"step": r.step, "goal": r.goal, "action": action, "latency_ms": latency * 1000.0}
             self.events.publish(s.id, "act", data)
 
-    async def _prepare(self, sid: str, observation: object, step: int | None):
+    async def _prepare(self, sid: str, observation: object, step: int | None, report: Report | None = None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
         s = await self.store.get(sid)
         m = await self._model_of(s)
         x = self.validate_observation(m, observation)
         ctx = self._live(m, s)
-        return s, m, ctx, x, self._repeat(m, sid, ctx, step, x)
+        repeat = self._repeat(m, sid, ctx, step, x)
+        if repeat is None and report is not None and ctx.step == 0:
+            raise FailedPrecondition(
+                "reward, terminated, truncated and info report the outcome of the previous action; the first act "
+                "of an episode (step 0) has none: send them with the next act"
+            )
+        return s, m, ctx, x, repeat
+
+    def _note_step(
+        self, m: LoadedModel, s: Session, ctx: Context, t: int, observation, action, report: Report | None
+    ) -> None:
+        """Record answered step `t` when the session records (and its recording has room)."""
+        lg = s.ledger
+        if lg.layout is None or lg.recorded >= lg.max_steps:
+            return
+        raw = to_array(observation).reshape(lg.layout.obs_shape)
+        token, goal, w, _, _ = ctx.held(t)
+        lg.note_step(t, token, goal, w, s.last_used, raw, action, report)
+        if lg.recorded == lg.max_steps:
+            log.info("recording stopped", extra={"session": short_id(s.id), "steps": lg.recorded})
 
     def _repeat(
         self, m: LoadedModel, sid: str, ctx: Context, step: int | None, x: np.ndarray
@@ -892,7 +1000,7 @@ class Core:
         )
 
     async def act_many(self, items: list[tuple]) -> list[ActResult | ServiceError]:
-        """One step for each (session id, observation[, expected step]), all in one forward pass.
+        """One step for each (session id, observation[, expected step[, report]]), all in one forward pass.
 
         A bad item fails alone. A session may appear once per call; a repeat fails as invalid_argument (also
         when its first item failed). An expected step works as in `act`. An observation that is a ServiceError
@@ -930,19 +1038,19 @@ class Core:
                 order.append(i)
         order.sort(key=lambda i: items[i][0])  # locks in one global order: two calls never deadlock
         async with contextlib.AsyncExitStack() as stack:
-            ready: list[tuple[int, Session, LoadedModel, Context, np.ndarray]] = []
+            ready: list[tuple[int, Session, LoadedModel, Context, np.ndarray, object, Report | None]] = []
             for i in order:
-                sid, observation, step = (*items[i], None)[:3]
+                sid, observation, step, report = (*items[i], None, None)[:4]
                 if isinstance(observation, ServiceError):
                     out[i] = observation
                     continue
                 await stack.enter_async_context(self._lock(sid))
                 try:
-                    s, m, ctx, x, repeat = await self._prepare(sid, observation, step)
+                    s, m, ctx, x, repeat = await self._prepare(sid, observation, step, report)
                     if repeat is not None:
                         out[i] = repeat
                         continue
-                    ready.append((i, s, m, ctx, x))
+                    ready.append((i, s, m, ctx, x, observation, report))
                 except ServiceError as e:
                     out[i] = e
             by_model: dict[str, list] = {}
@@ -953,13 +1061,16 @@ class Core:
                 actions = await self._batcher(rows[0][2]).act_many([r[3] for r in rows], [r[4] for r in rows])
                 now = self.clock()
                 stepped = []
-                for (i, s, m, _, _), (step, goal, version), a in zip(rows, steps, actions, strict=True):
+                for (i, s, m, ctx, _, obs, report), (step, goal, version), a in zip(
+                    rows, steps, actions, strict=True
+                ):
                     if isinstance(a, StepFailed):
                         out[i] = InvalidArgument(str(a))
                         continue
                     if isinstance(a, BaseException):
                         raise a
                     s.last_used = now
+                    self._note_step(m, s, ctx, step, obs, a, report)
                     stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal)))
                 # Every write at once: a shared store sends them in one round trip (group commit).
                 point_of_no_return()
@@ -988,9 +1099,21 @@ class Core:
         return ActResult(sid, np.asarray(action, dtype=np.float32).tolist(), None, step, goal)
 
     async def set_goal(
-        self, sid: str, goal: GoalRef = None, target: float | None = None, blend_steps: int = 0
+        self,
+        sid: str,
+        goal: GoalRef = None,
+        target: float | None = None,
+        blend_steps: int = 0,
+        by: str = "rest",
     ) -> SessionView:
         """Condition the session's next steps on a new goal, optionally fading it in over `blend_steps` steps.
+
+        The change joins the session's timeline; the answer's `effective_step` is the step of the first act that
+        uses it. A change that repeats the timeline's last entry (same step, goal as given, blend) is a retry: it
+        changes nothing and is answered the same.
+
+        Args:
+            by: Who asks (`records.BY`: rest, grpc or stream), as the timeline lists it.
 
         Raises:
             InvalidArgument: bad goal, target or blend_steps.
@@ -1002,22 +1125,29 @@ class Core:
             check_blend_steps(blend_steps)
         except ValueError as e:
             raise InvalidArgument(str(e)) from None
-        return await run_whole(self._set_goal(sid, goal, target, blend_steps))
+        if by not in BY:
+            raise ValueError(f"by must be one of {BY}, got {by!r}")
+        return await run_whole(self._set_goal(sid, goal, target, blend_steps, by))
 
-    async def _set_goal(self, sid: str, goal: GoalRef, target: float | None, blend_steps: int) -> SessionView:
+    async def _set_goal(
+        self, sid: str, goal: GoalRef, target: float | None, blend_steps: int, by: str
+    ) -> SessionView:
         async with self._lock(sid):
             s = await self.store.get(sid)
             m = await self._model_of(s)
             g = self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
+            step, now = ctx.step, self.clock()
+            given = {"goal": goal} if target is None else {"target": target}
+            if not s.ledger.note_goal(step, g, given, blend_steps, by, now):
+                return dataclasses.replace(self._view_session(s), effective_step=step)  # a retry: as it was
             version = ctx.version
             m.engine.set_goal(ctx, g, blend_steps)
-            s.last_used = self.clock()
+            s.last_used = now
             await self._save(m, s, version)
             log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})
-            view = self._view_session(s)
+            view = dataclasses.replace(self._view_session(s), effective_step=step)
             if sid in self.events:
-                given = {"goal": goal} if target is None else {"target": target}
                 data = {"goal": g, "goal_name": view.goal_name, "step": view.step, "given": given}
                 self.events.publish(sid, "goal", {**data, "blend_steps": blend_steps})
             return view
@@ -1039,9 +1169,22 @@ class Core:
             m = await self._model_of(s)
             g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
+            lg, now = s.ledger, self.clock()
+            last = lg.last
+            if (
+                ctx.step == 0
+                and last is not None
+                and last["episode"] == lg.episode
+                and last["by"] in ("create", "reset")
+                and (g is None or g == ctx.goal)
+            ):
+                return self._view_session(s)  # an episode not begun: a reset (or its retry) changes nothing
             version = ctx.version
             m.engine.reset(ctx, g)
-            s.last_used = self.clock()
+            lg.episode += 1
+            given = {} if g is None else {"goal": goal} if target is None else {"target": target}
+            lg.note_goal(0, int(ctx.goal), given, 0, "reset", now)
+            s.last_used = now
             await self._save(m, s, version)
             view = self._view_session(s)
             if sid in self.events:
@@ -1056,7 +1199,138 @@ class Core:
     async def _close(self, sid: str) -> None:
         async with self._lock(sid):
             point_of_no_return()
-            await self.store.delete(sid)
+            s = await self.store.get(sid, hold=False)
+            if not s.ledger.recording:
+                await self.store.delete(sid)
+            else:
+                await self._close_recorded(sid)
             self.events.end(sid, "closed", {"session_id": sid})
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session closed", extra={"session": short_id(sid)})
+
+    async def _close_recorded(self, sid: str, attempts: int = 3) -> None:
+        """Write a recorded session's recording, then remove the session if nothing changed it meanwhile (another
+        replica acting in between is written again: never a step lost, never one twice in the file).
+
+        Raises:
+            Aborted: it kept changing for `attempts` snapshots (retry the close).
+        """
+        for _ in range(attempts):
+            s, timeline, records = await self.store.entries(sid, records=True)
+            if self.settings.record_dir is None:
+                log.warning(
+                    "recorded session closed on a server without --record-dir: its recording is dropped",
+                    extra={"session": short_id(sid), "steps": len(records)},
+                )
+            else:
+                await self._archive(s, timeline, records, "close")
+            try:
+                await self.store.delete(sid, read=s)
+                return
+            except Aborted:
+                continue
+        raise Aborted(f"session {sid!r} kept changing while it was being closed; retry the close")
+
+    # ----- records ------------------------------------------------------------------------------------------
+    def fingerprint(self, model: str) -> str | None:
+        """sha256 hex of a served model's weights and gmt.json (None for a model this server lacks)."""
+        fp = self._fingerprints.get(model)
+        m = self.registry.models.get(model) if self.registry else None
+        if fp is None and m is not None:
+            fp = self._fingerprints[model] = fingerprint(m.checkpoint.model.state_dict(), m.checkpoint.meta)
+        return fp
+
+    def _describe(self, s: Session, ended_by: str | None) -> dict:
+        """A recording's metadata (`gmt.common.recording`) for session `s`."""
+        m = self.registry.models.get(s.model) if self.registry else None
+        c = m.checkpoint if m is not None else None
+        return {
+            "session_id": s.id,
+            "model": s.model,
+            "fingerprint": self.fingerprint(s.model),
+            "env_id": c.env_id if c else None,
+            "observation_space": c.observation_space if c else None,
+            "action_space": c.action_space if c else None,
+            "statistic": c.statistic if c else None,
+            "goals": [dataclasses.asdict(g) for g in c.goals] if c else None,
+            "action_mode": s.ctx.action_mode,
+            "seed": int(s.ctx.seed),
+            "created_at": s.created_at,
+            "ended_at": None if ended_by is None else self.clock(),
+            "ended_by": ended_by,
+            "max_steps": s.ledger.max_steps,
+            "stopped": s.ledger.stopped,
+        }
+
+    def _assemble(
+        self, s: Session, timeline: list[bytes], records: list[bytes], ended_by: str | None
+    ) -> Recording:
+        return assemble(self._describe(s, ended_by), s.ledger.layout, timeline, records)
+
+    async def _archive(self, s: Session, timeline: list[bytes], records: list[bytes], ended_by: str) -> None:
+        """Write the recording of `s` into the recordings directory (assembled and written in a thread)."""
+        meta = self._describe(s, ended_by)
+        directory = self.settings.record_dir
+
+        def write() -> Path:
+            return assemble(meta, s.ledger.layout, timeline, records).write(directory)
+
+        path = await asyncio.to_thread(write)
+        log.info(
+            "recording written",
+            extra={"session": short_id(s.id), "steps": len(records), "path": str(path), "ended_by": ended_by},
+        )
+
+    def _archive_soon(
+        self, s: Session, timeline: list[bytes], records: list[bytes], ended_by: str
+    ) -> asyncio.Task:
+        task = asyncio.get_running_loop().create_task(self._archive(s, timeline, records, ended_by))
+        self._archives.add(task)
+        task.add_done_callback(self._archived)
+        return task
+
+    def _archived(self, task: asyncio.Task) -> None:
+        self._archives.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("a recording could not be written", exc_info=task.exception())
+
+    def _expiring(self, s: Session, timeline: list[bytes], records: list[bytes]) -> asyncio.Task | None:
+        """The store's `on_expire`: write the recording of a recorded session that expires."""
+        if self.settings.record_dir is None:
+            log.warning(
+                "recorded session expired on a server without --record-dir: its recording is dropped",
+                extra={"session": short_id(s.id), "steps": len(records)},
+            )
+            return None
+        return self._archive_soon(s, timeline, records, "expiry")
+
+    async def timeline(self, sid: str) -> TimelineView:
+        """Every goal the session had. Raises NotFound / SessionExpired."""
+        check_session_id(sid)
+        async with self._lock(sid):
+            s, timeline, _ = await self.store.entries(sid, records=False)
+        return TimelineView(
+            session_id=s.id,
+            model=s.model,
+            fingerprint=self.fingerprint(s.model),
+            step=int(s.ctx.step),
+            episode=s.ledger.episode,
+            goals=decode_timeline(timeline),
+            entries=s.ledger.entries,
+        )
+
+    async def recording(self, sid: str) -> Recording:
+        """The session's recording so far (it stays live).
+
+        Raises:
+            NotFound: no such session, or it does not record.
+        """
+        check_session_id(sid)
+        async with self._lock(sid):
+            s, timeline, records = await self.store.entries(sid, records=True)
+        if not s.ledger.recording:
+            raise NotFound(
+                f"session {sid!r} has no recording: it was created without record (POST /sessions with "
+                '"record": true, on a server with --record-dir)'
+            )
+        return await asyncio.to_thread(self._assemble, s, timeline, records, None)

@@ -49,39 +49,67 @@ from gmt.service.settings import Settings
 
 TOMBSTONE_TTL_S = 86_400
 
-# KEYS: live, session hash. ARGV: now, max sessions, id, key TTL ms, then field/value pairs.
-# Returns -1 when created, -2 when a live session has the id, else the live count that made the store full.
+# KEYS: live, session hash, its timeline list, its recording list. ARGV: now, max sessions, id, key TTL ms, the
+# number c of timeline entries, the c entries, then field/value pairs. Returns -1 when created, -2 when a live
+# session has the id, else the live count that made the store full.
 _CREATE = """
 if redis.call('ZSCORE', KEYS[1], ARGV[3]) and redis.call('EXISTS', KEYS[2]) == 1 then return -2 end
 local n = redis.call('ZCARD', KEYS[1])
 if n >= tonumber(ARGV[2]) then return n end
 redis.call('ZADD', KEYS[1], ARGV[1], ARGV[3])
-redis.call('DEL', KEYS[2])
-redis.call('HSET', KEYS[2], unpack(ARGV, 5))
+redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
+local c = tonumber(ARGV[5])
+redis.call('HSET', KEYS[2], unpack(ARGV, 6 + c))
 redis.call('PEXPIRE', KEYS[2], ARGV[4])
+if c > 0 then
+  redis.call('RPUSH', KEYS[3], unpack(ARGV, 6, 5 + c))
+  redis.call('PEXPIRE', KEYS[3], ARGV[4])
+end
 return -1
 """
 
 # Many sessions' changes in one call (one per session on Redis Cluster, where one call may touch one slot only).
-# KEYS: session hashes. ARGV: key TTL ms, then per key: the expected `ver` ('' = any), the number of fields, the
-# field/value pairs. Returns per key 0 when written, -1 when the session is gone (never revived), -2 when another
-# writer came first.
+# KEYS: per session its hash, then the lists its change appends to (its timeline, its recording: 0 to 2 keys, all
+# in the session's slot). ARGV: key TTL ms, then per session: the expected `ver` ('' = any), the number n of
+# fields, the number m of lists, the n field/value pairs, then per list the number c of values and the c values.
+# The fields are written and the values appended only if the compare-and-set passes. Returns per session 0 when
+# written, -1 when the session is gone (never revived), -2 when another writer came first.
 _SAVE = """
-local ttl, a, out = ARGV[1], 2, {}
-for i = 1, #KEYS do
-  local expect, n = ARGV[a], tonumber(ARGV[a + 1])
-  a = a + 2
-  local cur = redis.call('HGET', KEYS[i], 'ver')
-  if not cur then out[i] = -1
-  elseif expect ~= '' and cur ~= expect then out[i] = -2
-  else
-    redis.call('HSET', KEYS[i], unpack(ARGV, a, a + 2 * n - 1))
-    redis.call('PEXPIRE', KEYS[i], ttl)
-    out[i] = 0
+local ttl, a, k, out = ARGV[1], 2, 1, {}
+while k <= #KEYS do
+  local key, expect, n, m = KEYS[k], ARGV[a], tonumber(ARGV[a + 1]), tonumber(ARGV[a + 2])
+  a = a + 3
+  local cur = redis.call('HGET', key, 'ver')
+  local ok = cur and (expect == '' or cur == expect)
+  if ok then
+    redis.call('HSET', key, unpack(ARGV, a, a + 2 * n - 1))
+    redis.call('PEXPIRE', key, ttl)
   end
   a = a + 2 * n
+  for j = 1, m do
+    local c = tonumber(ARGV[a])
+    if ok then
+      redis.call('RPUSH', KEYS[k + j], unpack(ARGV, a + 1, a + c))
+      redis.call('PEXPIRE', KEYS[k + j], ttl)
+    end
+    a = a + 1 + c
+  end
+  if not cur then out[#out + 1] = -1 elseif not ok then out[#out + 1] = -2 else out[#out + 1] = 0 end
+  k = k + 1 + m
 end
 return out
+"""
+
+# KEYS: live, session hash, timeline, recording, tombstone. ARGV: the expected `ver`, id, tombstone TTL s.
+# Removes the session (and marks it closed) only if it has not changed; returns 0, -1 (gone) or -2 (changed).
+_CLOSE = """
+local cur = redis.call('HGET', KEYS[2], 'ver')
+if not cur then return -1 end
+if cur ~= ARGV[1] then return -2 end
+redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
+redis.call('ZREM', KEYS[1], ARGV[2])
+redis.call('SET', KEYS[5], 'closed', 'EX', ARGV[3])
+return 0
 """
 
 
@@ -159,6 +187,16 @@ class RedisSessionStore(SessionStore):
     def _tomb(self, sid: str) -> str:
         return f"{self.prefix}{{{sid}}}:x"
 
+    def _timeline(self, sid: str) -> str:
+        return f"{self.prefix}{{{sid}}}:tl"
+
+    def _recording(self, sid: str) -> str:
+        return f"{self.prefix}{{{sid}}}:rec"
+
+    def _lists(self, sid: str) -> list[str]:
+        """The session's keys beside its hash: timeline, recording."""
+        return [self._timeline(sid), self._recording(sid)]
+
     @property
     def _ttl_ms(self) -> int:
         return int((2 * self.idle_timeout_s + 60) * 1000)
@@ -207,8 +245,9 @@ class RedisSessionStore(SessionStore):
 
     async def create(self, session: Session) -> None:
         flat = _flat(session_codec.create_fields(session))
-        args = [repr(self.clock()), self.max_sessions, session.id, self._ttl_ms]
-        keys = [self._live, self._key(session.id)]
+        timeline, _ = session_codec.appends(session)
+        args = [repr(self.clock()), self.max_sessions, session.id, self._ttl_ms, len(timeline), *timeline]
+        keys = [self._live, self._key(session.id), *self._lists(session.id)]
         for attempt in range(2):
             async with self.redis.pipeline(transaction=False) as p:
                 p.eval(_CREATE, len(keys), *keys, *args, *flat)
@@ -219,10 +258,11 @@ class RedisSessionStore(SessionStore):
                 if (e := self._not_replicated(acked[0] if acked else None)) is not None:
                     # Nobody will learn of this session (the client creates it again): take it back if Redis can.
                     async with self.redis.pipeline(transaction=True) as p:
-                        p.delete(self._key(session.id)).zrem(self._live, session.id)
+                        p.delete(self._key(session.id), *self._lists(session.id)).zrem(self._live, session.id)
                         with contextlib.suppress(*self._errors):
                             await p.execute()
                     raise e
+                session.ledger.written()
                 self._see(session.id, session.key, session.last_used)
                 return
             if n == -2:
@@ -250,7 +290,7 @@ class RedisSessionStore(SessionStore):
         except session_codec.CodecError as e:
             raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
         if self.is_idle(s):
-            await self._expire(sid)
+            await self._expire(sid, s)
             raise SessionExpired(expired_message(sid, self.idle_timeout_s))
         if held is not None:
             self._forget(sid)  # another replica used it meanwhile: adopt the stored copy, not ours
@@ -309,11 +349,17 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         fields = session_codec.change_fields(session, held.step)
         expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
+        keys, args = [self._key(session.id)], [expect, len(fields), 0, *_flat(fields)]
+        for key, values in zip(self._lists(session.id), session_codec.appends(session), strict=True):
+            if values:
+                keys.append(key)
+                args += [len(values), *values]
+        args[2] = len(keys) - 1
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         if not self._queue:
             loop.call_soon(self._flush)
-        self._queue.append((session.id, [expect, len(fields), *_flat(fields)], fut))
+        self._queue.append((keys, args, fut))
         return fut
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
@@ -332,12 +378,13 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         held = self._held[session.id]
         held.version, held.step = session.ctx.version, session.ctx.step
+        session.ledger.written()
 
     def _flush(self) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
         them): at once on the open fast connection, else from a task that connects first."""
         queue, self._queue = self._queue, []
-        keys = [self._key(sid) for sid, _, _ in queue]
+        keys = [k for ks, _, _ in queue for k in ks]
         # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
         commands = [
             ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
@@ -452,10 +499,19 @@ class RedisSessionStore(SessionStore):
             self._fast = conn
             return conn
 
-    async def _expire(self, sid: str) -> None:
+    async def _expire(self, sid: str, session: Session) -> None:
+        """Remove an idle session; a recorded one is first handed to `on_expire` with its entries."""
         self._unconfirmed.discard(sid)
+        if self.on_expire is not None and session.ledger.recording:
+            async with self.redis.pipeline(transaction=True) as p:
+                p.lrange(self._timeline(sid), 0, -1).lrange(self._recording(sid), 0, -1)
+                timeline, records = await self._call(p.execute())
+            done = self.on_expire(session, timeline, records)
+            if done is not None:
+                await done
         async with self.redis.pipeline(transaction=True) as p:
-            p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"1", ex=TOMBSTONE_TTL_S)
+            p.delete(self._key(sid), *self._lists(sid)).zrem(self._live, sid)
+            p.set(self._tomb(sid), b"1", ex=TOMBSTONE_TTL_S)
             await self._call(p.execute())
         self._forget(sid)
 
@@ -479,11 +535,42 @@ class RedisSessionStore(SessionStore):
         if held is not None:
             self.on_remove(sid, held.session.key)
 
-    async def delete(self, sid: str) -> None:
-        await self.get(sid)
+    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+        if sid in self._unconfirmed:
+            await self._confirmed_read(sid)  # nothing unacknowledged is reported
         async with self.redis.pipeline(transaction=True) as p:
-            p.delete(self._key(sid)).zrem(self._live, sid).set(self._tomb(sid), b"closed", ex=TOMBSTONE_TTL_S)
-            await self._call(p.execute())
+            p.hgetall(self._key(sid)).lrange(self._timeline(sid), 0, -1)
+            if records:
+                p.lrange(self._recording(sid), 0, -1)
+            fields, timeline, *rest = await self._call(p.execute())
+        if not fields:
+            raise await self._missing(sid)
+        try:
+            s = session_codec.decode(fields)
+        except session_codec.CodecError as e:
+            raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
+        if self.is_idle(s):
+            await self._expire(sid, s)
+            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+        return s, timeline, rest[0] if records else []
+
+    async def delete(self, sid: str, read: Session | None = None) -> None:
+        if read is None:
+            await self.get(sid)
+            async with self.redis.pipeline(transaction=True) as p:
+                p.delete(self._key(sid), *self._lists(sid)).zrem(self._live, sid)
+                p.set(self._tomb(sid), b"closed", ex=TOMBSTONE_TTL_S)
+                await self._call(p.execute())
+        else:
+            keys = [self._live, self._key(sid), *self._lists(sid), self._tomb(sid)]
+            expect = session_codec.cas_token(read, read.ctx.version)
+            n = await self._call(self.redis.eval(_CLOSE, len(keys), *keys, expect, sid, TOMBSTONE_TTL_S))
+            if n == -1:
+                self._forget(sid)
+                raise await self._missing(sid)
+            if n == -2:
+                self._forget(sid)
+                raise Aborted(_aborted(sid))
         self._forget(sid)
         self._unconfirmed.discard(sid)
 
@@ -520,7 +607,7 @@ class RedisSessionStore(SessionStore):
                 await self._call(self.redis.zadd(self._live, {sid: s.last_used}, xx=True, gt=True))
                 continue
             gone.append(s)
-            await self._expire(sid)
+            await self._expire(sid, s)
         for sid in [sid for sid, h in self._held.items() if h.session.last_used < low]:
             self._forget(sid)
         for sid in [sid for sid, (_, t) in self._seen.items() if t < low and sid not in self._held]:

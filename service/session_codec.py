@@ -9,9 +9,13 @@ Fields (format 3):
 - `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
   last latency and replica of the console's listing, `console.activity`: as of the act before the write);
 - `r:<t mod H>`: the record of held step `t`: t, goal token, blend target and weight, state, action, as raw
-  little-endian bytes.
+  little-endian bytes;
+- `tl`: the last entry of the session's goal timeline (JSON, `gmt.service.records`), written with each entry.
+`meta` also holds `record` (the step layout and the maximum length) when the session records, and `st` the
+ledger's counters (episode, timeline entries, steps recorded). The timeline's entries and the recording's step
+records are lists beside the hash (`timeline_appends`, written by the same script call as the change).
 
-An act writes `ver`, `st` and its one new record; a goal change or a reset writes `ver` and `st`. Reading a session
+An act writes `ver`, `st` and its one new record; a goal change or a reset writes `ver`, `st` and `tl`. Reading a session
 back gathers the records of its last `min(step, H)` steps, each checked to be the step its slot should hold, into
 a `StoredContext`: exactly the context a replica needs to continue the session.
 """
@@ -28,6 +32,7 @@ import orjson
 
 from gmt.model.context import Context, StoredContext
 from gmt.service.console.activity import Activity
+from gmt.service.records import Ledger
 from gmt.service.sessions import Session
 
 FORMAT_VERSION = 3
@@ -70,7 +75,13 @@ def _state(session: Session, ctx: Context) -> bytes:
     st = ctx.scalars()
     st["last_used"] = session.last_used
     st["activity"] = session.activity.dump()
+    st["lg"] = session.ledger.state()
     return orjson.dumps(st)
+
+
+def appends(session: Session) -> tuple[list[bytes], list[bytes]]:
+    """What the change in flight appends to the session's lists: (timeline entries, step records)."""
+    return session.ledger.new_timeline, session.ledger.new_records
 
 
 def _record(ctx: Context, t: int) -> bytes:
@@ -99,11 +110,16 @@ def create_fields(session: Session) -> dict[str, bytes]:
         "request": session.request,
         "layout": ctx.layout(),
     }
-    return {
+    if (record := session.ledger.meta()) is not None:
+        meta["record"] = record
+    out = {
         "meta": orjson.dumps(meta),
         "ver": cas_token(session, ctx.version),
         "st": _state(session, ctx),
     }
+    if session.ledger.last is not None:
+        out["tl"] = orjson.dumps(session.ledger.last)
+    return out
 
 
 def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
@@ -113,6 +129,8 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     if not isinstance(ctx, Context):
         raise ValueError("only a live context has changes to write")
     out = {"ver": cas_token(session, ctx.version), "st": _state(session, ctx)}
+    if session.ledger.last_changed:
+        out["tl"] = orjson.dumps(session.ledger.last)
     t1 = ctx.step
     for t in range(max(since_step if since_step <= t1 else 0, t1 - ctx.size), t1):
         out[f"r:{t % ctx.pool.H}"] = _record(ctx, t)
@@ -161,6 +179,7 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             model_version=str(meta.get("model_version", "")),
             fingerprint=str(meta.get("fingerprint", "")),
             activity=Activity.load(st.get("activity")),
+            ledger=Ledger.restore(meta.get("record"), st.get("lg", {}), f.get("tl")),
         )
     except CodecError:
         raise

@@ -9,7 +9,7 @@ from __future__ import annotations
 import abc
 import itertools
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gmt.model.context import Context, StoredContext
@@ -22,8 +22,12 @@ from gmt.service.errors import (
     ServiceError,
     SessionExpired,
 )
+from gmt.service.records import Ledger
 
 Clock = Callable[[], float]
+# Told of a recorded session that expires, before it is removed, with its timeline entries and step records: what
+# the core writes to the recordings directory. A shared store awaits what it returns before it removes the session.
+Archive = Callable[["Session", list[bytes], list[bytes]], Awaitable[None] | None]
 TOMBSTONES = 100_000  # expired ids remembered so that they answer "expired" rather than "not found"
 
 
@@ -44,6 +48,7 @@ class Session:
             were: the model's default version).
         fingerprint: That version's checkpoint fingerprint (how a replica that lacks the version finds it).
         activity: Acts/s and last latency (the console's listing).
+        ledger: Its goal timeline and recording (`gmt.service.records`).
     """
 
     id: str
@@ -55,6 +60,7 @@ class Session:
     model_version: str = ""
     fingerprint: str = ""
     activity: Activity = field(default_factory=Activity)
+    ledger: Ledger = field(default_factory=Ledger)
 
     @property
     def key(self) -> str:
@@ -94,6 +100,8 @@ class SessionStore(abc.ABC):
         self.clock = clock
         # Told (session id, `Session.key`) of every session this store drops, so the engine can free its slot.
         self.on_remove: Callable[[str, str], None] = lambda sid, key: None
+        # Told of every session that expires (see `Archive`), when set.
+        self.on_expire: Archive | None = None
 
     def is_idle(self, session: Session) -> bool:
         """Whether `session` has been unused for longer than the idle timeout."""
@@ -135,6 +143,16 @@ class SessionStore(abc.ABC):
             NotFound: the session was closed or expired meanwhile.
         """
 
+    @abc.abstractmethod
+    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+        """The session with its timeline entries and (when `records`) its step records, as one snapshot; a look
+        that changes nothing and holds nothing.
+
+        Raises:
+            SessionExpired: it was idle for too long (it is then removed).
+            NotFound: it does not exist.
+        """
+
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
         """`save` for each (session, read version), all at once (a shared store writes them in one round trip).
 
@@ -151,12 +169,17 @@ class SessionStore(abc.ABC):
         return out
 
     @abc.abstractmethod
-    async def delete(self, sid: str) -> None:
-        """Remove the session.
+    async def delete(self, sid: str, read: Session | None = None) -> None:
+        """Remove the session (its timeline and recording with it).
+
+        Args:
+            read: The session as a snapshot of `entries` read it: a shared store removes it only if it has not
+                changed since (so that nothing answered after the snapshot is lost with it).
 
         Raises:
             SessionExpired: it had already expired.
             NotFound: it does not exist.
+            Aborted: it changed since `read`.
         """
 
     @abc.abstractmethod
@@ -206,6 +229,9 @@ class MemorySessionStore(SessionStore):
                 f"server is full: {len(self._sessions)} live sessions (maximum {self.max_sessions}); "
                 "close a session or retry later"
             )
+        session.ledger.timeline = []
+        session.ledger.records = [] if session.ledger.recording else None
+        session.ledger.written()
         self._sessions[session.id] = session
         self._per_model[session.key] += 1
 
@@ -224,6 +250,8 @@ class MemorySessionStore(SessionStore):
         del self._sessions[s.id]
         self._per_model[s.key] -= 1
         self.on_remove(s.id, s.key)
+        if expired and self.on_expire is not None and s.ledger.recording:
+            self.on_expire(s, list(s.ledger.timeline or ()), list(s.ledger.records or ()))
         if expired:
             self._expired[s.id] = None
             while len(self._expired) > TOMBSTONES:
@@ -237,9 +265,18 @@ class MemorySessionStore(SessionStore):
         # removed meanwhile is not resurrected.
         if session.id in self._sessions:
             self._sessions[session.id] = session
+        session.ledger.written()
 
-    async def delete(self, sid: str) -> None:
+    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+        s = self._lookup(sid)
+        return s, list(s.ledger.timeline or ()), list(s.ledger.records or ()) if records else []
+
+    async def delete(self, sid: str, read: Session | None = None) -> None:
         self._remove(self._lookup(sid), expired=False)
+
+    def live(self) -> list[Session]:
+        """Every session held (what a shutdown drops)."""
+        return list(self._sessions.values())
 
     async def count(self) -> int:
         return len(self._sessions)

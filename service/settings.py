@@ -11,6 +11,8 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from gmt.service.records import MAX_RECORD_STEPS
+
 _REPLICA_ID = re.compile(r"[\x21-\x7e]{1,128}")  # valid in an HTTP header and in gRPC metadata
 
 
@@ -68,6 +70,11 @@ class Settings(BaseSettings):
             oracle and the baseline of every benchmark).
         replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC
             initial metadata `x-served-by`) so that routing can be checked.
+        record_dir: Where recorded sessions are written when they close or expire (`<session id>.npz` and
+            `.json`, docs/records.md); replicas sharing a Redis store should share it. None: sessions cannot
+            record.
+        record_share: Share of new sessions recorded without asking (drawn from the session id), with record_dir.
+        record_max_steps: Steps a recording keeps at most; past them the session goes on unrecorded.
     """
 
     model_config = SettingsConfigDict(env_prefix="GMT_", extra="ignore")
@@ -103,6 +110,9 @@ class Settings(BaseSettings):
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     naive: bool = False
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
+    record_dir: Path | None = None
+    record_share: float = Field(0.0, ge=0.0, le=1.0)
+    record_max_steps: int = Field(10_000, ge=1, le=MAX_RECORD_STEPS)
 
     @field_validator("checkpoints", mode="before")
     @classmethod
@@ -111,7 +121,7 @@ class Settings(BaseSettings):
             return [p.strip() for p in v.split(",") if p.strip()]
         return v
 
-    @field_validator("auth_token", "admin_token", "redis_url", mode="before")
+    @field_validator("auth_token", "admin_token", "redis_url", "record_dir", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
@@ -124,6 +134,12 @@ class Settings(BaseSettings):
 
             parse_redis_url(v)  # a ValueError naming the problem
         return v
+
+    @model_validator(mode="after")
+    def _share_needs_a_directory(self) -> Settings:
+        if self.record_share and self.record_dir is None:
+            raise ValueError("record_share needs record_dir: recorded sessions are written there")
+        return self
 
     @model_validator(mode="after")
     def _replicas_need_redis(self) -> Settings:

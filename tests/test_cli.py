@@ -96,7 +96,7 @@ def _params(path: str) -> dict:
     [
         ("train", "gmt.model.config:TrainConfig", {"extra"}),
         ("train", "gmt.model.config:GMTConfig", {"obs_shape", "act_dim", "discrete_actions", "n_goals"}),
-        ("run", "gmt.client.runner:RunConfig", {"transport", "schedule", "goal"}),
+        ("run", "gmt.client.runner:RunConfig", {"transport", "schedule", "random_schedule", "goal"}),
     ],
 )
 def test_every_flag_default_is_the_config_default(command, config, skipped):

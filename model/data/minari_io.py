@@ -68,6 +68,8 @@ class OfflineDataset:
         fingerprint: sha256 hex of the observation, action and reward bytes (checkpoint provenance).
         preprocessing: The observation pipeline the collector declared in metadata.json (Atari frames), or None
             for raw environment observations.
+        goal_labels: How the per-step goal labels of a dataset of served sessions were made (metadata.json
+            `goal_labels`, `gmt.model.data.served`), or None: goals come from relabelling.
     """
 
     dataset_id: str
@@ -77,6 +79,7 @@ class OfflineDataset:
     episodes: list[Episode]
     fingerprint: str
     preprocessing: dict | None = None
+    goal_labels: dict | None = None
 
     @property
     def n_transitions(self) -> int:
@@ -236,7 +239,8 @@ def load_dataset(dataset: str, data_dir: str | Path | None = None) -> OfflineDat
             )
         )
     prep = ds.storage.metadata.get("preprocessing")
-    return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes), prep)
+    labels = ds.storage.metadata.get("goal_labels")
+    return OfflineDataset(ds.id, env_id, obs_space, act_space, episodes, fingerprint(episodes), prep, labels)
 
 
 def check_dataset_id(dataset_id: str) -> str:

@@ -8,9 +8,10 @@ from dataclasses import asdict
 
 import numpy as np
 
-from gmt.service.core import ActResult, GoalRef, ModelView, SessionView
+from gmt.service.core import ActResult, GoalRef, ModelView, SessionView, TimelineView
 from gmt.service.errors import InvalidArgument, ServiceError
 from gmt.service.observations import decode_tensor
+from gmt.service.records import Report, check_report
 from gmt.v1 import policy_pb2 as pb
 
 
@@ -73,6 +74,55 @@ def session_info(v: SessionView) -> pb.SessionInfo:
         expires_in_s=v.expires_in_s,
         blend_from=v.blend_from,
         model_version=v.model_version,
+        effective_step=v.effective_step,
+        recording=v.recording,
+    )
+
+
+def timeline(v: TimelineView) -> pb.Timeline:
+    """A timeline view as a Timeline message."""
+
+    def given(d: dict) -> pb.GoalSelector | None:
+        if "target" in d:
+            return pb.GoalSelector(target=d["target"])
+        if "goal" in d:
+            g = d["goal"]
+            return pb.GoalSelector(name=g) if isinstance(g, str) else pb.GoalSelector(id=int(g))
+        return None
+
+    return pb.Timeline(
+        session_id=v.session_id,
+        model=v.model,
+        fingerprint=v.fingerprint or "",
+        step=v.step,
+        episode=v.episode,
+        entries=v.entries,
+        goals=[
+            pb.TimelineEntry(
+                step=e["step"],
+                episode=e["episode"],
+                goal=e["goal"],
+                given=given(e["given"]),
+                blend_steps=e["blend_steps"],
+                by=e["by"],
+                at=e["at"],
+            )
+            for e in v.goals
+        ],
+    )
+
+
+def report(req: pb.ActRequest) -> Report | None:
+    """The report on the previous action an ActRequest carries (None when none).
+
+    Raises:
+        InvalidArgument: a value `records.check_report` refuses.
+    """
+    return check_report(
+        req.reward if req.HasField("reward") else None,
+        req.terminated if req.HasField("terminated") else None,
+        req.truncated if req.HasField("truncated") else None,
+        dict(req.info) if len(req.info) else None,
     )
 
 

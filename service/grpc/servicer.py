@@ -101,6 +101,7 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             goal, target = convert.goal(request.goal if request.HasField("goal") else None)
             seed = request.seed if request.HasField("seed") else None
             sid = request.session_id if request.HasField("session_id") else None
+            record = request.record if request.HasField("record") else None
             v = await self.core.create_session(
                 request.model or None,
                 goal,
@@ -109,6 +110,7 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 request.action_mode or None,
                 sid,
                 request.version or None,
+                record,
             )
             return convert.session_info(v)
 
@@ -122,18 +124,18 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def _act(self, request: pb.ActRequest) -> pb.ActResponse:
         step = request.step if request.HasField("step") else None
-        return convert.act_response(
-            await self.core.act(request.session_id, convert.observation(request), step)
-        )
+        obs, report = convert.observation(request), convert.report(request)
+        return convert.act_response(await self.core.act(request.session_id, obs, step, report))
 
     async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
         items = []
         for r in request.requests:
+            report = None
             try:
-                obs = convert.observation(r)
-            except ServiceError as e:  # an undecodable observation fails its item alone
+                obs, report = convert.observation(r), convert.report(r)
+            except ServiceError as e:  # an undecodable observation or a bad report fails its item alone
                 obs = e
-            items.append((r.session_id, obs, r.step if r.HasField("step") else None))
+            items.append((r.session_id, obs, r.step if r.HasField("step") else None, report))
         out = await self.core.act_many(items)
         return pb.ActBatchResponse(
             results=[
@@ -141,12 +143,12 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             ]
         )
 
-    async def _set_goal(self, request: pb.SetGoalRequest) -> pb.SessionInfo:
+    async def _set_goal(self, request: pb.SetGoalRequest, by: str = "grpc") -> pb.SessionInfo:
         if not request.HasField("goal"):
             raise InvalidArgument("goal is required: set id, name or target")
         goal, target = convert.goal(request.goal)
         return convert.session_info(
-            await self.core.set_goal(request.session_id, goal, target, request.blend_steps)
+            await self.core.set_goal(request.session_id, goal, target, request.blend_steps, by=by)
         )
 
     async def _reset(self, request: pb.ResetSessionRequest) -> pb.SessionInfo:
@@ -164,6 +166,12 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def ResetSession(self, request: pb.ResetSessionRequest, context) -> pb.SessionInfo:
         return await self._unary("ResetSession", context, lambda: self._reset(request))
+
+    async def GetTimeline(self, request: pb.GetTimelineRequest, context) -> pb.Timeline:
+        async def call():
+            return convert.timeline(await self.core.timeline(request.session_id))
+
+        return await self._unary("GetTimeline", context, call)
 
     async def CloseSession(self, request: pb.CloseSessionRequest, context) -> pb.CloseSessionResponse:
         async def call():
@@ -211,7 +219,9 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 if kind == "act":
                     out = pb.ControlResponse(act=await within_deadline(context, self._act(cmd)))
                 elif kind == "set_goal":
-                    out = pb.ControlResponse(session=await within_deadline(context, self._set_goal(cmd)))
+                    out = pb.ControlResponse(
+                        session=await within_deadline(context, self._set_goal(cmd, by="stream"))
+                    )
                 else:
                     out = pb.ControlResponse(session=await within_deadline(context, self._reset(cmd)))
             except ServiceError as e:

@@ -31,6 +31,7 @@ from gmt.model.engine import MAX_BLEND_STEPS
 from gmt.service.core import MAX_ACT_ITEMS, Core, ModelView
 from gmt.service.examples import Example
 from gmt.service.observations import MAX_ABS_VALUE
+from gmt.service.records import INFO_KEY, MAX_INFO_KEYS, MAX_REPORTED
 
 BEARER = "bearerAuth"
 OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token
@@ -97,6 +98,7 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
                 **_nullable(_STEP),
                 "description": described["Act"].get("step", {}).get("description", ""),
             },
+            **_report(described["Act"]),
         },
         "required": ["observation"],
     }
@@ -123,6 +125,7 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
             "session_id": {"type": "string"},
             "observation": {"anyOf": [{"type": "array"}, {"$ref": "#/components/schemas/Tensor"}]},
             "step": _nullable(_STEP),
+            **_report(described["Act"], exact=False),
         },
         "required": ["session_id", "observation"],
     }
@@ -163,6 +166,31 @@ def _act_examples(doc: dict, models: list[ModelView], examples: dict[str, Exampl
 
 
 _STEP = {"type": "integer", "minimum": 0}
+_REPORTED = {"type": "number", "minimum": -MAX_REPORTED, "maximum": MAX_REPORTED}
+
+
+def _report(described: dict, exact: bool = True) -> dict:
+    """The act's optional report on the previous action: `records.check_report`'s rules when `exact`, else only
+    the types (an item of `POST /act` whose report breaks a rule fails alone, not the call)."""
+    key = INFO_KEY.pattern
+    number = _REPORTED if exact else {"type": "number"}
+    info = {"type": "object", "additionalProperties": number}
+    if exact:
+        info |= {"propertyNames": {"pattern": f"^{key}$"}, "maxProperties": MAX_INFO_KEYS}
+    return {
+        "reward": {**_nullable(number), "description": described.get("reward", {}).get("description", "")},
+        "terminated": {
+            **_nullable({"type": "boolean"}),
+            "description": described.get("terminated", {}).get("description", ""),
+        },
+        "truncated": {
+            **_nullable({"type": "boolean"}),
+            "description": described.get("truncated", {}).get("description", ""),
+        },
+        "info": {**_nullable(info), "description": described.get("info", {}).get("description", "")},
+    }
+
+
 _TARGET = {"type": "number", "minimum": -MAX_ABS_VALUE, "maximum": MAX_ABS_VALUE}
 
 
@@ -221,6 +249,10 @@ def _create_session(models: list[ModelView], described: dict) -> dict:
                     **_nullable({"type": "string", "enum": list(m.action_modes)}),
                     "description": "One of the model's action modes (`GET /models/{name}`); the first is the "
                     "default.",
+                },
+                "record": {
+                    **_nullable({"type": "boolean"}),
+                    "description": described.get("record", {}).get("description", ""),
                 },
             },
             **({"required": ["model"]} if required else {}),

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
+import numpy as np
 import orjson
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
@@ -13,6 +14,7 @@ from pydantic import ValidationError
 from gmt.service.core import MAX_ID_LENGTH, Core
 from gmt.service.errors import ServiceError
 from gmt.service.observations import decode_base64, decode_tensor
+from gmt.service.records import check_report
 from gmt.service.rest import schemas as S
 from gmt.service.rest.media import require_json
 
@@ -96,7 +98,14 @@ async def get_model(name: str, core: CoreDep, request: Request) -> S.ModelOut:
 async def create_session(body: S.CreateSession, core: CoreDep, response: Response) -> S.SessionOut:
     """Create a session on a model with a goal id, goal name, or target statistic value."""
     v = await core.create_session(
-        body.model, body.goal, body.target, body.seed, body.action_mode, body.session_id, body.version
+        body.model,
+        body.goal,
+        body.target,
+        body.seed,
+        body.action_mode,
+        body.session_id,
+        body.version,
+        body.record,
     )
     response.headers[SESSION_HEADER] = v.session_id
     return S.SessionOut.of(v)
@@ -107,6 +116,10 @@ async def get_session(session_id: str, core: CoreDep, response: Response) -> S.S
     """A session's state (does not reset its idle timer)."""
     response.headers.update(session_header(session_id))
     return S.SessionOut.of(await core.get_session(session_id))
+
+
+def _report(body: S.Act):
+    return check_report(body.reward, body.terminated, body.truncated, body.info)
 
 
 def _observation(body: S.Act) -> object:
@@ -147,7 +160,7 @@ async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
         ServiceError: the core refused the act.
     """
     body = S.Act.model_validate_json(raw)
-    r = await core.act(session_id, _observation(body), body.step)
+    r = await core.act(session_id, _observation(body), body.step, _report(body))
     action = r.action if r.action is not None else r.discrete_action
     return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
 
@@ -164,11 +177,12 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     (HTTP 200 for the call). A session may appear once per call."""
     items = []
     for r in body.requests:
+        report = None
         try:
-            obs = _observation(r)
-        except ServiceError as e:  # an undecodable tensor fails its item alone
+            obs, report = _observation(r), _report(r)
+        except ServiceError as e:  # an undecodable tensor or a bad report fails its item alone
             obs = e
-        items.append((r.session_id, obs, r.step))
+        items.append((r.session_id, obs, r.step, report))
     out = await core.act_many(items)
     return S.ActManyOut(
         results=[S.ActItemOut.of(r.session_id, o) for r, o in zip(body.requests, out, strict=True)]
@@ -177,14 +191,96 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
 
 @api.put(
     "/sessions/{session_id}/goal",
-    response_model=S.SessionOut,
+    response_model=S.SetGoalOut,
     tags=["sessions"],
     responses=errors(400, 404, 409, 413, 503),
 )
-async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Response) -> S.SessionOut:
-    """Change the goal from the next step on, optionally blended over `blend_steps` steps."""
+async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Response) -> S.SetGoalOut:
+    """Change the goal from the next step on (`effective_step`), optionally blended over `blend_steps` steps.
+    Repeating the last change before the next act changes nothing."""
     response.headers.update(session_header(session_id))
-    return S.SessionOut.of(await core.set_goal(session_id, body.goal, body.target, body.blend_steps))
+    return S.SetGoalOut.of(
+        await core.set_goal(session_id, body.goal, body.target, body.blend_steps, by="rest")
+    )
+
+
+@api.get(
+    "/sessions/{session_id}/timeline",
+    response_model=S.TimelineOut,
+    tags=["records"],
+    responses=errors(404, 503),
+)
+async def timeline(session_id: str, core: CoreDep, response: Response) -> S.TimelineOut:
+    """Every goal the session had, from the step of the first act that used it (does not reset the idle
+    timer)."""
+    response.headers.update(session_header(session_id))
+    return S.TimelineOut.of(await core.timeline(session_id))
+
+
+@api.get(
+    "/sessions/{session_id}/recording",
+    response_model=S.RecordingOut,
+    tags=["records"],
+    responses={
+        200: {
+            "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+            "description": "The recording: JSON, or with `format=npz` a NumPy .npz of the same columns plus "
+            "`meta` (docs/records.md).",
+        },
+        **errors(400, 404, 503),
+    },
+)
+async def recording(
+    session_id: str,
+    core: CoreDep,
+    format: Annotated[
+        Literal["json", "npz"], Query(description="json (lists) or npz (NumPy arrays, `np.load`).")
+    ] = "json",
+) -> Response:
+    """The session's recording so far (a session created with `record`); does not reset the idle timer."""
+    rec = await core.recording(session_id)
+    headers = session_header(session_id)
+    if format == "npz":
+        headers["Content-Disposition"] = f'attachment; filename="{rec.meta["session_id"]}.npz"'
+        return Response(rec.npz_bytes(), media_type="application/octet-stream", headers=headers)
+    return Response(recording_json(rec), media_type="application/json", headers=headers)
+
+
+_META = (
+    "session_id",
+    "model",
+    "fingerprint",
+    "env_id",
+    "action_mode",
+    "seed",
+    "created_at",
+    "max_steps",
+    "stopped",
+)
+
+
+def recording_json(rec) -> bytes:
+    """A recording as `S.RecordingOut` JSON (NaN, a value not reported, becomes null). Float32 values are written
+    as the act answers write them (their exact float64 value), so that both compare equal."""
+    a = {k: v.astype(np.float64) if v.dtype == np.float32 else v for k, v in rec.arrays.items()}
+    body = {k: rec.meta.get(k) for k in _META}
+    body["steps"] = rec.steps
+    for k in (
+        "episode",
+        "t",
+        "time",
+        "observations",
+        "actions",
+        "goals",
+        "goal_tokens",
+        "blend_w",
+        "reported",
+    ):
+        body[k] = a[k]
+    body |= {"rewards": a["rewards"], "terminated": a["terminated"], "truncated": a["truncated"]}
+    body["infos"] = {k: a["info." + k] for k in rec.info_keys}
+    body["timeline"] = rec.meta["timeline"]
+    return orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 @api.post(

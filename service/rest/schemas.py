@@ -10,12 +10,22 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, StrictStr, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    StrictStr,
+    field_validator,
+)
 
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView
+from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView
 from gmt.service.errors import ServiceError
 from gmt.service.examples import Example
+from gmt.service.records import MAX_INFO_KEYS, MAX_REPORTED
 
 
 def _integral(v: object) -> object:
@@ -208,6 +218,13 @@ class CreateSession(_Request):
         description="The model version to run for the session's whole life (a serving one); omitted: the model's "
         "default version, or its canary for the canary's share of session ids.",
     )
+    record: StrictBool | None = Field(
+        None,
+        description="Record the episode (observations, actions, goals, reported rewards): `GET "
+        "/sessions/{id}/recording` while it lives, a file in the server's --record-dir when it closes or expires. "
+        "Omitted: as the server's --record-share draws it. Needs a server started with --record-dir (409 "
+        "failed_precondition otherwise).",
+    )
 
 
 class SetGoal(_Request):
@@ -245,11 +262,87 @@ class SessionOut(BaseModel):
     idle_timeout_s: float
     expires_in_s: float
     context_goals: list[int]
+    recording: bool = Field(False, description="Whether the session records its episode.")
 
     @classmethod
     def of(cls, v: SessionView) -> SessionOut:
         """From the core's view."""
+        return cls(**{k: x for k, x in vars(v).items() if k != "effective_step"})
+
+
+class SetGoalOut(SessionOut):
+    """A goal change's answer: the session's state and when the change takes effect."""
+
+    effective_step: int = Field(
+        description="The step of the first act that uses the new goal (the session's next step)."
+    )
+
+    @classmethod
+    def of(cls, v: SessionView) -> SetGoalOut:
+        """From the core's view of a goal change."""
         return cls(**vars(v))
+
+
+class TimelineEntry(BaseModel):
+    """One goal the session had, from the step of the first act that used it."""
+
+    step: int = Field(description="The step (within its episode) of the first act that used this goal.")
+    episode: int = Field(description="The session's episode: 0, then one more at each reset.")
+    goal: int
+    given: dict[str, int | float | str] = Field(
+        description='How the goal was asked for: {"goal": id or name} or {"target": value}; {} for a reset '
+        "that kept the goal."
+    )
+    blend_steps: int
+    by: Literal["create", "reset", "rest", "grpc", "stream"]
+    at: float = Field(description="Server clock when the change was made (seconds since the epoch).")
+
+
+class TimelineOut(BaseModel):
+    """`GET /sessions/{id}/timeline`: every goal the session had, in order."""
+
+    session_id: str
+    model: str
+    fingerprint: str | None = Field(description="sha256 of the model's weights and gmt.json.")
+    step: int = Field(description="The session's step now (its next act's).")
+    episode: int
+    entries: int = Field(description="Goal changes made; more than listed once the timeline is full.")
+    goals: list[TimelineEntry]
+
+    @classmethod
+    def of(cls, v: TimelineView) -> TimelineOut:
+        """From the core's view."""
+        return cls(**vars(v))
+
+
+class RecordingOut(BaseModel):
+    """`GET /sessions/{id}/recording`: the recording so far, one entry per answered step in every list
+    (docs/records.md; `?format=npz` answers the same as arrays)."""
+
+    session_id: str
+    model: str
+    fingerprint: str | None
+    env_id: str | None
+    action_mode: str
+    seed: int
+    created_at: float
+    max_steps: int
+    stopped: str | None = Field(description="Why the recording stopped before the session ended, or null.")
+    steps: int
+    episode: list[int]
+    t: list[int]
+    time: list[float]
+    observations: list[Any]
+    actions: list[list[float]] | list[int]
+    goals: list[int]
+    goal_tokens: list[int]
+    blend_w: list[float]
+    reported: list[bool] = Field(description="Whether the client reported the outcome of each step's action.")
+    rewards: list[float | None]
+    terminated: list[bool]
+    truncated: list[bool]
+    infos: dict[str, list[float | None]]
+    timeline: list[TimelineEntry]
 
 
 class Tensor(_Request):
@@ -270,6 +363,19 @@ class Act(_Request):
         description="The step this act is for (0 for an episode's first act). A repeat of the last answered "
         "step returns that answer again without stepping (a safe retry); any other mismatch answers 409 "
         "failed_precondition naming the session's step.",
+    )
+    reward: float | None = Field(
+        None,
+        description="The reward the environment gave for the previous action (a recorded session keeps it).",
+        json_schema_extra={"minimum": -MAX_REPORTED, "maximum": MAX_REPORTED},
+    )
+    terminated: StrictBool | None = Field(None, description="The previous action ended the episode.")
+    truncated: StrictBool | None = Field(None, description="The episode was cut after the previous action.")
+    info: dict[StrictStr, float] | None = Field(
+        None,
+        description=f"The environment's info for the previous action: at most {MAX_INFO_KEYS} numbers, e.g. "
+        '{"x_velocity": 1.5}. These four report the outcome of the previous action; an episode\'s first act '
+        "has none (409 failed_precondition).",
     )
 
     @field_validator("observation", mode="before")

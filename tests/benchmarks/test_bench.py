@@ -92,6 +92,25 @@ def test_serving_section_drives_every_transport_without_errors(window_ckpt):
 
 
 @pytest.mark.skipif(
+    shutil.which("wrk") is None or shutil.which("redis-server") is None,
+    reason="needs wrk and redis-server (apt-get install wrk redis-server)",
+)
+def test_records_section_measures_recorded_and_plain_sessions_of_one_server(window_ckpt):
+    from gmt.bench.records import bench_records
+    from gmt.bench.report import to_markdown
+
+    res = bench_records(window_ckpt, sessions=3, seconds=1.0, rounds=1)
+    for store in ("memory", "redis"):
+        r = res["stores"][store]
+        for row in r["plain"] + r["recorded"]:
+            assert row["errors"] == 0 and row["sessions"] == 3 and row["acts_per_s"] > 0, (store, row)
+        # Every act of the recorded set was kept (the first, setup act too), and each session's file written.
+        assert r["recorded_steps"] >= r["recorded"][0]["acts_per_s"] * 0.5 and r["files_written"] == 3, r
+        assert r["recorded_vs_plain"] == round(r["acts_per_s"]["recorded"] / r["acts_per_s"]["plain"], 3)
+    assert "### Recording: REST acts/s" in to_markdown({"records": res})
+
+
+@pytest.mark.skipif(
     any(
         shutil.which(p) is None and not Path("/usr/sbin", p).exists()
         for p in ("wrk", "nginx", "redis-server")

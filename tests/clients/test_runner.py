@@ -183,3 +183,20 @@ def test_status_line_rewrites_itself_on_a_terminal_and_prints_every_n_steps_othe
         log.update(t, f"step {t}")
     log.done()
     assert log.stream.getvalue() == "step 0\nstep 2\nstep 4\n"
+
+
+def test_random_schedules_are_drawn_from_the_seed_within_their_bounds():
+    from gmt.client.runner import parse_every, random_schedule
+
+    assert parse_every("50:300") == (50, 300) and parse_every("") is None
+    for bad in ("50", "300:50", "0:5", "a:b", "5:"):
+        with pytest.raises(ValueError, match="LO:HI"):
+            parse_every(bad)
+    first, changes = random_schedule(4, 1000, (50, 300), seed=7)
+    assert (first, changes) == random_schedule(4, 1000, (50, 300), seed=7)
+    assert random_schedule(4, 1000, (50, 300), seed=8) != (first, changes)
+    steps = [0] + [s for s, _ in changes]
+    assert all(50 <= b - a <= 300 for a, b in zip(steps, steps[1:], strict=False)) and steps[-1] < 1000
+    goals = [first] + [g for _, g in changes]
+    assert all(a != b for a, b in zip(goals, goals[1:], strict=False)) and set(goals) <= {0, 1, 2, 3}
+    assert random_schedule(1, 1000, (5, 10), seed=0) == (0, [])

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 import random
 
 import grpc
@@ -251,6 +252,7 @@ def test_every_method_refuses_undecodable_bytes(channel, twins, observations):
         "ResetSession": pb.ResetSessionRequest(session_id=victim, goal=pb.GoalSelector(id=0)),
         "CloseSession": pb.CloseSessionRequest(session_id=victim),
         "ActBatch": pb.ActBatchRequest(requests=[pb.ActRequest(session_id=victim)]),
+        "GetTimeline": pb.GetTimelineRequest(session_id=victim),
     }
     streaming = {m.name for m in SERVICE.methods if m.client_streaming}
     assert set(valid) == {m.name for m in SERVICE.methods} - streaming  # every unary method is fuzzed here
@@ -309,9 +311,24 @@ def test_valid_messages_with_wrong_contents_answer_a_status_and_harm_nothing(cha
         assert [r.WhichOneof("outcome") for r in results] == ["error"] * len(items), results
         assert "appears more than once" in results[-1].error.message
 
+        # A report on the previous action that is no finite number, or an info no server keeps.
+        report = rng.choice(
+            [
+                {"reward": rng.choice([math.nan, math.inf, -math.inf, 1e13, -1e300])},
+                {"info": {rng.choice(["", "a b", "é", "k" * 65]): 1.0}},
+                {"info": {"x": rng.choice([math.nan, math.inf, 2e12])}},
+                {"info": {f"k{i}": 1.0 for i in range(33)}},
+            ]
+        )
+        message = refused(
+            "Act", pb.ActRequest(session_id=victim, values=pb.FloatVector(values=observations[1]), **report)
+        )
+        assert "reward" in message or "info" in message, message
+
         # Unknown things, and numbers out of range, anywhere.
         refused("GetModel", pb.GetModelRequest(name=strange_id(rng)))
         refused("GetSession", pb.GetSessionRequest(session_id=strange_id(rng)))
+        refused("GetTimeline", pb.GetTimelineRequest(session_id=strange_id(rng)))
         refused("CloseSession", pb.CloseSessionRequest(session_id=strange_id(rng)))
         refused(
             "Act", pb.ActRequest(session_id=strange_id(rng), values=pb.FloatVector(values=observations[1]))

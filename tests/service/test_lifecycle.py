@@ -323,6 +323,8 @@ def test_openapi_lists_exactly_the_designed_routes(http):
         ("PUT", "/sessions/{session_id}/goal"),
         ("POST", "/sessions/{session_id}/reset"),
         ("DELETE", "/sessions/{session_id}"),
+        ("GET", "/sessions/{session_id}/timeline"),
+        ("GET", "/sessions/{session_id}/recording"),
         ("GET", "/healthz"),
         ("GET", "/readyz"),
         ("GET", "/metrics"),

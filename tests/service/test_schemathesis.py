@@ -1,5 +1,5 @@
 """schemathesis (`--checks all`: every phase, positive and negative data, auth, stateful links) against a real
-server with the shipped checkpoint, with auth off and on: 0 failures.
+server with the shipped checkpoint (every session recorded), with auth off and on: 0 failures.
 
 A CI-sized run (a few examples per operation, fixed seed); the full-size command and result are in
 docs/reliability.md.
@@ -24,8 +24,16 @@ EXAMPLES = 12  # per operation and phase; the full-size run in docs/reliability.
 
 
 @pytest.fixture(params=[None, TOKEN], ids=["auth-off", "auth-on"])
-def served(request):
-    server = RunningServer(make_settings(checkpoints=[SHIPPED], auth_token=request.param)).start()
+def served(request, tmp_path_factory):
+    """The shipped checkpoint, every session recorded (unless it asks not to be): the recording's answers are
+    checked against their schema too."""
+    settings = make_settings(
+        checkpoints=[SHIPPED],
+        auth_token=request.param,
+        record_dir=tmp_path_factory.mktemp("recordings"),
+        record_share=1.0,
+    )
+    server = RunningServer(settings).start()
     yield server, request.param
     server.stop()
 
@@ -89,6 +97,6 @@ def test_schemathesis_finds_no_failure(served, tmp_path):
     out = r.stdout + r.stderr
     assert r.returncode == 0, out[-8000:]
     assert "No issues found" in out, out[-8000:]
-    assert re.search(r"Selected: 14/18\s+Tested: 14", out), out[-3000:]
+    assert re.search(r"Selected: 16/20\s+Tested: 16", out), out[-3000:]
     generated = re.search(r"(\d+) generated, (\d+) passed", out)
-    assert generated and generated[1] == generated[2] and int(generated[1]) >= 12 * EXAMPLES, out[-3000:]
+    assert generated and generated[1] == generated[2] and int(generated[1]) >= 14 * EXAMPLES, out[-3000:]

@@ -24,13 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13gmt/v1/policy.proto\x12\x06gmt.v1\"^\n\x0bObservation\x12%\n\x06values\x18\x01 \x01(\x0b\x32\x13.gmt.v1.FloatVectorH\x00\x12 \n\x06tensor\x18\x02 \x01(\x0b\x32\x0e.gmt.v1.TensorH\x00\x42\x06\n\x04kind\"\x1d\n\x0b\x46loatVector\x12\x0e\n\x06values\x18\x01 \x03(\x02\"4\n\x06Tensor\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\r\n\x05\x64type\x18\x03 \x01(\t\"F\n\x0cGoalSelector\x12\x0c\n\x02id\x18\x01 \x01(\x05H\x00\x12\x0e\n\x04name\x18\x02 \x01(\tH\x00\x12\x10\n\x06target\x18\x03 \x01(\x01H\x00\x42\x06\n\x04kind\"Y\n\x05Space\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0b\n\x03low\x18\x03 \x03(\x01\x12\x0c\n\x04high\x18\x04 \x03(\x01\x12\t\n\x01n\x18\x05 \x01(\x03\x12\r\n\x05\x64type\x18\x06 \x01(\t\"d\n\x04Goal\x12\n\n\x02id\x18\x01 \x01(\x05\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0c\n\x04mean\x18\x03 \x01(\x01\x12\x0b\n\x03std\x18\x04 \x01(\x01\x12\x0b\n\x03min\x18\x05 \x01(\x01\x12\x0b\n\x03max\x18\x06 \x01(\x01\x12\r\n\x05\x63ount\x18\x07 \x01(\x03\"\xd3\x02\n\tModelInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06\x65nv_id\x18\x02 \x01(\t\x12(\n\x11observation_space\x18\x03 \x01(\x0b\x32\r.gmt.v1.Space\x12#\n\x0c\x61\x63tion_space\x18\x04 \x01(\x0b\x32\r.gmt.v1.Space\x12\x16\n\x0e\x63ontext_length\x18\x05 \x01(\x05\x12\x11\n\tstatistic\x18\x06 \x01(\t\x12\x1b\n\x05goals\x18\x07 \x03(\x0b\x32\x0c.gmt.v1.Goal\x12\x1a\n\x12preprocessing_json\x18\x08 \x01(\t\x12\x14\n\x0c\x61\x63tion_modes\x18\t \x03(\t\x12&\n\x08versions\x18\x14 \x03(\x0b\x32\x14.gmt.v1.ModelVersion\x12\x17\n\x0f\x64\x65\x66\x61ult_version\x18\x15 \x01(\t\x12\x1e\n\x06\x63\x61nary\x18\x16 \x01(\x0b\x32\x0e.gmt.v1.Canary\"U\n\x0cModelVersion\x12\x0f\n\x07version\x18\x01 \x01(\t\x12\x10\n\x08sessions\x18\x02 \x01(\x03\x12\r\n\x05state\x18\x03 \x01(\t\x12\x13\n\x0b\x66ingerprint\x18\x04 \x01(\t\"(\n\x06\x43\x61nary\x12\x0f\n\x07version\x18\x01 \x01(\t\x12\r\n\x05share\x18\x02 \x01(\x01\"\x93\x02\n\x0bSessionInfo\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\r\n\x05model\x18\x02 \x01(\t\x12\x0c\n\x04goal\x18\x03 \x01(\x05\x12\x11\n\tgoal_name\x18\x04 \x01(\t\x12\x0c\n\x04step\x18\x05 \x01(\x03\x12\x14\n\x0c\x63ontext_size\x18\x06 \x01(\x05\x12\x17\n\x0f\x62lend_remaining\x18\x07 \x01(\x05\x12\x16\n\x0eidle_timeout_s\x18\x08 \x01(\x01\x12\x13\n\x0b\x61\x63tion_mode\x18\t \x01(\t\x12\x15\n\rcontext_goals\x18\n \x03(\x05\x12\x14\n\x0c\x65xpires_in_s\x18\x0b \x01(\x01\x12\x12\n\nblend_from\x18\x0c \x01(\x05\x12\x15\n\rmodel_version\x18\x14 \x01(\t\"\x13\n\x11ListModelsRequest\"7\n\x12ListModelsResponse\x12!\n\x06models\x18\x01 \x03(\x0b\x32\x11.gmt.v1.ModelInfo\"\x1f\n\x0fGetModelRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\"\xb3\x01\n\x14\x43reateSessionRequest\x12\r\n\x05model\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\x12\x11\n\x04seed\x18\x03 \x01(\x03H\x00\x88\x01\x01\x12\x13\n\x0b\x61\x63tion_mode\x18\x04 \x01(\t\x12\x17\n\nsession_id\x18\x05 \x01(\tH\x01\x88\x01\x01\x12\x0f\n\x07version\x18\x14 \x01(\tB\x07\n\x05_seedB\r\n\x0b_session_id\"\'\n\x11GetSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"\x94\x01\n\nActRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12%\n\x06values\x18\x02 \x01(\x0b\x32\x13.gmt.v1.FloatVectorH\x00\x12 \n\x06tensor\x18\x03 \x01(\x0b\x32\x0e.gmt.v1.TensorH\x00\x12\x11\n\x04step\x18\x04 \x01(\x03H\x01\x88\x01\x01\x42\r\n\x0bobservationB\x07\n\x05_step\"{\n\x0b\x41\x63tResponse\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12\x17\n\x0f\x64iscrete_action\x18\x02 \x01(\x03\x12\x13\n\x0bis_discrete\x18\x03 \x01(\x08\x12\x0c\n\x04step\x18\x04 \x01(\x03\x12\x0c\n\x04goal\x18\x05 \x01(\x05\x12\x12\n\nsession_id\x18\x06 \x01(\t\"7\n\x0f\x41\x63tBatchRequest\x12$\n\x08requests\x18\x01 \x03(\x0b\x32\x12.gmt.v1.ActRequest\".\n\rActBatchError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"~\n\x0e\x41\x63tBatchResult\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12%\n\x06\x61\x63tion\x18\x02 \x01(\x0b\x32\x13.gmt.v1.ActResponseH\x00\x12&\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.gmt.v1.ActBatchErrorH\x00\x42\t\n\x07outcome\";\n\x10\x41\x63tBatchResponse\x12\'\n\x07results\x18\x01 \x03(\x0b\x32\x16.gmt.v1.ActBatchResult\"]\n\x0eSetGoalRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\x12\x13\n\x0b\x62lend_steps\x18\x03 \x01(\x05\"M\n\x13ResetSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\")\n\x13\x43loseSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"*\n\x14\x43loseSessionResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\"\x98\x01\n\x0e\x43ontrolRequest\x12!\n\x03\x61\x63t\x18\x01 \x01(\x0b\x32\x12.gmt.v1.ActRequestH\x00\x12*\n\x08set_goal\x18\x02 \x01(\x0b\x32\x16.gmt.v1.SetGoalRequestH\x00\x12,\n\x05reset\x18\x03 \x01(\x0b\x32\x1b.gmt.v1.ResetSessionRequestH\x00\x42\t\n\x07\x63ommand\"-\n\x0c\x43ontrolError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x8e\x01\n\x0f\x43ontrolResponse\x12\"\n\x03\x61\x63t\x18\x01 \x01(\x0b\x32\x13.gmt.v1.ActResponseH\x00\x12&\n\x07session\x18\x02 \x01(\x0b\x32\x13.gmt.v1.SessionInfoH\x00\x12%\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x14.gmt.v1.ControlErrorH\x00\x42\x08\n\x06result2\x82\x05\n\rPolicyService\x12\x43\n\nListModels\x12\x19.gmt.v1.ListModelsRequest\x1a\x1a.gmt.v1.ListModelsResponse\x12\x36\n\x08GetModel\x12\x17.gmt.v1.GetModelRequest\x1a\x11.gmt.v1.ModelInfo\x12\x42\n\rCreateSession\x12\x1c.gmt.v1.CreateSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12<\n\nGetSession\x12\x19.gmt.v1.GetSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12.\n\x03\x41\x63t\x12\x12.gmt.v1.ActRequest\x1a\x13.gmt.v1.ActResponse\x12\x36\n\x07SetGoal\x12\x16.gmt.v1.SetGoalRequest\x1a\x13.gmt.v1.SessionInfo\x12@\n\x0cResetSession\x12\x1b.gmt.v1.ResetSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12I\n\x0c\x43loseSession\x12\x1b.gmt.v1.CloseSessionRequest\x1a\x1c.gmt.v1.CloseSessionResponse\x12=\n\x08\x41\x63tBatch\x12\x17.gmt.v1.ActBatchRequest\x1a\x18.gmt.v1.ActBatchResponse\x12>\n\x07\x43ontrol\x12\x16.gmt.v1.ControlRequest\x1a\x17.gmt.v1.ControlResponse(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13gmt/v1/policy.proto\x12\x06gmt.v1\"^\n\x0bObservation\x12%\n\x06values\x18\x01 \x01(\x0b\x32\x13.gmt.v1.FloatVectorH\x00\x12 \n\x06tensor\x18\x02 \x01(\x0b\x32\x0e.gmt.v1.TensorH\x00\x42\x06\n\x04kind\"\x1d\n\x0b\x46loatVector\x12\x0e\n\x06values\x18\x01 \x03(\x02\"4\n\x06Tensor\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\r\n\x05\x64type\x18\x03 \x01(\t\"F\n\x0cGoalSelector\x12\x0c\n\x02id\x18\x01 \x01(\x05H\x00\x12\x0e\n\x04name\x18\x02 \x01(\tH\x00\x12\x10\n\x06target\x18\x03 \x01(\x01H\x00\x42\x06\n\x04kind\"Y\n\x05Space\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0b\n\x03low\x18\x03 \x03(\x01\x12\x0c\n\x04high\x18\x04 \x03(\x01\x12\t\n\x01n\x18\x05 \x01(\x03\x12\r\n\x05\x64type\x18\x06 \x01(\t\"d\n\x04Goal\x12\n\n\x02id\x18\x01 \x01(\x05\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0c\n\x04mean\x18\x03 \x01(\x01\x12\x0b\n\x03std\x18\x04 \x01(\x01\x12\x0b\n\x03min\x18\x05 \x01(\x01\x12\x0b\n\x03max\x18\x06 \x01(\x01\x12\r\n\x05\x63ount\x18\x07 \x01(\x03\"\xd3\x02\n\tModelInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06\x65nv_id\x18\x02 \x01(\t\x12(\n\x11observation_space\x18\x03 \x01(\x0b\x32\r.gmt.v1.Space\x12#\n\x0c\x61\x63tion_space\x18\x04 \x01(\x0b\x32\r.gmt.v1.Space\x12\x16\n\x0e\x63ontext_length\x18\x05 \x01(\x05\x12\x11\n\tstatistic\x18\x06 \x01(\t\x12\x1b\n\x05goals\x18\x07 \x03(\x0b\x32\x0c.gmt.v1.Goal\x12\x1a\n\x12preprocessing_json\x18\x08 \x01(\t\x12\x14\n\x0c\x61\x63tion_modes\x18\t \x03(\t\x12&\n\x08versions\x18\x14 \x03(\x0b\x32\x14.gmt.v1.ModelVersion\x12\x17\n\x0f\x64\x65\x66\x61ult_version\x18\x15 \x01(\t\x12\x1e\n\x06\x63\x61nary\x18\x16 \x01(\x0b\x32\x0e.gmt.v1.Canary\"U\n\x0cModelVersion\x12\x0f\n\x07version\x18\x01 \x01(\t\x12\x10\n\x08sessions\x18\x02 \x01(\x03\x12\r\n\x05state\x18\x03 \x01(\t\x12\x13\n\x0b\x66ingerprint\x18\x04 \x01(\t\"(\n\x06\x43\x61nary\x12\x0f\n\x07version\x18\x01 \x01(\t\x12\r\n\x05share\x18\x02 \x01(\x01\"\xd6\x02\n\x0bSessionInfo\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\r\n\x05model\x18\x02 \x01(\t\x12\x0c\n\x04goal\x18\x03 \x01(\x05\x12\x11\n\tgoal_name\x18\x04 \x01(\t\x12\x0c\n\x04step\x18\x05 \x01(\x03\x12\x14\n\x0c\x63ontext_size\x18\x06 \x01(\x05\x12\x17\n\x0f\x62lend_remaining\x18\x07 \x01(\x05\x12\x16\n\x0eidle_timeout_s\x18\x08 \x01(\x01\x12\x13\n\x0b\x61\x63tion_mode\x18\t \x01(\t\x12\x15\n\rcontext_goals\x18\n \x03(\x05\x12\x14\n\x0c\x65xpires_in_s\x18\x0b \x01(\x01\x12\x12\n\nblend_from\x18\x0c \x01(\x05\x12\x15\n\rmodel_version\x18\x14 \x01(\t\x12\x1b\n\x0e\x65\x66\x66\x65\x63tive_step\x18\x1e \x01(\x03H\x00\x88\x01\x01\x12\x11\n\trecording\x18\x1f \x01(\x08\x42\x11\n\x0f_effective_step\"\x13\n\x11ListModelsRequest\"7\n\x12ListModelsResponse\x12!\n\x06models\x18\x01 \x03(\x0b\x32\x11.gmt.v1.ModelInfo\"\x1f\n\x0fGetModelRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\"\xd3\x01\n\x14\x43reateSessionRequest\x12\r\n\x05model\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\x12\x11\n\x04seed\x18\x03 \x01(\x03H\x00\x88\x01\x01\x12\x13\n\x0b\x61\x63tion_mode\x18\x04 \x01(\t\x12\x17\n\nsession_id\x18\x05 \x01(\tH\x01\x88\x01\x01\x12\x0f\n\x07version\x18\x14 \x01(\t\x12\x13\n\x06record\x18\x1e \x01(\x08H\x02\x88\x01\x01\x42\x07\n\x05_seedB\r\n\x0b_session_idB\t\n\x07_record\"\'\n\x11GetSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"\xdb\x02\n\nActRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12%\n\x06values\x18\x02 \x01(\x0b\x32\x13.gmt.v1.FloatVectorH\x00\x12 \n\x06tensor\x18\x03 \x01(\x0b\x32\x0e.gmt.v1.TensorH\x00\x12\x11\n\x04step\x18\x04 \x01(\x03H\x01\x88\x01\x01\x12\x13\n\x06reward\x18\x1e \x01(\x01H\x02\x88\x01\x01\x12\x17\n\nterminated\x18\x1f \x01(\x08H\x03\x88\x01\x01\x12\x16\n\ttruncated\x18  \x01(\x08H\x04\x88\x01\x01\x12*\n\x04info\x18! \x03(\x0b\x32\x1c.gmt.v1.ActRequest.InfoEntry\x1a+\n\tInfoEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x42\r\n\x0bobservationB\x07\n\x05_stepB\t\n\x07_rewardB\r\n\x0b_terminatedB\x0c\n\n_truncated\"{\n\x0b\x41\x63tResponse\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12\x17\n\x0f\x64iscrete_action\x18\x02 \x01(\x03\x12\x13\n\x0bis_discrete\x18\x03 \x01(\x08\x12\x0c\n\x04step\x18\x04 \x01(\x03\x12\x0c\n\x04goal\x18\x05 \x01(\x05\x12\x12\n\nsession_id\x18\x06 \x01(\t\"7\n\x0f\x41\x63tBatchRequest\x12$\n\x08requests\x18\x01 \x03(\x0b\x32\x12.gmt.v1.ActRequest\".\n\rActBatchError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"~\n\x0e\x41\x63tBatchResult\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12%\n\x06\x61\x63tion\x18\x02 \x01(\x0b\x32\x13.gmt.v1.ActResponseH\x00\x12&\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.gmt.v1.ActBatchErrorH\x00\x42\t\n\x07outcome\";\n\x10\x41\x63tBatchResponse\x12\'\n\x07results\x18\x01 \x03(\x0b\x32\x16.gmt.v1.ActBatchResult\"]\n\x0eSetGoalRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\x12\x13\n\x0b\x62lend_steps\x18\x03 \x01(\x05\"M\n\x13ResetSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\"\n\x04goal\x18\x02 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\"(\n\x12GetTimelineRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"\x8e\x01\n\rTimelineEntry\x12\x0c\n\x04step\x18\x01 \x01(\x03\x12\x0f\n\x07\x65pisode\x18\x02 \x01(\x03\x12\x0c\n\x04goal\x18\x03 \x01(\x05\x12#\n\x05given\x18\x04 \x01(\x0b\x32\x14.gmt.v1.GoalSelector\x12\x13\n\x0b\x62lend_steps\x18\x05 \x01(\x05\x12\n\n\x02\x62y\x18\x06 \x01(\t\x12\n\n\x02\x61t\x18\x07 \x01(\x01\"\x98\x01\n\x08Timeline\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\r\n\x05model\x18\x02 \x01(\t\x12\x13\n\x0b\x66ingerprint\x18\x03 \x01(\t\x12\x0c\n\x04step\x18\x04 \x01(\x03\x12\x0f\n\x07\x65pisode\x18\x05 \x01(\x03\x12\x0f\n\x07\x65ntries\x18\x06 \x01(\x03\x12$\n\x05goals\x18\x07 \x03(\x0b\x32\x15.gmt.v1.TimelineEntry\")\n\x13\x43loseSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"*\n\x14\x43loseSessionResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\"\x98\x01\n\x0e\x43ontrolRequest\x12!\n\x03\x61\x63t\x18\x01 \x01(\x0b\x32\x12.gmt.v1.ActRequestH\x00\x12*\n\x08set_goal\x18\x02 \x01(\x0b\x32\x16.gmt.v1.SetGoalRequestH\x00\x12,\n\x05reset\x18\x03 \x01(\x0b\x32\x1b.gmt.v1.ResetSessionRequestH\x00\x42\t\n\x07\x63ommand\"-\n\x0c\x43ontrolError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x8e\x01\n\x0f\x43ontrolResponse\x12\"\n\x03\x61\x63t\x18\x01 \x01(\x0b\x32\x13.gmt.v1.ActResponseH\x00\x12&\n\x07session\x18\x02 \x01(\x0b\x32\x13.gmt.v1.SessionInfoH\x00\x12%\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x14.gmt.v1.ControlErrorH\x00\x42\x08\n\x06result2\xbf\x05\n\rPolicyService\x12\x43\n\nListModels\x12\x19.gmt.v1.ListModelsRequest\x1a\x1a.gmt.v1.ListModelsResponse\x12\x36\n\x08GetModel\x12\x17.gmt.v1.GetModelRequest\x1a\x11.gmt.v1.ModelInfo\x12\x42\n\rCreateSession\x12\x1c.gmt.v1.CreateSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12<\n\nGetSession\x12\x19.gmt.v1.GetSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12.\n\x03\x41\x63t\x12\x12.gmt.v1.ActRequest\x1a\x13.gmt.v1.ActResponse\x12\x36\n\x07SetGoal\x12\x16.gmt.v1.SetGoalRequest\x1a\x13.gmt.v1.SessionInfo\x12@\n\x0cResetSession\x12\x1b.gmt.v1.ResetSessionRequest\x1a\x13.gmt.v1.SessionInfo\x12I\n\x0c\x43loseSession\x12\x1b.gmt.v1.CloseSessionRequest\x1a\x1c.gmt.v1.CloseSessionResponse\x12=\n\x08\x41\x63tBatch\x12\x17.gmt.v1.ActBatchRequest\x1a\x18.gmt.v1.ActBatchResponse\x12>\n\x07\x43ontrol\x12\x16.gmt.v1.ControlRequest\x1a\x17.gmt.v1.ControlResponse(\x01\x30\x01\x12;\n\x0bGetTimeline\x12\x1a.gmt.v1.GetTimelineRequest\x1a\x10.gmt.v1.Timelineb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'gmt.v1.policy_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
+  _globals['_ACTREQUEST_INFOENTRY']._loaded_options = None
+  _globals['_ACTREQUEST_INFOENTRY']._serialized_options = b'8\001'
   _globals['_OBSERVATION']._serialized_start=31
   _globals['_OBSERVATION']._serialized_end=125
   _globals['_FLOATVECTOR']._serialized_start=127
@@ -50,43 +52,51 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_CANARY']._serialized_start=906
   _globals['_CANARY']._serialized_end=946
   _globals['_SESSIONINFO']._serialized_start=949
-  _globals['_SESSIONINFO']._serialized_end=1224
-  _globals['_LISTMODELSREQUEST']._serialized_start=1226
-  _globals['_LISTMODELSREQUEST']._serialized_end=1245
-  _globals['_LISTMODELSRESPONSE']._serialized_start=1247
-  _globals['_LISTMODELSRESPONSE']._serialized_end=1302
-  _globals['_GETMODELREQUEST']._serialized_start=1304
-  _globals['_GETMODELREQUEST']._serialized_end=1335
-  _globals['_CREATESESSIONREQUEST']._serialized_start=1338
-  _globals['_CREATESESSIONREQUEST']._serialized_end=1517
-  _globals['_GETSESSIONREQUEST']._serialized_start=1519
-  _globals['_GETSESSIONREQUEST']._serialized_end=1558
-  _globals['_ACTREQUEST']._serialized_start=1561
-  _globals['_ACTREQUEST']._serialized_end=1709
-  _globals['_ACTRESPONSE']._serialized_start=1711
-  _globals['_ACTRESPONSE']._serialized_end=1834
-  _globals['_ACTBATCHREQUEST']._serialized_start=1836
-  _globals['_ACTBATCHREQUEST']._serialized_end=1891
-  _globals['_ACTBATCHERROR']._serialized_start=1893
-  _globals['_ACTBATCHERROR']._serialized_end=1939
-  _globals['_ACTBATCHRESULT']._serialized_start=1941
-  _globals['_ACTBATCHRESULT']._serialized_end=2067
-  _globals['_ACTBATCHRESPONSE']._serialized_start=2069
-  _globals['_ACTBATCHRESPONSE']._serialized_end=2128
-  _globals['_SETGOALREQUEST']._serialized_start=2130
-  _globals['_SETGOALREQUEST']._serialized_end=2223
-  _globals['_RESETSESSIONREQUEST']._serialized_start=2225
-  _globals['_RESETSESSIONREQUEST']._serialized_end=2302
-  _globals['_CLOSESESSIONREQUEST']._serialized_start=2304
-  _globals['_CLOSESESSIONREQUEST']._serialized_end=2345
-  _globals['_CLOSESESSIONRESPONSE']._serialized_start=2347
-  _globals['_CLOSESESSIONRESPONSE']._serialized_end=2389
-  _globals['_CONTROLREQUEST']._serialized_start=2392
-  _globals['_CONTROLREQUEST']._serialized_end=2544
-  _globals['_CONTROLERROR']._serialized_start=2546
-  _globals['_CONTROLERROR']._serialized_end=2591
-  _globals['_CONTROLRESPONSE']._serialized_start=2594
-  _globals['_CONTROLRESPONSE']._serialized_end=2736
-  _globals['_POLICYSERVICE']._serialized_start=2739
-  _globals['_POLICYSERVICE']._serialized_end=3381
+  _globals['_SESSIONINFO']._serialized_end=1291
+  _globals['_LISTMODELSREQUEST']._serialized_start=1293
+  _globals['_LISTMODELSREQUEST']._serialized_end=1312
+  _globals['_LISTMODELSRESPONSE']._serialized_start=1314
+  _globals['_LISTMODELSRESPONSE']._serialized_end=1369
+  _globals['_GETMODELREQUEST']._serialized_start=1371
+  _globals['_GETMODELREQUEST']._serialized_end=1402
+  _globals['_CREATESESSIONREQUEST']._serialized_start=1405
+  _globals['_CREATESESSIONREQUEST']._serialized_end=1616
+  _globals['_GETSESSIONREQUEST']._serialized_start=1618
+  _globals['_GETSESSIONREQUEST']._serialized_end=1657
+  _globals['_ACTREQUEST']._serialized_start=1660
+  _globals['_ACTREQUEST']._serialized_end=2007
+  _globals['_ACTREQUEST_INFOENTRY']._serialized_start=1900
+  _globals['_ACTREQUEST_INFOENTRY']._serialized_end=1943
+  _globals['_ACTRESPONSE']._serialized_start=2009
+  _globals['_ACTRESPONSE']._serialized_end=2132
+  _globals['_ACTBATCHREQUEST']._serialized_start=2134
+  _globals['_ACTBATCHREQUEST']._serialized_end=2189
+  _globals['_ACTBATCHERROR']._serialized_start=2191
+  _globals['_ACTBATCHERROR']._serialized_end=2237
+  _globals['_ACTBATCHRESULT']._serialized_start=2239
+  _globals['_ACTBATCHRESULT']._serialized_end=2365
+  _globals['_ACTBATCHRESPONSE']._serialized_start=2367
+  _globals['_ACTBATCHRESPONSE']._serialized_end=2426
+  _globals['_SETGOALREQUEST']._serialized_start=2428
+  _globals['_SETGOALREQUEST']._serialized_end=2521
+  _globals['_RESETSESSIONREQUEST']._serialized_start=2523
+  _globals['_RESETSESSIONREQUEST']._serialized_end=2600
+  _globals['_GETTIMELINEREQUEST']._serialized_start=2602
+  _globals['_GETTIMELINEREQUEST']._serialized_end=2642
+  _globals['_TIMELINEENTRY']._serialized_start=2645
+  _globals['_TIMELINEENTRY']._serialized_end=2787
+  _globals['_TIMELINE']._serialized_start=2790
+  _globals['_TIMELINE']._serialized_end=2942
+  _globals['_CLOSESESSIONREQUEST']._serialized_start=2944
+  _globals['_CLOSESESSIONREQUEST']._serialized_end=2985
+  _globals['_CLOSESESSIONRESPONSE']._serialized_start=2987
+  _globals['_CLOSESESSIONRESPONSE']._serialized_end=3029
+  _globals['_CONTROLREQUEST']._serialized_start=3032
+  _globals['_CONTROLREQUEST']._serialized_end=3184
+  _globals['_CONTROLERROR']._serialized_start=3186
+  _globals['_CONTROLERROR']._serialized_end=3231
+  _globals['_CONTROLRESPONSE']._serialized_start=3234
+  _globals['_CONTROLRESPONSE']._serialized_end=3376
+  _globals['_POLICYSERVICE']._serialized_start=3379
+  _globals['_POLICYSERVICE']._serialized_end=4082
 # @@protoc_insertion_point(module_scope)

@@ -123,7 +123,7 @@ class Canary(_message.Message):
     def __init__(self, version: _Optional[str] = ..., share: _Optional[float] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from", "model_version")
+    __slots__ = ("session_id", "model", "goal", "goal_name", "step", "context_size", "blend_remaining", "idle_timeout_s", "action_mode", "context_goals", "expires_in_s", "blend_from", "model_version", "effective_step", "recording")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
@@ -137,6 +137,8 @@ class SessionInfo(_message.Message):
     EXPIRES_IN_S_FIELD_NUMBER: _ClassVar[int]
     BLEND_FROM_FIELD_NUMBER: _ClassVar[int]
     MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
+    EFFECTIVE_STEP_FIELD_NUMBER: _ClassVar[int]
+    RECORDING_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     model: str
     goal: int
@@ -150,7 +152,9 @@ class SessionInfo(_message.Message):
     expires_in_s: float
     blend_from: int
     model_version: str
-    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ..., context_goals: _Optional[_Iterable[int]] = ..., expires_in_s: _Optional[float] = ..., blend_from: _Optional[int] = ..., model_version: _Optional[str] = ...) -> None: ...
+    effective_step: int
+    recording: bool
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., goal: _Optional[int] = ..., goal_name: _Optional[str] = ..., step: _Optional[int] = ..., context_size: _Optional[int] = ..., blend_remaining: _Optional[int] = ..., idle_timeout_s: _Optional[float] = ..., action_mode: _Optional[str] = ..., context_goals: _Optional[_Iterable[int]] = ..., expires_in_s: _Optional[float] = ..., blend_from: _Optional[int] = ..., model_version: _Optional[str] = ..., effective_step: _Optional[int] = ..., recording: _Optional[bool] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()
@@ -169,20 +173,22 @@ class GetModelRequest(_message.Message):
     def __init__(self, name: _Optional[str] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("model", "goal", "seed", "action_mode", "session_id", "version")
+    __slots__ = ("model", "goal", "seed", "action_mode", "session_id", "version", "record")
     MODEL_FIELD_NUMBER: _ClassVar[int]
     GOAL_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODE_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
+    RECORD_FIELD_NUMBER: _ClassVar[int]
     model: str
     goal: GoalSelector
     seed: int
     action_mode: str
     session_id: str
     version: str
-    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ..., session_id: _Optional[str] = ..., version: _Optional[str] = ...) -> None: ...
+    record: bool
+    def __init__(self, model: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ..., seed: _Optional[int] = ..., action_mode: _Optional[str] = ..., session_id: _Optional[str] = ..., version: _Optional[str] = ..., record: _Optional[bool] = ...) -> None: ...
 
 class GetSessionRequest(_message.Message):
     __slots__ = ("session_id",)
@@ -191,16 +197,31 @@ class GetSessionRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class ActRequest(_message.Message):
-    __slots__ = ("session_id", "values", "tensor", "step")
+    __slots__ = ("session_id", "values", "tensor", "step", "reward", "terminated", "truncated", "info")
+    class InfoEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     VALUES_FIELD_NUMBER: _ClassVar[int]
     TENSOR_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
+    REWARD_FIELD_NUMBER: _ClassVar[int]
+    TERMINATED_FIELD_NUMBER: _ClassVar[int]
+    TRUNCATED_FIELD_NUMBER: _ClassVar[int]
+    INFO_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     values: FloatVector
     tensor: Tensor
     step: int
-    def __init__(self, session_id: _Optional[str] = ..., values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ..., step: _Optional[int] = ...) -> None: ...
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: _containers.ScalarMap[str, float]
+    def __init__(self, session_id: _Optional[str] = ..., values: _Optional[_Union[FloatVector, _Mapping]] = ..., tensor: _Optional[_Union[Tensor, _Mapping]] = ..., step: _Optional[int] = ..., reward: _Optional[float] = ..., terminated: _Optional[bool] = ..., truncated: _Optional[bool] = ..., info: _Optional[_Mapping[str, float]] = ...) -> None: ...
 
 class ActResponse(_message.Message):
     __slots__ = ("action", "discrete_action", "is_discrete", "step", "goal", "session_id")
@@ -265,6 +286,48 @@ class ResetSessionRequest(_message.Message):
     session_id: str
     goal: GoalSelector
     def __init__(self, session_id: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ...) -> None: ...
+
+class GetTimelineRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class TimelineEntry(_message.Message):
+    __slots__ = ("step", "episode", "goal", "given", "blend_steps", "by", "at")
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    GIVEN_FIELD_NUMBER: _ClassVar[int]
+    BLEND_STEPS_FIELD_NUMBER: _ClassVar[int]
+    BY_FIELD_NUMBER: _ClassVar[int]
+    AT_FIELD_NUMBER: _ClassVar[int]
+    step: int
+    episode: int
+    goal: int
+    given: GoalSelector
+    blend_steps: int
+    by: str
+    at: float
+    def __init__(self, step: _Optional[int] = ..., episode: _Optional[int] = ..., goal: _Optional[int] = ..., given: _Optional[_Union[GoalSelector, _Mapping]] = ..., blend_steps: _Optional[int] = ..., by: _Optional[str] = ..., at: _Optional[float] = ...) -> None: ...
+
+class Timeline(_message.Message):
+    __slots__ = ("session_id", "model", "fingerprint", "step", "episode", "entries", "goals")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_FIELD_NUMBER: _ClassVar[int]
+    ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    GOALS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    model: str
+    fingerprint: str
+    step: int
+    episode: int
+    entries: int
+    goals: _containers.RepeatedCompositeFieldContainer[TimelineEntry]
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., fingerprint: _Optional[str] = ..., step: _Optional[int] = ..., episode: _Optional[int] = ..., entries: _Optional[int] = ..., goals: _Optional[_Iterable[_Union[TimelineEntry, _Mapping]]] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -84,6 +84,11 @@ class PolicyServiceStub:
                 request_serializer=gmt_dot_v1_dot_policy__pb2.ControlRequest.SerializeToString,
                 response_deserializer=gmt_dot_v1_dot_policy__pb2.ControlResponse.FromString,
                 _registered_method=True)
+        self.GetTimeline = channel.unary_unary(
+                '/gmt.v1.PolicyService/GetTimeline',
+                request_serializer=gmt_dot_v1_dot_policy__pb2.GetTimelineRequest.SerializeToString,
+                response_deserializer=gmt_dot_v1_dot_policy__pb2.Timeline.FromString,
+                _registered_method=True)
 
 
 class PolicyServiceServicer:
@@ -151,6 +156,13 @@ class PolicyServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetTimeline(self, request, context):
+        """Every goal the session had (its recording, when it records, is served over REST: GET /sessions/{id}/recording).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_PolicyServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -203,6 +215,11 @@ def add_PolicyServiceServicer_to_server(servicer, server):
                     servicer.Control,
                     request_deserializer=gmt_dot_v1_dot_policy__pb2.ControlRequest.FromString,
                     response_serializer=gmt_dot_v1_dot_policy__pb2.ControlResponse.SerializeToString,
+            ),
+            'GetTimeline': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetTimeline,
+                    request_deserializer=gmt_dot_v1_dot_policy__pb2.GetTimelineRequest.FromString,
+                    response_serializer=gmt_dot_v1_dot_policy__pb2.Timeline.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -475,6 +492,33 @@ class PolicyService:
             '/gmt.v1.PolicyService/Control',
             gmt_dot_v1_dot_policy__pb2.ControlRequest.SerializeToString,
             gmt_dot_v1_dot_policy__pb2.ControlResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetTimeline(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gmt.v1.PolicyService/GetTimeline',
+            gmt_dot_v1_dot_policy__pb2.GetTimelineRequest.SerializeToString,
+            gmt_dot_v1_dot_policy__pb2.Timeline.FromString,
             options,
             channel_credentials,
             insecure,
