@@ -195,7 +195,6 @@ def replay_command(
     from gmt.common.recording import RecordingError, find_recordings, read_recording
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.replay import ReplayError, plot_replay, replay
-    from gmt.service.records import fingerprint
 
     torch.set_num_threads(threads)
     try:
@@ -210,7 +209,7 @@ def replay_command(
             action_mode=action_mode,
             seed=seed,
             window=window,
-            fingerprint=fingerprint(ckpt.model.state_dict(), ckpt.meta),
+            fingerprint=ckpt.fingerprint,
         )
     except (ReplayError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)

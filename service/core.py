@@ -37,7 +37,7 @@ from gmt.service.errors import (
 )
 from gmt.service.metrics import Metrics
 from gmt.service.observations import MAX_ABS_VALUE, to_array
-from gmt.service.records import BY, Layout, Report, assemble, decode_timeline, fingerprint, record_drawn
+from gmt.service.records import BY, Layout, Report, assemble, decode_timeline, record_drawn
 from gmt.service.registry import (
     DRAINING,
     LoadedModel,
@@ -192,6 +192,7 @@ class TimelineView:
 
     session_id: str
     model: str
+    model_version: str
     fingerprint: str | None
     step: int
     episode: int
@@ -244,7 +245,6 @@ class Core:
         self._locks: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
         self._sweeper: asyncio.Task | None = None
         self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
-        self._fingerprints: dict[str, str] = {}
         self._archives: set[asyncio.Task] = set()  # recordings being written (expired sessions)
 
     # ----- lifecycle ----------------------------------------------------------------------------------------
@@ -931,16 +931,19 @@ class Core:
             self._note_step(m, s, ctx, step, observation, action, report)
             await self._save(m, s, version)
             result = self._result(m, sid, action, step, goal)
-            self._acted(s, result, t0)
+            self._acted(s, result, t0, report)
         return result
 
-    def _acted(self, s: Session, r: ActResult, t0: float) -> None:
-        """Account for an answered act begun at `perf_counter()` `t0`: the session's activity, its watchers."""
+    def _acted(self, s: Session, r: ActResult, t0: float, report: Report | None = None) -> None:
+        """Account for an answered act begun at `perf_counter()` `t0`: the session's activity, its watchers (who
+        also get the reward the client reported for the previous step, when it did)."""
         latency = time.perf_counter() - t0
         s.activity.record(s.last_used, latency, self.settings.replica_id)
         if s.id in self.events:
             action = r.action if r.action is not None else r.discrete_action
             data = {"step": r.step, "goal": r.goal, "action": action, "latency_ms": latency * 1000.0}
+            if report is not None and report.reward is not None:
+                data["reward"], data["reward_step"] = report.reward, r.step - 1
             self.events.publish(s.id, "act", data)
 
     async def _prepare(self, sid: str, observation: object, step: int | None, report: Report | None = None):
@@ -1071,15 +1074,15 @@ class Core:
                         raise a
                     s.last_used = now
                     self._note_step(m, s, ctx, step, obs, a, report)
-                    stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal)))
+                    stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal), report))
                 # Every write at once: a shared store sends them in one round trip (group commit).
                 point_of_no_return()
-                saved = await self.store.save_many([(s, version) for _, s, _, version, _ in stepped])
-                for (i, s, m, _, result), e in zip(stepped, saved, strict=True):
+                saved = await self.store.save_many([(s, version) for _, s, _, version, _, _ in stepped])
+                for (i, s, m, _, result, report), e in zip(stepped, saved, strict=True):
                     if e is not None:
                         m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
                     else:
-                        self._acted(s, result, t0)
+                        self._acted(s, result, t0, report)
                     out[i] = e if e is not None else result
         return out
 
@@ -1232,22 +1235,15 @@ class Core:
         raise Aborted(f"session {sid!r} kept changing while it was being closed; retry the close")
 
     # ----- records ------------------------------------------------------------------------------------------
-    def fingerprint(self, model: str) -> str | None:
-        """sha256 hex of a served model's weights and gmt.json (None for a model this server lacks)."""
-        fp = self._fingerprints.get(model)
-        m = self.registry.models.get(model) if self.registry else None
-        if fp is None and m is not None:
-            fp = self._fingerprints[model] = fingerprint(m.checkpoint.model.state_dict(), m.checkpoint.meta)
-        return fp
-
     def _describe(self, s: Session, ended_by: str | None) -> dict:
         """A recording's metadata (`gmt.common.recording`) for session `s`."""
-        m = self.registry.models.get(s.model) if self.registry else None
+        m = self.registry.find(s.model, s.model_version) if self.registry else None
         c = m.checkpoint if m is not None else None
         return {
             "session_id": s.id,
             "model": s.model,
-            "fingerprint": self.fingerprint(s.model),
+            "model_version": s.model_version or (m.version if m else None),
+            "fingerprint": s.fingerprint or (m.fingerprint if m else None),
             "env_id": c.env_id if c else None,
             "observation_space": c.observation_space if c else None,
             "action_space": c.action_space if c else None,
@@ -1309,10 +1305,12 @@ class Core:
         check_session_id(sid)
         async with self._lock(sid):
             s, timeline, _ = await self.store.entries(sid, records=False)
+        m = self.registry.find(s.model, s.model_version)
         return TimelineView(
             session_id=s.id,
             model=s.model,
-            fingerprint=self.fingerprint(s.model),
+            model_version=s.model_version or (m.version if m else ""),
+            fingerprint=s.fingerprint or (m.fingerprint if m else None),
             step=int(s.ctx.step),
             episode=s.ledger.episode,
             goals=decode_timeline(timeline),

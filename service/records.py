@@ -21,7 +21,6 @@ so a retried or aborted act never adds a record twice) and then calls `Ledger.wr
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import re
 import struct
@@ -361,20 +360,6 @@ def assemble(meta: dict, layout: Layout, timeline: list[bytes], records: list[by
         "timeline": decode_timeline(timeline),
     }
     return Recording(full, decode_records(layout, records))
-
-
-def fingerprint(state_dict: dict, meta: dict) -> str:
-    """sha256 hex of a model's weights (names, dtypes, shapes, bytes, in name order) and its gmt.json."""
-    import torch
-
-    h = hashlib.sha256()
-    for name in sorted(state_dict):
-        t = state_dict[name].detach().cpu().contiguous()
-        h.update(f"{name}|{t.dtype}|{list(t.shape)}|".encode())
-        if t.numel():
-            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
-    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
-    return h.hexdigest()
 
 
 def record_drawn(session_id: str, share: float) -> bool:

@@ -93,6 +93,7 @@ def timeline(v: TimelineView) -> pb.Timeline:
     return pb.Timeline(
         session_id=v.session_id,
         model=v.model,
+        model_version=v.model_version,
         fingerprint=v.fingerprint or "",
         step=v.step,
         episode=v.episode,

@@ -249,6 +249,7 @@ async def recording(
 _META = (
     "session_id",
     "model",
+    "model_version",
     "fingerprint",
     "env_id",
     "action_mode",

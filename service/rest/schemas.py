@@ -303,7 +303,8 @@ class TimelineOut(BaseModel):
 
     session_id: str
     model: str
-    fingerprint: str | None = Field(description="sha256 of the model's weights and gmt.json.")
+    model_version: str = Field(description="The model version the session runs for its whole life.")
+    fingerprint: str | None = Field(description="sha256 of the version's weights and gmt.json.")
     step: int = Field(description="The session's step now (its next act's).")
     episode: int
     entries: int = Field(description="Goal changes made; more than listed once the timeline is full.")
@@ -321,6 +322,7 @@ class RecordingOut(BaseModel):
 
     session_id: str
     model: str
+    model_version: str | None = None
     fingerprint: str | None
     env_id: str | None
     action_mode: str

@@ -170,7 +170,16 @@ def test_events_see_act_many_items(served, api):
     reader.next("session")
     r = api.post("/act", json={"requests": [{"session_id": sid, "observation": OBS}]})
     assert r.status_code == 200 and "error" not in r.json()["results"][0]
-    assert reader.next("act")["step"] == 0
+    first = reader.next("act")
+    assert first["step"] == 0 and "reward" not in first
+    # A reward the client reports with its next act is the previous step's; the page charts it there.
+    r = api.post("/act", json={"requests": [{"session_id": sid, "observation": OBS, "reward": 1.5}]})
+    assert r.status_code == 200 and "error" not in r.json()["results"][0]
+    second = reader.next("act")
+    assert (second["step"], second["reward"], second["reward_step"]) == (1, 1.5, 0)
+    assert api.post(f"/sessions/{sid}/act", json={"observation": OBS, "reward": -2.0}).status_code == 200
+    third = reader.next("act")
+    assert (third["step"], third["reward"], third["reward_step"]) == (2, -2.0, 1)
     api.delete(f"/sessions/{sid}")
     assert reader.ended.wait(30)
 

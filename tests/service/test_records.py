@@ -70,7 +70,14 @@ def test_rest_session_records_every_step_once_with_its_goal_timeline(recorder):
         tl = http.get(f"/sessions/{sid}/timeline")
         assert tl.status_code == 200 and tl.headers["x-session-id"] == sid
         body = tl.json()
-        assert body["step"] == 12 and body["episode"] == 0 and body["entries"] == 3 and body["fingerprint"]
+        assert body["step"] == 12 and body["episode"] == 0 and body["entries"] == 3
+        session = http.get(f"/sessions/{sid}").json()  # the timeline names the version the session runs
+        version = next(v for v in http.get("/models").json()["models"] if v["name"] == session["model"])[
+            "versions"
+        ]
+        fingerprints = {v["version"]: v["fingerprint"] for v in version}
+        assert body["model_version"] == session["model_version"]
+        assert body["fingerprint"] == fingerprints[session["model_version"]]
         assert [(e["step"], e["goal"], e["given"], e["blend_steps"], e["by"]) for e in body["goals"]] == [
             (0, 0, {"goal": 0}, 0, "create"),
             (4, 2, {"goal": "high"}, 0, "rest"),
@@ -78,6 +85,7 @@ def test_rest_session_records_every_step_once_with_its_goal_timeline(recorder):
         ]
 
         rec = http.get(f"/sessions/{sid}/recording").json()
+        assert (rec["model_version"], rec["fingerprint"]) == (body["model_version"], body["fingerprint"])
         assert rec["steps"] == 12 and rec["t"] == list(range(12)) and rec["episode"] == [0] * 12
         assert rec["actions"] == [a["action"] for a in answers]
         np.testing.assert_array_equal(np.asarray(rec["observations"], np.float32), OBS[:12])

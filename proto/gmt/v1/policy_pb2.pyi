@@ -312,7 +312,7 @@ class TimelineEntry(_message.Message):
     def __init__(self, step: _Optional[int] = ..., episode: _Optional[int] = ..., goal: _Optional[int] = ..., given: _Optional[_Union[GoalSelector, _Mapping]] = ..., blend_steps: _Optional[int] = ..., by: _Optional[str] = ..., at: _Optional[float] = ...) -> None: ...
 
 class Timeline(_message.Message):
-    __slots__ = ("session_id", "model", "fingerprint", "step", "episode", "entries", "goals")
+    __slots__ = ("session_id", "model", "fingerprint", "step", "episode", "entries", "goals", "model_version")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
@@ -320,6 +320,7 @@ class Timeline(_message.Message):
     EPISODE_FIELD_NUMBER: _ClassVar[int]
     ENTRIES_FIELD_NUMBER: _ClassVar[int]
     GOALS_FIELD_NUMBER: _ClassVar[int]
+    MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     model: str
     fingerprint: str
@@ -327,7 +328,8 @@ class Timeline(_message.Message):
     episode: int
     entries: int
     goals: _containers.RepeatedCompositeFieldContainer[TimelineEntry]
-    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., fingerprint: _Optional[str] = ..., step: _Optional[int] = ..., episode: _Optional[int] = ..., entries: _Optional[int] = ..., goals: _Optional[_Iterable[_Union[TimelineEntry, _Mapping]]] = ...) -> None: ...
+    model_version: str
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., fingerprint: _Optional[str] = ..., step: _Optional[int] = ..., episode: _Optional[int] = ..., entries: _Optional[int] = ..., goals: _Optional[_Iterable[_Union[TimelineEntry, _Mapping]]] = ..., model_version: _Optional[str] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -248,7 +248,7 @@ function onEvent(v, kind, d) {
     const action = Array.isArray(d.action) ? d.action : [d.action];
     v.actions.push([d.step, action]);
     v.goals.push([d.step, d.goal]);
-    if (typeof d.reward === "number") v.rewards.push([d.step, d.reward]);
+    if (typeof d.reward === "number") v.rewards.push([d.reward_step ?? d.step, d.reward]);
     for (const list of [v.actions, v.goals, v.rewards]) if (list.length > HISTORY) list.splice(0, list.length - HISTORY);
     const goalName = v.spec.goals.find((g) => g.id === d.goal)?.name ?? "";
     setState(v, { goal: d.goal, goal_name: goalName, step: d.step + 1 });
