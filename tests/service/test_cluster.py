@@ -16,6 +16,7 @@ from pathlib import Path
 import grpc
 import httpx
 import numpy as np
+import orjson
 import pytest
 
 from gmt.client import base
@@ -343,6 +344,22 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
             assert where == survivor
             s.close()
         padding.close()
+
+
+def test_a_large_many_session_call_passes_through_nginx(running):
+    """A `POST /act` of 96 sessions (~15 KB, more than nginx keeps in memory by default) and its answer pass
+    through nginx, whose workers cannot write temporary files in a private run directory (they answered 500)."""
+    with httpx.Client(base_url=running.rest_url, timeout=30) as http:
+        sids = [
+            http.post("/sessions", json={"model": MODEL, "goal": 0}).json()["session_id"] for _ in range(96)
+        ]
+        body = {"requests": [{"session_id": s, "observation": [0.1] * 17} for s in sids]}
+        assert len(orjson.dumps(body)) > 12_000
+        r = http.post("/act", json=body, headers={"X-Session-Id": min(sids)})
+        assert r.status_code == 200, r.text[:300]
+        assert [x.get("step") for x in r.json()["results"]] == [0] * len(sids)
+        for s in sids:
+            http.delete(f"/sessions/{s}")
 
 
 @needs_programs
