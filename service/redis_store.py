@@ -177,7 +177,9 @@ class RedisSessionStore(SessionStore):
         # micro-batcher waits for as many acts as there are such sessions).
         self._seen: dict[str, tuple[str, float]] = {}
         self._seen_per_model: Counter[str] = Counter()
-        self._queue: list[tuple[str, list, asyncio.Future]] = []  # writes waiting for this turn's pipeline
+        self._queue: list[
+            tuple[list, asyncio.Future]
+        ] = []  # (changes, their caller) waiting for this turn's write
         self._flushes: set[asyncio.Task] = set()
 
     # ----- keys and calls ---------------------------------------------------------------------------------------
@@ -315,33 +317,48 @@ class RedisSessionStore(SessionStore):
         return fields
 
     async def save(self, session: Session, read_version: int | None = None) -> None:
-        fut = self._queue_save(session, read_version)
         try:
-            n = await fut
-        except ServiceError as e:
+            (outcome,) = await self._enqueue([self._entry(session, read_version)])
+        except ServiceError as e:  # the whole write failed: unknown whether it was applied
             raise self._failed(session, e) from None
-        self._saved(session, n)
+        if isinstance(outcome, ServiceError):
+            raise self._failed(session, outcome)
+        self._saved(session, outcome)
 
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
-        futures = []
-        for session, read_version in items:  # all queued in this turn: one script call writes them all
+        entries, refused = [], {}
+        for i, (session, read_version) in enumerate(
+            items
+        ):  # all in this turn: one script call writes them all
             try:
-                futures.append(self._queue_save(session, read_version))
+                entries.append(self._entry(session, read_version))
             except ServiceError as e:
-                futures.append(e)
+                refused[i] = e
+        try:
+            outcomes = iter(await self._enqueue(entries) if entries else ())
+        except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
+            outcomes = iter([e] * len(entries))
         out: list[ServiceError | None] = []
-        for (session, _), fut in zip(items, futures, strict=True):
+        for i, (session, _) in enumerate(items):
+            if i in refused:
+                out.append(refused[i])
+                continue
+            outcome = next(outcomes)
             try:
-                if isinstance(fut, ServiceError):
-                    raise fut
-                self._saved(session, await fut)
+                if isinstance(outcome, ServiceError):
+                    raise self._failed(session, outcome)
+                self._saved(session, outcome)
                 out.append(None)
             except ServiceError as e:
-                out.append(self._failed(session, e) if not isinstance(fut, ServiceError) else e)
+                out.append(e)
         return out
 
-    def _queue_save(self, session: Session, read_version: int | None) -> asyncio.Future:
-        """Queue the session's change for this turn's write; the future answers the script's result for it."""
+    def _entry(self, session: Session, read_version: int | None) -> tuple[list, list]:
+        """The (keys, arguments) of the session's change in the save script.
+
+        Raises:
+            Aborted: this replica's copy is not the version read (another request changed it meanwhile).
+        """
         held = self._held.get(session.id)
         if held is None or held.session is not session:
             raise ValueError(f"session {session.id!r} was not read from this store")
@@ -355,11 +372,16 @@ class RedisSessionStore(SessionStore):
                 keys.append(key)
                 args += [len(values), *values]
         args[2] = len(keys) - 1
+        return keys, args
+
+    def _enqueue(self, entries: list[tuple[list, list]]) -> asyncio.Future:
+        """Queue changes for this turn's write; the future answers, per change, the script's result for it or
+        the error that failed it (one future per caller, not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         if not self._queue:
             loop.call_soon(self._flush)
-        self._queue.append((keys, args, fut))
+        self._queue.append((entries, fut))
         return fut
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
@@ -384,11 +406,10 @@ class RedisSessionStore(SessionStore):
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
         them): at once on the open fast connection, else from a task that connects first."""
         queue, self._queue = self._queue, []
-        keys = [k for ks, _, _ in queue for k in ks]
+        keys = [k for entries, _ in queue for ks, _ in entries for k in ks]
+        argv = [a for entries, _ in queue for _, args in entries for a in args]
         # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
-        commands = [
-            ["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *(a for _, args, _ in queue for a in args)]
-        ]
+        commands = [["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *argv]]
         if self.min_replicas:
             commands.append(["WAIT", self.min_replicas, self._wait_ms])
         conn = self._fast
@@ -420,28 +441,28 @@ class RedisSessionStore(SessionStore):
         self._resolve(queue, replies)
 
     def _resolve(self, queue: list, replies: list | BaseException) -> None:
-        """Answer each queued write from the replies of its turn (or fail them all)."""
-        if not isinstance(replies, BaseException) and len(replies[0]) != len(queue):
-            replies = Internal(f"the store answered {len(replies[0])} of {len(queue)} writes")
+        """Answer each queued caller, per change, from the replies of its turn (or fail them all)."""
+        changes = sum(len(entries) for entries, _ in queue)
+        if not isinstance(replies, BaseException) and len(replies[0]) != changes:
+            replies = Internal(f"the store answered {len(replies[0])} of {changes} writes")
         if isinstance(replies, BaseException):
             err = (
                 replies
                 if isinstance(replies, ServiceError)
                 else Unavailable(f"session store unreachable: {replies}")
             )
-            for *_, fut in queue:
+            for _, fut in queue:
                 if not fut.done():
                     fut.set_exception(err)
             return
         results, *acked = replies
         short = self._not_replicated(acked[0] if acked else None)
-        for (*_, fut), r in zip(queue, results, strict=True):
-            if fut.done():
-                continue
-            if short is not None and int(r) == 0:
-                fut.set_exception(short)  # written on the primary only: not acknowledged (`save` marks it)
-            else:
-                fut.set_result(int(r))
+        at = 0
+        for entries, fut in queue:
+            mine, at = results[at : at + len(entries)], at + len(entries)
+            if not fut.done():
+                # A change written on the primary only is not acknowledged (`_failed` marks it unconfirmed).
+                fut.set_result([short if short is not None and int(r) == 0 else int(r) for r in mine])
 
     async def _send(self, commands: list[list]) -> list:
         """The replies to `commands`, sent together on the store's own pipelined connection to the primary
