@@ -91,7 +91,9 @@ response = function(status, headers, body)
     local _, n = string.gsub(body, '"error":', "")
     if n > 0 then
       item_errors = item_errors + n
-      if first_body == "" then first_body = body end
+      -- the failed item, not the start of a long batch answer
+      local at = string.find(body, '"error":', 1, true)
+      if first_body == "" then first_body = string.sub(body, math.max(1, at - 80)) end
     end
   end
 end
