@@ -54,6 +54,9 @@ class Checkpoint:
             their environment from it.
         default_action_mode: Action mode of sessions that name none (None: the engine's default), e.g.
             `sample` for a model whose goals differ in how often the data's agents acted at random.
+        switch_relabel_steps: On a goal change (without a blend), the last this-many steps of a session's context take
+            the new goal token, as if it had been pursued all along (0: the context keeps the goals it was
+            given; `gmt.model.engine.PolicyEngine.set_goal`).
         fingerprint: sha256 hex of the weights and the metadata as loaded (`fingerprint`); empty for a
             checkpoint built in memory.
         version: The served version: gmt.json's `version`, else the fingerprint's first 12 hex digits.
@@ -72,6 +75,7 @@ class Checkpoint:
     action_noise: np.ndarray | None = None
     preprocessing: dict | None = None
     default_action_mode: str | None = None
+    switch_relabel_steps: int = 0
     fingerprint: str = ""
     version: str = ""
 
@@ -127,6 +131,9 @@ def save_checkpoint(ckpt: Checkpoint, directory: str | Path, extra_meta: dict | 
     meta.pop("default_action_mode", None)
     if ckpt.default_action_mode:
         meta["default_action_mode"] = ckpt.default_action_mode
+    meta.pop("switch_relabel_steps", None)
+    if ckpt.switch_relabel_steps:
+        meta["switch_relabel_steps"] = ckpt.switch_relabel_steps
     if ckpt.action_noise is not None:
         meta["action_noise"] = {
             "std": np.asarray(ckpt.action_noise, dtype=np.float32).astype(np.float64).tolist(),
@@ -283,9 +290,20 @@ def load_checkpoint(
         action_noise=_action_noise(meta, cfg, meta_path),
         preprocessing=env.get("preprocessing"),
         default_action_mode=meta.get("default_action_mode"),
+        switch_relabel_steps=_switch_relabel_steps(meta, cfg, meta_path),
         fingerprint=fp,
         version=version_of(meta, fp),
     )
+
+
+def _switch_relabel_steps(meta: dict, cfg: GMTConfig, meta_path: Path) -> int:
+    n = meta.get("switch_relabel_steps", 0)
+    if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= cfg.history_steps:
+        raise CheckpointError(
+            f"{meta_path}: switch_relabel_steps must be a whole number of steps from 0 to the model's history "
+            f"({cfg.history_steps}), got {n!r}"
+        )
+    return n
 
 
 def _action_noise(meta: dict, cfg: GMTConfig, meta_path: Path) -> np.ndarray | None:

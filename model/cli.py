@@ -113,6 +113,10 @@ def _trained(ckpt, out: Path) -> None:
 def eval_command(
     checkpoint: Path = typer.Argument(..., help="Checkpoint directory."),
     seeds: int = typer.Option(15, help="Seeds 0..N-1 per condition."),
+    first_seed: int = typer.Option(
+        0,
+        help="Seeds first_seed..first_seed+N-1 instead (unseen seeds, e.g. to choose an inference setting).",
+    ),
     steps: int = typer.Option(1000, help="Episode length."),
     json_out: Path = typer.Option(None, "--json", help="Write the JSON result here."),
     markdown_out: Path = typer.Option(None, "--markdown", help="Write the Markdown table here."),
@@ -121,6 +125,11 @@ def eval_command(
     action_mode: str = typer.Option(
         None,
         help="mean or sample (continuous), argmax/sample/expert (discrete); default: the model's default.",
+    ),
+    switch_relabel_steps: int = typer.Option(
+        None,
+        help="Steps of context a goal change relabels with the new goal (0: none); default: the model's "
+        "(its gmt.json `switch_relabel_steps`).",
     ),
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
@@ -139,6 +148,7 @@ def eval_command(
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
     dt = ckpt.config.conditioning == "return"
+    seed_list = list(range(first_seed, first_seed + seeds))
     modes = ("mean",) if dt else PolicyEngine(ckpt).action_modes
     if action_mode is not None and action_mode not in modes:
         raise typer.BadParameter(
@@ -148,16 +158,27 @@ def eval_command(
         from gmt.model.eval_plot import plot_eval
         from gmt.model.evaluate_dt import evaluate_dt
 
-        result = evaluate_dt(ckpt, seeds=seeds, steps=steps)
+        result = evaluate_dt(ckpt, seeds=seed_list, steps=steps)
     elif ckpt.statistic == "return":
         from gmt.model.evaluate_return import evaluate_returns, plot_returns
 
-        result = evaluate_returns(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
+        result = evaluate_returns(ckpt, seeds=seed_list, steps=steps, action_mode=action_mode)
         plot_eval = plot_returns
     else:
         from gmt.model.eval_plot import plot_eval
 
-        result = evaluate(ckpt, seeds=seeds, steps=steps, action_mode=action_mode)
+        if switch_relabel_steps is not None and not 0 <= switch_relabel_steps <= ckpt.config.history_steps:
+            raise typer.BadParameter(
+                f"must be 0 to the model's history of {ckpt.config.history_steps} steps",
+                param_hint="--switch-relabel-steps",
+            )
+        result = evaluate(
+            ckpt,
+            seeds=seed_list,
+            steps=steps,
+            action_mode=action_mode,
+            switch_relabel_steps=switch_relabel_steps,
+        )
     table = result.markdown()
     typer.echo(table)
     if json_out:

@@ -134,6 +134,9 @@ class TrainConfig:
         default_action_mode: Action mode of sessions that name none, stored in the checkpoint (None: the
             engine's default, `expert` for discrete actions), e.g. `sample` when the goals differ in how often
             the data's agents acted at random.
+        switch_relabel_steps: Inference setting stored in the checkpoint: on a goal change (without a blend),
+            the last this-many steps of a session's context take the new goal token (0: none;
+            `gmt.model.engine.PolicyEngine.set_goal`); at most the model's history.
     """
 
     steps: int = 20000
@@ -159,6 +162,7 @@ class TrainConfig:
     augment_shift: float = 0.0
     augment_degrees: float = 0.0
     default_action_mode: str | None = None
+    switch_relabel_steps: int = 0
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -170,6 +174,8 @@ class TrainConfig:
             raise ValueError("steps and batch_size must be positive")
         if self.calibration_batches < 1:
             raise ValueError(f"calibration_batches must be >= 1, got {self.calibration_batches}")
+        if self.switch_relabel_steps < 0:
+            raise ValueError(f"switch_relabel_steps must be >= 0, got {self.switch_relabel_steps}")
         if self.sequence_length < 0:
             raise ValueError(f"sequence_length must be >= 0, got {self.sequence_length}")
         if self.augment_shift < 0 or self.augment_degrees < 0:

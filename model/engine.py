@@ -103,6 +103,8 @@ class PolicyEngine:
         n_slots: Initial pool size (it grows as sessions arrive).
         native: Compute the incremental step with the native kernel (`gmt.model.native`; None = whenever it is
             available and the model has vector observations); False keeps the torch step.
+        switch_relabel_steps: Steps of context a goal change relabels (`set_goal`; None = the checkpoint's
+            `switch_relabel_steps`).
     """
 
     def __init__(
@@ -111,6 +113,7 @@ class PolicyEngine:
         incremental: bool | None = None,
         n_slots: int = 16,
         native: bool | None = None,
+        switch_relabel_steps: int | None = None,
     ) -> None:
         if checkpoint.config.conditioning != "goal":
             raise ValueError(
@@ -147,6 +150,13 @@ class PolicyEngine:
             self.action_modes = (default, *(m for m in self.action_modes if m != default))
         self._lock = threading.RLock()
         self.pool = SessionPool(self.cfg, self.incremental, n_slots)
+        self.switch_relabel_steps = (
+            checkpoint.switch_relabel_steps if switch_relabel_steps is None else switch_relabel_steps
+        )
+        if not 0 <= self.switch_relabel_steps <= self.pool.H:
+            raise ValueError(
+                f"switch_relabel_steps must be 0 to {self.pool.H} (the history kept), got {self.switch_relabel_steps}"
+            )
         self._native = self._native_step(native) if self.incremental else None
         self._predict = Predictor(self.model, self.pool, self.incremental, self._native)
 
@@ -271,11 +281,23 @@ class PolicyEngine:
             p.cache.clear(torch.tensor([s]))
 
     @_locked
-    def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> None:
+    def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> int:
+        """Condition the context's next steps on `goal`, faded in over `blend_steps` steps (0: at once).
+
+        A change at once to another goal also relabels the context: the goal tokens of its last
+        `switch_relabel_steps` steps become `goal` (no blend), as if the new goal had been pursued all along, and the
+        key/value cache is rebuilt from them. Without it a model trained with goal masking reads the old
+        tokens as evidence of the old goal and follows the new one slowly (docs/results.md, "Relabelling
+        the context on a switch"). A blend keeps the context as it was given.
+
+        Returns:
+            The number of past steps relabelled (the session's stored steps from `ctx.step` minus it changed).
+        """
         self.check_goal(goal)
         blend_steps = check_blend_steps(blend_steps)
         p, s = self.pool, ctx.slot
-        if blend_steps > 0 and goal != p.goal[s]:
+        changed = goal != p.goal[s]
+        if blend_steps > 0 and changed:
             if ctx.blend_remaining == 0:
                 p.blend_from[s] = p.goal[s]
             p.blend_steps[s], p.blend_done[s] = blend_steps, 0
@@ -283,6 +305,16 @@ class PolicyEngine:
             p.blend_from[s], p.blend_steps[s], p.blend_done[s] = goal, 0, 0
         p.goal[s] = goal
         p.version[s] += 1
+        n = min(self.switch_relabel_steps, ctx.size) if changed and blend_steps == 0 else 0
+        if n:
+            t = int(p.step[s])
+            pos = np.arange(t - n, t) % p.H  # [n] ring positions of the last n steps
+            p.h_goal[s, pos] = goal
+            p.h_blend_to[s, pos] = goal
+            p.h_blend_w[s, pos] = 0.0
+            if p.cache is not None:
+                self._predict.rebuild_cache(s)
+        return n
 
     @_locked
     def from_stored(self, stored: StoredContext, key: str | None = None) -> Context:

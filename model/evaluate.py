@@ -128,6 +128,7 @@ class EvalResult:
     goals: list[Goal]
     results: list[ConditionResult]
     wall_time_s: float
+    switch_relabel_steps: int = 0  # steps of context each goal change relabelled (`PolicyEngine.set_goal`)
 
     def to_dict(self) -> dict:
         """The documented JSON form."""
@@ -136,6 +137,7 @@ class EvalResult:
             "env_id": self.env_id,
             "statistic": self.statistic,
             "action_mode": self.action_mode,
+            "switch_relabel_steps": self.switch_relabel_steps,
             "seeds": self.seeds,
             "episode_steps": self.episode_steps,
             "wall_time_s": round(self.wall_time_s, 1),
@@ -222,6 +224,7 @@ def evaluate(
     conditions: list[Condition] | None = None,
     progress: bool = True,
     action_mode: str | None = None,
+    switch_relabel_steps: int | None = None,
 ) -> EvalResult:
     """Run every condition for every seed, all episodes in lockstep through one engine.
 
@@ -233,13 +236,15 @@ def evaluate(
         progress: Show a progress bar.
         action_mode: The engine's action mode (default: the model's default, as the server uses); episode i of
             a condition seeds its sampler with seed i.
+        switch_relabel_steps: Steps of context a goal change relabels (default: the checkpoint's, as the
+            server uses).
     """
     import gymnasium as gym
 
     get_statistic(ckpt.statistic)  # fail early on an unknown statistic
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
     conds = conditions or protocol(len(ckpt.goals), steps)
-    engine = PolicyEngine(ckpt)
+    engine = PolicyEngine(ckpt, switch_relabel_steps=switch_relabel_steps)
     runs = [(c, s) for c in conds for s in seed_list]
     envs = [gym.make(ckpt.env_id, max_episode_steps=steps) for _ in runs]
     t0 = time.time()
@@ -256,7 +261,9 @@ def evaluate(
     )
     for env in envs:
         env.close()
-    return judge(ckpt, conds, seed_list, signal, terminated, mode, steps, time.time() - t0)
+    result = judge(ckpt, conds, seed_list, signal, terminated, mode, steps, time.time() - t0)
+    result.switch_relabel_steps = engine.switch_relabel_steps
+    return result
 
 
 def judge(

@@ -31,13 +31,15 @@ def tiny_checkpoint(
     statistic: str = "mean_x_velocity",
     preprocessing: dict | None = None,
     default_action_mode: str | None = None,
+    switch_relabel_steps: int = 0,
 ) -> Checkpoint:
     """A random-weight checkpoint with the spaces of `env_id` (saved to `directory` when given).
 
     The goal table is synthetic (means 0, 1, 2, ...); weights are random but seeded. `calibrated` gives a
     continuous-action model a synthetic action noise (std 0.1 * (goal + 1)), enabling its `sample` mode.
     `observation_space` replaces the environment's (e.g. preprocessed Atari frames [stack, H, W]);
-    `preprocessing` and `default_action_mode` are stored as a trained checkpoint would store them.
+    `preprocessing`, `default_action_mode` and `switch_relabel_steps` are stored as a trained checkpoint would
+    store them.
     """
     if env_id.startswith("ALE/"):
         import ale_py
@@ -101,6 +103,7 @@ def tiny_checkpoint(
         ),
         preprocessing=preprocessing,
         default_action_mode=default_action_mode,
+        switch_relabel_steps=switch_relabel_steps,
     )
     if directory is not None:
         save_checkpoint(ckpt, directory)

@@ -163,6 +163,10 @@ def train(
         raise ValueError(
             f"default_action_mode {tc.default_action_mode!r} is not one of {modes} for this model"
         )
+    if tc.switch_relabel_steps > cfg.history_steps:
+        raise ValueError(
+            f"switch_relabel_steps {tc.switch_relabel_steps} exceeds the model's history of {cfg.history_steps} steps"
+        )
     if cfg.conditioning == "return" and any(np.ndim(x) for x in labels):
         raise ValueError(
             "a Decision Transformer is conditioned on returns: it takes one goal label per episode"
@@ -285,6 +289,7 @@ def train(
         action_noise=noise,
         preprocessing=dataset.preprocessing,
         default_action_mode=tc.default_action_mode,
+        switch_relabel_steps=tc.switch_relabel_steps,
     )
     save_checkpoint(ckpt, out)
     par.close()

@@ -1145,7 +1145,8 @@ class Core:
             if not s.ledger.note_goal(step, g, given, blend_steps, by, now):
                 return dataclasses.replace(self._view_session(s), effective_step=step)  # a retry: as it was
             version = ctx.version
-            m.engine.set_goal(ctx, g, blend_steps)
+            if n := m.engine.set_goal(ctx, g, blend_steps):
+                s.relabelled_from = min(step - n, step if s.relabelled_from is None else s.relabelled_from)
             s.last_used = now
             await self._save(m, s, version)
             log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})

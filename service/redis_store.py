@@ -400,6 +400,7 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         held = self._held[session.id]
         held.version, held.step = session.ctx.version, session.ctx.step
+        session.relabelled_from = None
         session.ledger.written()
 
     def _flush(self) -> None:

@@ -124,7 +124,8 @@ def create_fields(session: Session) -> dict[str, bytes]:
 
 def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     """What a change wrote, for a store that holds the session up to step `since_step`: `ver`, `st`, and the
-    records of the held steps from `since_step` on (all held steps when the step went back, as after a reset)."""
+    records of the held steps from `since_step` on (all held steps when the step went back, as after a reset;
+    from `session.relabelled_from` on when a goal change relabelled earlier ones)."""
     ctx = session.ctx
     if not isinstance(ctx, Context):
         raise ValueError("only a live context has changes to write")
@@ -132,6 +133,8 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     if session.ledger.last_changed:
         out["tl"] = orjson.dumps(session.ledger.last)
     t1 = ctx.step
+    if session.relabelled_from is not None:
+        since_step = min(since_step, session.relabelled_from)
     for t in range(max(since_step if since_step <= t1 else 0, t1 - ctx.size), t1):
         out[f"r:{t % ctx.pool.H}"] = _record(ctx, t)
     return out

@@ -49,6 +49,8 @@ class Session:
         fingerprint: That version's checkpoint fingerprint (how a replica that lacks the version finds it).
         activity: Acts/s and last latency (the console's listing).
         ledger: Its goal timeline and recording (`gmt.service.records`).
+        relabelled_from: The first step whose stored record a goal change relabelled since the session was
+            last written (None: none); a store that writes only new steps writes these again.
     """
 
     id: str
@@ -61,6 +63,7 @@ class Session:
     fingerprint: str = ""
     activity: Activity = field(default_factory=Activity)
     ledger: Ledger = field(default_factory=Ledger)
+    relabelled_from: int | None = None
 
     @property
     def key(self) -> str:

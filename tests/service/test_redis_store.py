@@ -11,6 +11,7 @@ from service_harness import RunningServer, ServeProcess, make_settings
 
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
+from gmt.model.fixtures import tiny_checkpoint
 from gmt.service import session_codec
 from gmt.service.errors import Aborted, NotFound, ResourceExhausted, SessionExpired
 from gmt.service.sessions import Session
@@ -207,6 +208,43 @@ def test_replica_dies_and_another_answers_exactly_as_it_would_have(redis_clean, 
             }
     finally:
         c.stop()
+
+
+def test_a_relabelling_switch_is_stored_whole_and_another_replica_continues_exactly(redis_clean, tmp_path):
+    """A goal change that relabels past steps (`switch_relabel_steps`) rewrites records the store already holds:
+    the write must carry them, or a replica adopting the session rebuilds it from the old goal tokens."""
+    tiny_checkpoint(
+        tmp_path / "tiny-relabel", name="tiny-relabel", attention="window", switch_relabel_steps=4
+    )
+    ckpt = load_checkpoint(tmp_path / "tiny-relabel")
+    obs = np.random.default_rng(8).normal(size=(12, 17)).astype(np.float32)
+    twin, plain = PolicyEngine(ckpt), PolicyEngine(ckpt, switch_relabel_steps=0)
+    ctx, pctx = twin.new_context(0), plain.new_context(0)
+    want, unrelabelled = [], []
+    for t in range(12):
+        if t == 6:
+            assert twin.set_goal(ctx, 2) == 4
+            plain.set_goal(pctx, 2)
+        want.append(twin.act([ctx], [obs[t]])[0])
+        unrelabelled.append(plain.act([pctx], [obs[t]])[0])
+    assert not np.array_equal(np.stack(want[6:]), np.stack(unrelabelled[6:]))  # the relabelling matters
+
+    settings = dict(checkpoints=[tmp_path], redis_url=redis_clean)
+    a, b = RunningServer(make_settings(**settings)).start(), RunningServer(make_settings(**settings)).start()
+    try:
+        with httpx.Client(base_url=a.url) as ha, httpx.Client(base_url=b.url) as hb:
+            sid = ha.post("/sessions", json={"model": "tiny-relabel", "goal": 0}).json()["session_id"]
+            for t in range(12):
+                http = ha if t < 8 else hb  # b adopts the session from the store at step 8
+                if t == 6:
+                    assert ha.put(f"/sessions/{sid}/goal", json={"goal": 2}).status_code == 200
+                r = http.post(f"/sessions/{sid}/act", json={"observation": obs[t].tolist(), "step": t})
+                assert r.status_code == 200, r.text
+                assert r.headers["x-served-by"] == http.get("/healthz").headers["x-served-by"]
+                np.testing.assert_array_equal(np.float32(r.json()["action"]), want[t])
+    finally:
+        a.stop()
+        b.stop()
 
 
 def test_with_a_shared_store_a_replica_holds_a_slot_only_for_sessions_it_acts_for(redis_clean, ckpt_root):
