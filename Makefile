@@ -76,7 +76,8 @@ data: $(VENV)/.installed-data
 # The exact command behind the shipped checkpoint (35 minutes on 2 threads here; see its PROVENANCE.md).
 train: $(VENV)/.installed-train
 	$(BIN)/gmt train --dataset gmt/halfcheetah/mixed-v0 --out $(CHECKPOINT) --attention window --batch-size 32 \
-		--steps 8000 --lr 5e-4 --warmup 500 --threads 2 --no-bf16 --seed 0
+		--steps 8000 --lr 5e-4 --warmup 500 --threads 2 --no-bf16 --seed 0 \
+		--default-action-mode mean --switch-relabel-steps 20
 
 eval: $(VENV)/.installed-eval
 	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 2 --json $(CHECKPOINT)/eval.json \
