@@ -287,6 +287,21 @@ class RedisSessionStore(SessionStore):
             self._forget(sid)
             self._unconfirmed.discard(sid)
             raise await self._missing(sid)
+        s = await self._unexpired(sid, fields)
+        if held is not None:
+            self._forget(sid)  # another replica used it meanwhile: adopt the stored copy, not ours
+        if hold:
+            self._held[sid] = _Held(s, s.ctx.version, s.ctx.step, s.last_used)
+        self._see(sid, s.key, s.last_used)
+        return s
+
+    async def _unexpired(self, sid: str, fields: dict) -> Session:
+        """The session stored as `fields`, unless it has been idle too long (then it expires here).
+
+        Raises:
+            Internal: the fields are not a readable session.
+            SessionExpired: it was idle for longer than the idle timeout.
+        """
         try:
             s = session_codec.decode(fields)
         except session_codec.CodecError as e:
@@ -294,11 +309,6 @@ class RedisSessionStore(SessionStore):
         if self.is_idle(s):
             await self._expire(sid, s)
             raise SessionExpired(expired_message(sid, self.idle_timeout_s))
-        if held is not None:
-            self._forget(sid)  # another replica used it meanwhile: adopt the stored copy, not ours
-        if hold:
-            self._held[sid] = _Held(s, s.ctx.version, s.ctx.step, s.last_used)
-        self._see(sid, s.key, s.last_used)
         return s
 
     async def _confirmed_read(self, sid: str) -> dict:
@@ -567,13 +577,7 @@ class RedisSessionStore(SessionStore):
             fields, timeline, *rest = await self._call(p.execute())
         if not fields:
             raise await self._missing(sid)
-        try:
-            s = session_codec.decode(fields)
-        except session_codec.CodecError as e:
-            raise Internal(f"session {sid!r} is stored in an unreadable form: {e}") from e
-        if self.is_idle(s):
-            await self._expire(sid, s)
-            raise SessionExpired(expired_message(sid, self.idle_timeout_s))
+        s = await self._unexpired(sid, fields)
         return s, timeline, rest[0] if records else []
 
     async def delete(self, sid: str, read: Session | None = None) -> None:

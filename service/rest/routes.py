@@ -11,6 +11,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
+from gmt.common.recording import COLUMNS
 from gmt.service.core import MAX_ID_LENGTH, Core
 from gmt.service.errors import ServiceError
 from gmt.service.observations import decode_base64, decode_tensor
@@ -266,19 +267,8 @@ def recording_json(rec) -> bytes:
     a = {k: v.astype(np.float64) if v.dtype == np.float32 else v for k, v in rec.arrays.items()}
     body = {k: rec.meta.get(k) for k in _META}
     body["steps"] = rec.steps
-    for k in (
-        "episode",
-        "t",
-        "time",
-        "observations",
-        "actions",
-        "goals",
-        "goal_tokens",
-        "blend_w",
-        "reported",
-    ):
+    for k in COLUMNS:  # the recording's own columns, in its order
         body[k] = a[k]
-    body |= {"rewards": a["rewards"], "terminated": a["terminated"], "truncated": a["truncated"]}
     body["infos"] = {k: a["info." + k] for k in rec.info_keys}
     body["timeline"] = rec.meta["timeline"]
     return orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY)
