@@ -119,6 +119,7 @@ def model_from_proto(m: pb.ModelInfo) -> ModelInfo:
         goals=[GoalInfo(g.id, g.name, g.mean, g.std, g.min, g.max, g.count) for g in m.goals],
         preprocessing=json.loads(m.preprocessing_json) if m.preprocessing_json else None,
         action_modes=list(m.action_modes),
+        switch_relabel_steps=m.switch_relabel_steps,
     )
 
 

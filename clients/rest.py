@@ -77,6 +77,7 @@ def model_from_json(d: dict) -> ModelInfo:
         goals=[GoalInfo(**{k: g[k] for k in GoalInfo.__dataclass_fields__}) for g in d.get("goals", [])],
         preprocessing=d.get("preprocessing"),
         action_modes=list(d.get("action_modes", [])),
+        switch_relabel_steps=int(d.get("switch_relabel_steps", 0)),
     )
 
 

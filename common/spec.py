@@ -35,6 +35,7 @@ class ModelInfo:
     goals: list[GoalInfo] = field(default_factory=list)
     preprocessing: dict | None = None  # the observation pipeline (Atari), None for raw observations
     action_modes: list[str] = field(default_factory=list)  # accepted action modes, the default first
+    switch_relabel_steps: int = 0  # past steps a goal change without a blend relabels with the new goal
 
     def goal(self, id_or_name: int | str) -> GoalInfo:
         """The goal with this id or name.

@@ -143,6 +143,7 @@ class ModelView:
     discrete_actions: bool
     action_modes: tuple[str, ...]  # the first is the default
     preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
+    switch_relabel_steps: int = 0  # past steps a goal change at once relabels (`PolicyEngine.set_goal`)
     version: str = ""  # the version this view describes (the default)
     versions: tuple[VersionView, ...] = ()
     default_version: str = ""
@@ -369,6 +370,7 @@ class Core:
             discrete_actions=c.config.discrete_actions,
             action_modes=m.engine.describe().action_modes,
             preprocessing=c.preprocessing,
+            switch_relabel_steps=m.engine.switch_relabel_steps,
             version=m.version,
             versions=tuple(
                 VersionView(v.version, self.store.local_count(v.key), v.state, v.fingerprint)

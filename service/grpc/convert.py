@@ -43,6 +43,7 @@ def model_info(v: ModelView) -> pb.ModelInfo:
         goals=[pb.Goal(**asdict(g)) for g in v.goals],
         preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
         action_modes=list(v.action_modes),
+        switch_relabel_steps=v.switch_relabel_steps,
         **versions(v),
     )
 

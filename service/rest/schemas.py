@@ -151,6 +151,11 @@ class ModelOut(_Versions):
         description="The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
         "arguments), to reproduce observations client-side; null for raw environment observations.",
     )
+    switch_relabel_steps: int = Field(
+        default=0,
+        description="On a goal change without a blend, this many past steps of the session's context take the "
+        "new goal token, as if it had been pursued all along (0: the context keeps its goals).",
+    )
     example_observation: ExampleObservation | None = Field(
         default=None,
         description="What an observation of this model looks like (where it comes from: `source`).",
@@ -170,6 +175,7 @@ class ModelOut(_Versions):
             discrete_actions=v.discrete_actions,
             action_modes=list(v.action_modes),
             preprocessing=v.preprocessing,
+            switch_relabel_steps=v.switch_relabel_steps,
             example_observation=None if example is None else ExampleObservation(**asdict(example)),
             **_versions(v),
         )

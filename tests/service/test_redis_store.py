@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
+from gmt.client.grpc import GrpcClient
+from gmt.client.rest import RestClient
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
@@ -232,6 +234,10 @@ def test_a_relabelling_switch_is_stored_whole_and_another_replica_continues_exac
     settings = dict(checkpoints=[tmp_path], redis_url=redis_clean)
     a, b = RunningServer(make_settings(**settings)).start(), RunningServer(make_settings(**settings)).start()
     try:
+        # The model spec says so, over both transports and through both clients.
+        with RestClient(a.url) as rc, GrpcClient(a.target) as gc:
+            assert rc.get_model("tiny-relabel").switch_relabel_steps == 4
+            assert gc.get_model("tiny-relabel").switch_relabel_steps == 4
         with httpx.Client(base_url=a.url) as ha, httpx.Client(base_url=b.url) as hb:
             sid = ha.post("/sessions", json={"model": "tiny-relabel", "goal": 0}).json()["session_id"]
             for t in range(12):

@@ -75,7 +75,7 @@ class Goal(_message.Message):
     def __init__(self, id: _Optional[int] = ..., name: _Optional[str] = ..., mean: _Optional[float] = ..., std: _Optional[float] = ..., min: _Optional[float] = ..., max: _Optional[float] = ..., count: _Optional[int] = ...) -> None: ...
 
 class ModelInfo(_message.Message):
-    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json", "action_modes", "versions", "default_version", "canary")
+    __slots__ = ("name", "env_id", "observation_space", "action_space", "context_length", "statistic", "goals", "preprocessing_json", "action_modes", "switch_relabel_steps", "versions", "default_version", "canary")
     NAME_FIELD_NUMBER: _ClassVar[int]
     ENV_ID_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_SPACE_FIELD_NUMBER: _ClassVar[int]
@@ -85,6 +85,7 @@ class ModelInfo(_message.Message):
     GOALS_FIELD_NUMBER: _ClassVar[int]
     PREPROCESSING_JSON_FIELD_NUMBER: _ClassVar[int]
     ACTION_MODES_FIELD_NUMBER: _ClassVar[int]
+    SWITCH_RELABEL_STEPS_FIELD_NUMBER: _ClassVar[int]
     VERSIONS_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_VERSION_FIELD_NUMBER: _ClassVar[int]
     CANARY_FIELD_NUMBER: _ClassVar[int]
@@ -97,10 +98,11 @@ class ModelInfo(_message.Message):
     goals: _containers.RepeatedCompositeFieldContainer[Goal]
     preprocessing_json: str
     action_modes: _containers.RepeatedScalarFieldContainer[str]
+    switch_relabel_steps: int
     versions: _containers.RepeatedCompositeFieldContainer[ModelVersion]
     default_version: str
     canary: Canary
-    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ..., action_modes: _Optional[_Iterable[str]] = ..., versions: _Optional[_Iterable[_Union[ModelVersion, _Mapping]]] = ..., default_version: _Optional[str] = ..., canary: _Optional[_Union[Canary, _Mapping]] = ...) -> None: ...
+    def __init__(self, name: _Optional[str] = ..., env_id: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., context_length: _Optional[int] = ..., statistic: _Optional[str] = ..., goals: _Optional[_Iterable[_Union[Goal, _Mapping]]] = ..., preprocessing_json: _Optional[str] = ..., action_modes: _Optional[_Iterable[str]] = ..., switch_relabel_steps: _Optional[int] = ..., versions: _Optional[_Iterable[_Union[ModelVersion, _Mapping]]] = ..., default_version: _Optional[str] = ..., canary: _Optional[_Union[Canary, _Mapping]] = ...) -> None: ...
 
 class ModelVersion(_message.Message):
     __slots__ = ("version", "sessions", "state", "fingerprint")
