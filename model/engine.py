@@ -291,7 +291,7 @@ class PolicyEngine:
         the context on a switch"). A blend keeps the context as it was given.
 
         Returns:
-            The number of past steps relabelled (the session's stored steps from `ctx.step` minus it changed).
+            The number of past steps relabelled: the held steps `ctx.step - n` .. `ctx.step - 1` changed.
         """
         self.check_goal(goal)
         blend_steps = check_blend_steps(blend_steps)

@@ -264,7 +264,7 @@ class RedisSessionStore(SessionStore):
                         with contextlib.suppress(*self._errors):
                             await p.execute()
                     raise e
-                session.ledger.written()
+                session.written()
                 self._see(session.id, session.key, session.last_used)
                 return
             if n == -2:
@@ -410,8 +410,7 @@ class RedisSessionStore(SessionStore):
             raise Aborted(_aborted(session.id))
         held = self._held[session.id]
         held.version, held.step = session.ctx.version, session.ctx.step
-        session.relabelled_from = None
-        session.ledger.written()
+        session.written()
 
     def _flush(self) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold

@@ -65,6 +65,11 @@ class Session:
     ledger: Ledger = field(default_factory=Ledger)
     relabelled_from: int | None = None
 
+    def written(self) -> None:
+        """The store now holds every change made so far: forget what was pending (records, relabelled steps)."""
+        self.relabelled_from = None
+        self.ledger.written()
+
     @property
     def key(self) -> str:
         """`model@version`: the engine, batcher and per-version count it belongs to."""
@@ -234,7 +239,7 @@ class MemorySessionStore(SessionStore):
             )
         session.ledger.timeline = []
         session.ledger.records = [] if session.ledger.recording else None
-        session.ledger.written()
+        session.written()
         self._sessions[session.id] = session
         self._per_model[session.key] += 1
 
@@ -268,7 +273,7 @@ class MemorySessionStore(SessionStore):
         # removed meanwhile is not resurrected.
         if session.id in self._sessions:
             self._sessions[session.id] = session
-        session.ledger.written()
+        session.written()
 
     async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
         s = self._lookup(sid)
