@@ -21,8 +21,10 @@ The processes outlive the command that started them (each in a session of its ow
 
 from __future__ import annotations
 
+import collections
 import json
 import os
+import random
 import re
 import shutil
 import signal
@@ -108,11 +110,43 @@ def find_executable(name: str) -> str | None:
     return shutil.which(name) or shutil.which(name, path=extra)
 
 
+_GIVEN: collections.deque[int] = collections.deque(maxlen=4096)  # ports free_port handed out lately
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range of local ports for outgoing connections (and for bind to port 0)."""
+    try:
+        lo, hi = map(int, Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return lo, hi
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A port nothing listens on right now (bound, then released)."""
-    with socket.socket() as s:
+    """A port nothing listens on right now (bound, then released), and not one handed out lately.
+
+    The port is bound later by another process (Redis, a sentinel, nginx, a replica), seconds later for some.
+    A port from bind(0) lies in the kernel's ephemeral range, where any outgoing connection may take it
+    meanwhile as its local port ("Address already in use" at start); so it is drawn below that range.
+    """
+    lo, _ = _ephemeral_range()
+    draw = random.SystemRandom()
+    for _ in range(200 if lo > 11_000 else 0):
+        port = draw.randrange(10_000, lo)
+        if port in _GIVEN:
+            continue
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+        _GIVEN.append(port)
+        return port
+    with socket.socket() as s:  # no room below the ephemeral range: the kernel's pick
         s.bind((host, 0))
-        return s.getsockname()[1]
+        port = s.getsockname()[1]
+    _GIVEN.append(port)
+    return port
 
 
 def _check_free(host: str, port: int, what: str) -> None:

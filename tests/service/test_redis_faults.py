@@ -5,7 +5,6 @@ episode then continues exactly like a twin that never saw the fault, without res
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import time
 
@@ -17,17 +16,12 @@ from service_harness import RunningServer, make_settings
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.service import cluster, session_codec
+from gmt.service.cluster import free_port
 
 pytestmark = pytest.mark.skipif(
     shutil.which("redis-server") is None,
     reason="redis-server is not installed (apt-get install redis-server)",
 )
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _start_redis(port: int, data_dir) -> subprocess.Popen:
@@ -52,7 +46,7 @@ def test_the_episode_survives_a_redis_fault_exactly(tmp_path, ckpt_root, fault):
     twin = twin_engine.new_context(1, seed=4)
     want = [twin_engine.act([twin], [o])[0] for o in obs]
 
-    port = _free_port()
+    port = free_port()
     redis = _start_redis(port, tmp_path)
     server = RunningServer(
         make_settings(checkpoints=[ckpt_root], redis_url=f"redis://127.0.0.1:{port}/0")
@@ -131,9 +125,9 @@ def _twin(ckpt_root, obs, goal=1, seed=4):
 def test_no_primary_at_all_answers_unavailable_and_service_resumes_when_one_is_back(tmp_path, ckpt_root):
     obs = np.random.default_rng(10).normal(size=(8, 17)).astype(np.float32)
     want = _twin(ckpt_root, obs)
-    port = _free_port()
+    port = free_port()
     primary = _redis_node(port, tmp_path / "primary")
-    sentinels, ports = [], [_free_port() for _ in range(3)]
+    sentinels, ports = [], [free_port() for _ in range(3)]
     server = None
     try:
         for i, p in enumerate(ports):
@@ -193,7 +187,7 @@ def test_a_step_no_replica_holds_is_never_acknowledged(tmp_path, ckpt_root):
 
     obs = np.random.default_rng(11).normal(size=(8, 17)).astype(np.float32)
     want = _twin(ckpt_root, obs)
-    port, replica_port = _free_port(), _free_port()
+    port, replica_port = free_port(), free_port()
     primary = _redis_node(port, tmp_path / "primary", aof=False)  # no fsync to slow the replica's answers
     replica = _redis_node(
         replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port), aof=False
