@@ -16,11 +16,9 @@ from gmt.bench.harness import ACT_DIM, OBS_DIM, SESSIONS, bench_rest, open_sessi
 
 def start_ray_serve(checkpoint: Path, path: str) -> tuple[subprocess.Popen, str]:
     """`gmt.bench.ray_app` in its own process on a free loopback port; returns (process, base URL)."""
-    import socket
+    from gmt.service.cluster import free_port
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "gmt.bench.ray_app", str(checkpoint), str(port), path],
         stdin=subprocess.PIPE,

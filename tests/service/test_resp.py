@@ -10,22 +10,15 @@ import subprocess
 import pytest
 
 from gmt.service import resp
+from gmt.service.cluster import free_port
 
 pytestmark = pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server is not installed")
-
-
-def _port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
 def server(tmp_path):
     """A redis-server with a password on a free port: (port, process)."""
-    port = _port()
+    port = free_port()
     proc = subprocess.Popen(
         ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--requirepass", "pw"],
         cwd=tmp_path,
