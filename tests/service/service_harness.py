@@ -103,12 +103,22 @@ def make_settings(**kw) -> Settings:
     return Settings(**{**base, **kw})
 
 
+def clean_env(**extra: str) -> dict[str, str]:
+    """This process's environment without any GMT_ setting (a test's servers see only what it gives), plus
+    `extra`."""
+    return {**{k: v for k, v in os.environ.items() if not k.startswith("GMT_")}, **extra}
+
+
+# What a test cluster's replicas run with: a short shutdown grace, quiet logs.
+CLUSTER_ENV = {"GMT_SHUTDOWN_GRACE_S": "1", "GMT_LOG_LEVEL": "WARNING"}
+
+
 class ServeProcess:
     """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
 
     def __init__(self, *args: str, nofile: int | None = None) -> None:
         exe = Path(sys.executable).parent / "gmt"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+        env = clean_env()
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
 
         def limit_descriptors() -> None:  # `ulimit -n nofile` in the child

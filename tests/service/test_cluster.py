@@ -18,6 +18,7 @@ import httpx
 import numpy as np
 import orjson
 import pytest
+from service_harness import CLUSTER_ENV, clean_env
 
 from gmt.client import base
 from gmt.client.grpc import GrpcClient
@@ -115,8 +116,7 @@ def running(tmp_path_factory):
     root = tmp_path_factory.mktemp("checkpoints")
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env.update(GMT_SHUTDOWN_GRACE_S="1", GMT_LOG_LEVEL="WARNING")
+    env = clean_env(**CLUSTER_ENV)
     c = cluster.up(
         run_dir,
         rest_port=0,

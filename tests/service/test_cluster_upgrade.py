@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from service_harness import CLUSTER_ENV, clean_env
 
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
@@ -36,8 +37,7 @@ def running(tmp_path_factory):
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True, seed=0)
     tiny_checkpoint(root / "releases" / "v2", name=MODEL, attention="window", calibrated=True, seed=1)
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env.update(GMT_SHUTDOWN_GRACE_S="1", GMT_LOG_LEVEL="WARNING")
+    env = clean_env(**CLUSTER_ENV)
     c = cluster.up(run_dir, rest_port=0, grpc_port=0, checkpoints=[root], env=env, timeout_s=90)
     yield c, root
     cluster.down(run_dir, timeout_s=10, quiet=True)
@@ -112,7 +112,7 @@ def test_rolling_upgrade_with_a_replica_killed_midway(running):
 
     # The command itself: gmt-1 is upgraded already (loading again is answered the loaded version), gmt-2 is gone.
     gmt = Path(sys.executable).parent / "gmt"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env = clean_env()
     out = subprocess.run(
         [str(gmt), "cluster", "upgrade", str(root / "releases" / "v2"), "--run-dir", str(c.run_dir)],
         capture_output=True,

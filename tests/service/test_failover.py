@@ -6,12 +6,12 @@ those of an uninterrupted twin (no acknowledged step lost or applied twice) and 
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 
 import numpy as np
 import pytest
+from service_harness import CLUSTER_ENV, clean_env
 
 from gmt.bench import failover
 from gmt.client.grpc import GrpcClient
@@ -37,8 +37,7 @@ def ckpt(tmp_path_factory):
 def running(ckpt, tmp_path):
     if cluster.find_executable("nginx") is None or cluster.find_executable("redis-server") is None:
         pytest.skip(f"nginx and redis-server are needed ({cluster.INSTALL_HINT})")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env.update(GMT_SHUTDOWN_GRACE_S="1", GMT_LOG_LEVEL="WARNING")
+    env = clean_env(**CLUSTER_ENV)
     c = cluster.up(tmp_path / "cluster", rest_port=0, grpc_port=0, checkpoints=[ckpt], env=env, timeout_s=90)
     yield c
     cluster.down(c.run_dir, timeout_s=10, quiet=True)

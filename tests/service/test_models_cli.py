@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
+
+from service_harness import clean_env
 
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.fixtures import tiny_checkpoint
@@ -14,7 +15,7 @@ GMT = str(Path(sys.executable).parent / "gmt")
 
 
 def gmt(*args: str) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env = clean_env()
     return subprocess.run([GMT, *args], capture_output=True, text=True, env=env, timeout=120)
 
 

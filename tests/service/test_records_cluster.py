@@ -14,6 +14,7 @@ import grpc
 import httpx
 import numpy as np
 import pytest
+from service_harness import CLUSTER_ENV, clean_env
 from test_cluster import MODEL, grpc_replica, held_by_victim, rest_replica
 
 from gmt.client.grpc import GrpcClient
@@ -36,8 +37,7 @@ def recording_cluster(tmp_path_factory):
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     record_dir = tmp_path_factory.mktemp("recordings")
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env.update(GMT_SHUTDOWN_GRACE_S="1", GMT_LOG_LEVEL="WARNING")
+    env = clean_env(**CLUSTER_ENV)
     c = cluster.up(
         run_dir,
         rest_port=0,

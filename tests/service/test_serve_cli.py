@@ -1,7 +1,6 @@
 """`gmt serve` as users run it: flags, environment, the no-model start, graceful SIGTERM, a taken port."""
 
 import asyncio
-import os
 import signal
 import socket
 import subprocess
@@ -10,7 +9,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_harness import ServeProcess, make_settings
+from service_harness import ServeProcess, clean_env, make_settings
 
 from gmt.service.core import Core
 from gmt.service.grpc.server import GrpcServer
@@ -74,7 +73,7 @@ def _held_port(reuseport: bool = False) -> socket.socket:
 @pytest.mark.parametrize("transport", ["rest", "grpc"])
 def test_a_taken_port_fails_in_a_few_lines_naming_the_port_and_how_to_change_it(transport, tmp_path):
     gmt = str(Path(sys.executable).parent / "gmt")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env = clean_env()
     with _held_port() as held:
         port = held.getsockname()[1]
         ports = {"rest": "0", "grpc": "0", transport: str(port)}
@@ -110,7 +109,7 @@ def test_grpc_does_not_join_a_port_another_server_holds_with_so_reuseport(ckpt_r
 
 def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
     gmt = str(Path(sys.executable).parent / "gmt")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
+    env = clean_env()
     cmd = [
         gmt,
         "serve",
