@@ -297,13 +297,18 @@ def grpc_load(target: str, sids: list[str], seconds: float, mode: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def redis_server() -> tuple[subprocess.Popen, str]:
-    """A private redis-server on a free loopback port (no persistence): (process, URL)."""
+def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]:
+    """A private redis-server on a free loopback port (no persistence): (process, URL).
+
+    Args:
+        unix_socket: Also listen on this Unix socket path (`unix://<path>?db=0` reaches it).
+    """
     from gmt.service.cluster import free_port
 
     port = free_port()
+    extra = ["--unixsocket", unix_socket, "--unixsocketperm", "700"] if unix_socket else []
     proc = subprocess.Popen(
-        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no", *extra],
         stdout=subprocess.PIPE,
         text=True,
     )

@@ -14,12 +14,14 @@ against a tolerance:
   cap both are 0.3 x R(a) + 0.7 x R(b). They part when games end early: the share formula credits a whole
   episode's return R(a) to part of an episode, the per-step one ignores that later bricks are worth more (an
   effect the paper notes in A.2.2).
+- `alive_at_switch`: how many of a switch's episodes were still running at step S; a game already over there
+  never switched (the low goal can lose its five lives before S), and the report says how many did.
 The return of a segment is the sum of its rewards, so the two parts of a switch episode add up to its return
 (the `return` statistic of `gmt.common.statistics` is the same sum over a whole trajectory).
 
 JSON schema (`ReturnEvalResult.to_dict`): checkpoint, env_id, statistic, action_mode, seeds, episode_steps,
 switch_at, wall_time_s, goals [{id, name, mean, std, ...}], holds [{goal, returns, lengths, mean, std, sem}],
-switches [{first, second, returns, before, after, lengths, mean, share_first, expected, relative_error,
+switches [{first, second, returns, before, after, lengths, alive_at_switch, mean, share_first, expected, relative_error,
 within_20pct, expected_per_step, relative_error_per_step, within_20pct_per_step}], summary {holds_rise,
 high_minus_low, high_minus_low_z, switches_within_20pct, switches_within_20pct_per_step, switches}.
 """
@@ -150,6 +152,7 @@ class ReturnEvalResult:
                     "before": self.returns(i, 0, c.switch_at).tolist(),
                     "after": self.returns(i, c.switch_at).tolist(),
                     "lengths": n.tolist(),
+                    "alive_at_switch": int((n > c.switch_at).sum()),
                     "mean": float(ret.mean()),
                     "share_first": share,
                     "expected": exp,
@@ -203,6 +206,7 @@ class ReturnEvalResult:
         switch_rows = [
             (
                 f"{s['first']} -> {s['second']}",
+                f"{s['alive_at_switch']}/{n}",
                 f"{s['share_first']:.2f}",
                 f"{s['mean']:.1f}",
                 f"{s['expected']:.1f}",
@@ -224,6 +228,7 @@ class ReturnEvalResult:
             + markdown_table(
                 (
                     "switch",
+                    "alive at switch",
                     "share before",
                     "mean return",
                     "expected",

@@ -134,8 +134,8 @@ class RedisClient:
         self.redis, self.sentinel, self.url, self.service = redis, sentinel, url, service
 
     async def primary(self) -> dict | None:
-        """Where the current primary is, for a plain TCP connection of our own: host, port, username, password,
-        db (asking the sentinels with a sentinel URL); None where the URL is a Unix socket or TLS.
+        """Where the current primary is, for a plain connection of our own: host, port (or path, for a Unix
+        socket), username, password, db (asking the sentinels with a sentinel URL); None where the URL is TLS.
 
         Raises:
             redis.RedisError: no sentinel names a primary.
@@ -146,9 +146,11 @@ class RedisClient:
         if self.sentinel is not None:
             host, port = await self.sentinel.discover_master(self.service)
             return {"host": host, "port": int(port), **who}
-        from redis.asyncio.connection import Connection
+        from redis.asyncio.connection import Connection, UnixDomainSocketConnection
 
-        if pool.connection_class is not Connection:  # Unix socket or TLS: leave those to redis-py
+        if pool.connection_class is UnixDomainSocketConnection:
+            return {"host": None, "port": None, "path": kw["path"], **who}
+        if pool.connection_class is not Connection:  # TLS: leave it to redis-py
             return None
         return {"host": kw.get("host", "localhost"), "port": int(kw.get("port", 6379)), **who}
 

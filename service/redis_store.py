@@ -476,7 +476,7 @@ class RedisSessionStore(SessionStore):
 
     async def _send(self, commands: list[list]) -> list:
         """The replies to `commands`, sent together on the store's own pipelined connection to the primary
-        (`gmt.service.resp`; redis-py's pipeline where the URL is a Unix socket or TLS).
+        (`gmt.service.resp`, over TCP or a Unix socket; redis-py's pipeline where the URL is TLS).
 
         Raises:
             Unavailable: Redis cannot be reached, or answered an error.
@@ -518,6 +518,7 @@ class RedisSessionStore(SessionStore):
             conn = resp.RespConnection(
                 where["host"],
                 where["port"],
+                path=where.get("path"),
                 username=where["username"],
                 password=where["password"],
                 db=where["db"],

@@ -105,11 +105,13 @@ class _Protocol(asyncio.Protocol):
 
 
 class RespConnection:
-    """One TCP connection to a Redis server, pipelined.
+    """One connection to a Redis server (TCP, or a Unix socket for a co-located server), pipelined.
 
     Args:
-        host: Server host.
-        port: Server port.
+        host: Server host (ignored with `path`).
+        port: Server port (ignored with `path`).
+        path: A Unix socket path instead of TCP (a Redis on the same machine: ~40% less latency per round trip
+            than loopback TCP, measured in docs/performance.md).
         username: ACL user (None: the default user).
         password: Password (None: none).
         db: Database number.
@@ -121,12 +123,15 @@ class RespConnection:
         host: str,
         port: int,
         *,
+        path: str | None = None,
         username: str | None = None,
         password: str | None = None,
         db: int = 0,
         timeout_s: float = 5.0,
     ) -> None:
         self.address = (host, port)
+        self.path = path
+        self.where = f"unix:{path}" if path else f"{host}:{port}"
         self._auth = (username, password)
         self._db = db
         self.timeout_s = timeout_s
@@ -142,14 +147,14 @@ class RespConnection:
         """
         loop = asyncio.get_running_loop()
         try:
-            self._transport, _ = await asyncio.wait_for(
-                loop.create_connection(lambda: _Protocol(self), *self.address), self.timeout_s
-            )
+            if self.path:
+                connecting = loop.create_unix_connection(lambda: _Protocol(self), self.path)
+            else:
+                connecting = loop.create_connection(lambda: _Protocol(self), *self.address)
+            self._transport, _ = await asyncio.wait_for(connecting, self.timeout_s)
         except (OSError, TimeoutError) as e:
             self.closed = True
-            raise ConnectionLost(
-                f"cannot connect to Redis at {self.address[0]}:{self.address[1]}: {e}"
-            ) from e
+            raise ConnectionLost(f"cannot connect to Redis at {self.where}: {e}") from e
         setup = []
         user, password = self._auth
         if password is not None:

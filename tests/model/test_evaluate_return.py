@@ -57,6 +57,7 @@ def test_switch_returns_add_up_and_are_judged_against_the_share_weighted_holds()
         np.testing.assert_allclose(np.add(s["before"], s["after"]), s["returns"])
         n = np.asarray(s["lengths"])
         share = np.mean(np.minimum(n, 20) / n)
+        assert s["alive_at_switch"] == int((n > 20).sum())  # only these games were still running to switch
         assert s["share_first"] == pytest.approx(share)
         assert s["expected"] == pytest.approx(share * means[s["first"]] + (1 - share) * means[s["second"]])
         assert s["within_20pct"] == (abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))

@@ -85,15 +85,19 @@ def clock() -> FakeClock:
 
 
 @pytest.fixture(scope="module")
-def redis_url(tmp_path_factory):
-    """A real redis-server on a free loopback port for the module (skipped where none is installed)."""
+def redis_server(tmp_path_factory):
+    """A real redis-server for the module on a free loopback port and a Unix socket: (redis:// URL, unix:// URL)
+    (skipped where none is installed)."""
     exe = shutil.which("redis-server")
     if exe is None:
         pytest.skip("redis-server is not installed (apt-get install redis-server; .ci/run installs it)")
     port = free_port()
+    where = tmp_path_factory.mktemp("redis")
+    sock = where / "redis.sock"
     proc = subprocess.Popen(
-        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        cwd=tmp_path_factory.mktemp("redis"),
+        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
+        + ["--unixsocket", str(sock), "--unixsocketperm", "700"],
+        cwd=where,
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -101,9 +105,15 @@ def redis_url(tmp_path_factory):
         if "Ready to accept connections" in line:
             break
     assert proc.poll() is None, "redis-server did not start"
-    yield f"redis://127.0.0.1:{port}/0"
+    yield f"redis://127.0.0.1:{port}/0", f"unix://{sock}?db=0"
     proc.terminate()
     proc.wait(10)
+
+
+@pytest.fixture(scope="module")
+def redis_url(redis_server):
+    """The module's redis-server over loopback TCP."""
+    return redis_server[0]
 
 
 @pytest.fixture
@@ -115,3 +125,14 @@ def redis_clean(redis_url):
     r.flushall()
     r.close()
     return redis_url
+
+
+@pytest.fixture(params=["tcp", "unix"])
+def redis_clean_any(request, redis_server):
+    """The emptied redis-server reached over loopback TCP, then over its Unix socket (both take the fast path)."""
+    import redis
+
+    r = redis.Redis.from_url(redis_server[0])
+    r.flushall()
+    r.close()
+    return redis_server[0] if request.param == "tcp" else redis_server[1]

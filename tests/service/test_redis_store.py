@@ -91,8 +91,10 @@ def test_codec_refuses_foreign_and_broken_data(cartpole):
         session_codec.decode({**stored, "meta": json.dumps({**meta, "v": 2}).encode()})
 
 
-def test_redis_store_semantics(redis_clean, engine, clock):
+def test_redis_store_semantics(redis_clean_any, engine, clock):
     from gmt.service.redis_store import RedisSessionStore
+
+    redis_clean = redis_clean_any
 
     def new(sid: str, goal: int) -> Session:
         return Session(sid, "tiny-gmt", engine.new_context(goal, key=sid), clock(), clock())
@@ -121,6 +123,9 @@ def test_redis_store_semantics(redis_clean, engine, clock):
             got = await act(b, "one")  # ... while replica b acts for it
             again = await (RedisSessionStore(redis_clean, 10, 2, clock)).get("one")
             assert again.ctx.step == 1 and np.array_equal(again.ctx.states, got.ctx.states)
+            # The act was written over the store's own pipelined connection, on the URL's transport.
+            assert b._fast is not None and not b._fast.closed
+            assert (b._fast.path is not None) == redis_clean.startswith("unix://")
             # Compare-and-set: a replica whose copy is old loses the race instead of overwriting.
             stale.ctx = engine.from_stored(stale.ctx, key="stale")
             engine.set_goal(stale.ctx, 1)
