@@ -1,8 +1,9 @@
 """Offline Breakout data without RL Unplugged: scripted agents that read the ball and paddle from RAM.
 
-A tracking agent moves the paddle under the ball (FIRE launches a new ball); weaker levels of it react late
-(`lag`), aim badly (`jitter`) and press random buttons (`random_prob`); a uniform-random policy is the lowest
-level. Every level is rolled out in the preprocessed environment a checkpoint will declare (`Preprocessing`:
+A tracking agent moves the paddle under the ball or its predicted landing point (FIRE launches a new ball);
+weaker levels of it see late (`lag`), aim badly (`jitter`), press random buttons (`random_prob`) or wait until the
+ball is low before moving (`react_y`); a uniform-random policy is the lowest level. Two recipes (`RECIPES`) pick
+levels: `mixed` (random actions) and `react` (late reactions). Every level is rolled out in the preprocessed environment a checkpoint will declare (`Preprocessing`:
 Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the
 frames are stored as uint8 in a Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a
 trajectory and of any segment is a plain sum.
@@ -166,9 +167,6 @@ class Skill:
         jitter: Std (RAM x units; the paddle is 16 wide) of an aiming error drawn afresh for every approach.
         random_prob: Probability of a uniform-random action instead of the aimed one.
         predict: Aim at where the descending ball will meet the paddle (walls included) instead of at the ball.
-        zone: Fraction of the field, from the left wall, in which the agent plays the ball; when the ball (or
-            its predicted landing point) is right of it, the paddle parks at the left wall instead. A
-            deterministic rule of the visible ball, so a weaker zone loses balls by policy, not by chance.
         react_y: The paddle stays put until the descending ball is below this RAM y (the paddle meets it at
             183); 0 reacts at once. A late reaction cannot reach far landing points: balls are lost by a rule
             of the visible ball, so a weaker level plays worse by policy, not only by random actions.
@@ -179,7 +177,6 @@ class Skill:
     jitter: float = 0.0
     random_prob: float = 0.0
     predict: bool = True
-    zone: float = 1.0
     react_y: int = 0
 
 
@@ -208,11 +205,36 @@ LEVELS: dict[str, Skill] = {
         Skill("late172", react_y=172),
     )
 }
+# Episodes per level: the same number each, so that no level outweighs the others in the k-means + silhouette
+# relabelling (with many more short low-return episodes it settles on k = 2).
+DEFAULT_EPISODES = {"random": 80, "weak": 80, "medium": 80, "good": 80, "strong": 80}
 REACT_EPISODES = {"ace": 100, "late135": 100, "late152": 100, "late164": 100, "late172": 100}
 REACT_DATASET_ID = "gmt/breakout/react-v1"
-# Episodes per level by default: the same number each, so that no level outweighs the others in the
-# k-means + silhouette relabelling (with many more short low-return episodes it settles on k = 2).
-DEFAULT_EPISODES = {"random": 80, "weak": 80, "medium": 80, "good": 80, "strong": 80}
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A named collection: which levels, how many episodes each, the dataset id and the burst filter.
+
+    Attributes:
+        episodes: Episodes per level (order = dataset order).
+        dataset_id: Minari id it writes.
+        max_burst: `CollectConfig.max_burst` (None keeps every episode).
+    """
+
+    episodes: dict[str, int]
+    dataset_id: str
+    max_burst: float | None
+
+
+RECIPES: dict[str, Recipe] = {
+    # checkpoints/breakout-gmt before 2026-11-26: one tracker weakened only by random actions.
+    "mixed": Recipe(DEFAULT_EPISODES, DATASET_ID, 30.0),
+    # Late reactions, a deterministic weakness (docs/breakout.md); tunnels up to 60 points are kept, since the
+    # best level's high returns come from them.
+    "react": Recipe(REACT_EPISODES, REACT_DATASET_ID, 60.0),
+}
+DEFAULT_RECIPE = "mixed"
 # Agent steps per episode at most: the 1000-step episodes of the evaluation protocol (docs/architecture.md; the
 # paper's Breakout switch at step 300 splits an episode 0.3 / 0.7). At 2000 the strong level's returns (~280)
 # dwarf the others and the relabelling picks k = 2.
@@ -267,8 +289,6 @@ class TrackingAgent:
         if s.react_y and not (descending and now.ball_y >= s.react_y):
             return self._move(0)  # not yet: wait for the ball to come down
         goal = self.target(now, before)
-        if s.zone < 1.0 and goal + self.offset > WALL_LEFT + s.zone * (WALL_RIGHT - WALL_LEFT):
-            goal = float(PADDLE_MIN)  # outside the zone: give this ball up
         # Where the paddle comes to rest for each move: the last move still carries it PADDLE_CARRY further.
         rest = state.paddle_x + PADDLE_CARRY * self._prev_dir
         best = min((-1, 0, 1), key=lambda d: (abs(rest + PADDLE_MOVE * d - goal), d != 0))
@@ -284,6 +304,19 @@ def _reflect(x: float) -> float:
     width = WALL_RIGHT - WALL_LEFT
     y = (x - WALL_LEFT) % (2 * width)
     return WALL_LEFT + (y if y <= width else 2 * width - y)
+
+
+def describe_level(level: str) -> str:
+    """A level's play in words, e.g. "tracks the landing point, reacts below y 135"."""
+    if level == "random":
+        return "uniform-random actions"
+    s = LEVELS[level]
+    parts = ["tracks the landing point" if s.predict else "tracks the ball"]
+    parts += [f"reacts below y {s.react_y}"] if s.react_y else []
+    parts += [f"lag {s.lag} steps"] if s.lag else []
+    parts += [f"aim error std {s.jitter:g}"] if s.jitter else []
+    parts += [f"{s.random_prob:.0%} random actions"] if s.random_prob else []
+    return ", ".join(parts)
 
 
 def make_agent(level: str) -> RandomAgent | TrackingAgent:
@@ -487,8 +520,8 @@ def collect_breakout(cfg: CollectConfig | None = None, progress: bool = True) ->
     replaced = ", ".join(f"{k} {len(v['replaced_returns'])}" for k, v in levels.items())
     description = (
         f"Mixed-skill {ENV_ID} data from scripted agents reading the ball and paddle from RAM: "
-        f"{', '.join(f'{k} ({n} episodes)' for k, n in cfg.episodes.items())}; tracking agents weakened by "
-        "reaction lag, aiming jitter and random actions, plus a uniform-random policy. Episodes capped at "
+        f"{', '.join(f'{k} ({describe_level(k)}, {n} episodes)' for k, n in cfg.episodes.items())}. "
+        "Episodes capped at "
         f"{cfg.max_steps} agent steps, seed {cfg.seed}. "
         + (
             f"Episodes in which the ball scored more than {cfg.max_burst:g} points between two paddle touches "
@@ -635,12 +668,20 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m gmt.datagen.breakout",
         description="Scripted Breakout agents (RAM) at several skill levels into a Minari dataset.",
     )
-    default_episodes = " ".join(f"{k}={v}" for k, v in DEFAULT_EPISODES.items())
+    recipes = "; ".join(
+        f"{name}: {' '.join(f'{k}={v}' for k, v in r.episodes.items())} -> {r.dataset_id}" for name, r in RECIPES.items()
+    )
+    p.add_argument(
+        "--recipe",
+        choices=sorted(RECIPES),
+        default=DEFAULT_RECIPE,
+        help=f"Levels, episodes, dataset id and burst filter to start from (default {DEFAULT_RECIPE}; {recipes}).",
+    )
     p.add_argument(
         "--episodes",
         nargs="*",
         metavar="LEVEL=N",
-        help=f"Episodes per level, e.g. random=10 strong=5 (default: {default_episodes}).",
+        help="Episodes per level instead of the recipe's, e.g. random=10 strong=5.",
     )
     p.add_argument(
         "--max-steps",
@@ -649,7 +690,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"Cap on agent steps per episode (default {DEFAULT_MAX_STEPS}).",
     )
     p.add_argument("--seed", type=int, default=0, help="Root seed (default 0).")
-    p.add_argument("--out-id", default=DATASET_ID, help=f"Dataset id (default {DATASET_ID}).")
+    p.add_argument("--out-id", help="Dataset id (default: the recipe's).")
     p.add_argument("--data-dir", type=Path, help="Datasets root (default $GMT_DATA_DIR, else data/minari).")
     p.add_argument("--screen-size", type=int, default=64, help="Square frame side (default 64).")
     p.add_argument("--stack", type=int, default=4, help="Stacked frames (default 4).")
@@ -658,8 +699,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--max-burst",
         type=float,
-        default=30.0,
-        help="Replace episodes scoring more than this between two paddle touches; < 0 keeps all (default 30).",
+        help="Replace episodes scoring more than this between two paddle touches; < 0 keeps all (default: the "
+        "recipe's, 30 for mixed, 60 for react).",
     )
     p.add_argument(
         "--measure",
@@ -673,27 +714,28 @@ def main(argv: list[str] | None = None) -> int:
     prep = Preprocessing(
         screen_size=args.screen_size, stack=args.stack, repeat_action_probability=args.sticky
     )
+    recipe = RECIPES[args.recipe]
     try:
-        episodes = _parse_episodes(args.episodes)
+        episodes = _parse_episodes(args.episodes) or dict(recipe.episodes)
         for level in episodes or ():
             make_agent(level)
     except (argparse.ArgumentTypeError, ValueError) as e:
         p.error(str(e))
     if args.measure:
-        levels = list(episodes or ["random", *LEVELS])
+        levels = list(episodes)
         for level, s in measure_levels(levels, args.measure, args.max_steps, args.seed, prep).items():
             print(f"{level:<8} {json.dumps(s)}")
         return 0
-    kwargs = {"episodes": episodes} if episodes else {}
+    max_burst = recipe.max_burst if args.max_burst is None else args.max_burst
     cfg = CollectConfig(
+        episodes=episodes,
         max_steps=args.max_steps,
         seed=args.seed,
-        dataset_id=args.out_id,
+        dataset_id=args.out_id or recipe.dataset_id,
         data_dir=args.data_dir,
         preprocessing=prep,
         compress=args.compress,
-        max_burst=args.max_burst if args.max_burst >= 0 else None,
-        **kwargs,
+        max_burst=max_burst if max_burst is not None and max_burst >= 0 else None,
     )
     res = collect_breakout(cfg, progress=not args.no_progress)
     print(f"wrote {res.dataset_id} to {res.path} ({res.bytes / 2**20:.1f} MiB)")

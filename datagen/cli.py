@@ -400,7 +400,7 @@ def collect(
     options: `python -m gmt.datagen.breakout --help`).
     """
     if env.startswith("ALE/Breakout"):
-        from gmt.datagen.breakout import DEFAULT_EPISODES
+        from gmt.datagen.breakout import DEFAULT_RECIPE, RECIPES
         from gmt.datagen.breakout import main as collect_breakout
 
         argv = ["--seed", str(seed)]
@@ -408,7 +408,8 @@ def collect(
         argv += ["--data-dir", str(data_dir)] if data_dir else []
         argv += ["--max-steps", str(max_steps)] if max_steps else []
         if episodes_per_level:
-            argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in DEFAULT_EPISODES)]
+            levels = RECIPES[DEFAULT_RECIPE].episodes
+            argv += ["--episodes", *(f"{level}={episodes_per_level}" for level in levels)]
         raise typer.Exit(collect_breakout(argv))
     from gmt.datagen.collect import CollectConfig, collect
     from gmt.datagen.plan import PlanConfig, parse_plan

@@ -165,3 +165,41 @@ def test_gmt_data_collect_dispatches_breakout_to_the_scripted_agents(tmp_path):
     ds = load_dataset("t/breakout/cli-v0", tmp_path)
     assert len(ds.episodes) == 5 and all(len(ep) <= 12 for ep in ds.episodes)
     assert ds.episodes[0].observations.dtype == np.uint8
+
+
+def test_a_late_reaction_waits_for_the_ball_by_a_rule_of_what_is_visible():
+    """A `react_y` level keeps still while the descending ball is above its line, then moves; no randomness."""
+    rng = np.random.default_rng(0)
+    late, prompt = b.TrackingAgent(b.LEVELS["late152"]), b.TrackingAgent(b.Skill("prompt"))
+    far = 60  # the paddle sits far left of a ball coming down on the right
+    high = [b.RamState(170, 100, far, 0), b.RamState(172, 106, far, 0)]  # descending, above 152
+    low = [b.RamState(170, 150, far, 0), b.RamState(172, 156, far, 0)]  # descending, below 152
+    for agent in (late, prompt):
+        agent.reset()
+    assert [late.act(s, rng) for s in high][-1] == b.NOOP
+    assert [prompt.act(s, rng) for s in high][-1] == b.RIGHT
+    late.reset()
+    assert [late.act(s, rng) for s in low][-1] == b.RIGHT
+    # Deterministic: the same states give the same actions again.
+    late.reset()
+    again = [late.act(s, rng) for s in high + low]
+    late.reset()
+    assert [late.act(s, rng) for s in high + low] == again
+    assert "reacts below y 152" in b.describe_level("late152") and "random" in b.describe_level("ace")
+
+
+def test_the_react_recipe_writes_its_own_dataset_with_its_levels(tmp_path, capsys):
+    argv = ["--recipe", "react", "--max-steps", "8", "--data-dir", str(tmp_path), "--no-progress"]
+    assert b.main([*argv, "--episodes", "ace=1", "late172=1"]) == 0
+    import h5py
+
+    from gmt.model.data.minari_io import resolve
+
+    ds = load_dataset(b.REACT_DATASET_ID, tmp_path)
+    assert len(ds.episodes) == 2
+    path = resolve(b.REACT_DATASET_ID, tmp_path)
+    meta = json.loads((path / "metadata.json").read_text())
+    assert meta["max_burst"] == 60.0 and "late172 (tracks the landing point, reacts below y 172" in meta["description"]
+    with h5py.File(path / "main_data.hdf5") as f:
+        assert [f[f"episode_{i}"].attrs["policy"] for i in range(2)] == ["ace", "late172"]
+    assert set(b.RECIPES["react"].episodes) <= set(b.LEVELS)
