@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
+.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -92,6 +92,21 @@ train-breakout: $(VENV)/.installed-train
 eval-breakout: $(VENV)/.installed-eval $(VENV)/.installed-atari
 	$(BIN)/gmt eval checkpoints/breakout-gmt --seeds 15 --threads 2 --json checkpoints/breakout-gmt/eval.json \
 		--markdown checkpoints/breakout-gmt/eval.md --plot checkpoints/breakout-gmt/eval.png
+
+# The exact commands behind checkpoints/breakout5-gmt (its PROVENANCE.md): ~4 min collection, ~44 min training.
+data-breakout5: $(VENV)/.installed-data $(VENV)/.installed-atari
+	$(BIN)/python -m gmt.datagen.breakout --recipe late
+
+train-breakout5: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/breakout/late-v1 --out checkpoints/breakout5-gmt --statistic return --k 5 \
+		--attention window --context-length 4 --sequence-length 8 --batch-size 64 --steps 12000 --lr 5e-4 \
+		--warmup-steps 300 --threads 2 --seed 0 --log-every 50 --save-every 2000 --default-action-mode sample
+
+eval-breakout5: $(VENV)/.installed-eval $(VENV)/.installed-atari
+	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --json checkpoints/breakout5-gmt/eval.json \
+		--markdown checkpoints/breakout5-gmt/eval.md --plot checkpoints/breakout5-gmt/eval.png
+	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --action-mode argmax \
+		--json checkpoints/breakout5-gmt/eval-argmax.json --markdown checkpoints/breakout5-gmt/eval-argmax.md
 
 # The data and training behind checkpoints/hopper-gmt (its PROVENANCE.md): ~20 min collection and ~31 min
 # training on one core each. The pool-started episodes start from states of behaviour/hopper-gmt/pool-gmt, a GMT

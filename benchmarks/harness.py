@@ -308,7 +308,18 @@ def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]
     port = free_port()
     extra = ["--unixsocket", unix_socket, "--unixsocketperm", "700"] if unix_socket else []
     proc = subprocess.Popen(
-        ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no", *extra],
+        [
+            "redis-server",
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            *extra,
+        ],
         stdout=subprocess.PIPE,
         text=True,
     )

@@ -24,7 +24,11 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0) -> 
     sock = str(Path(sock_dir) / "redis.sock")
     redis, url = redis_server(unix_socket=sock)
     out: dict = {"model": str(checkpoint), "sessions": sessions, "seconds_per_point": seconds, "stores": {}}
-    stores = (("memory", ()), ("redis", ("--redis-url", url)), ("redis_unix", ("--redis-url", f"unix://{sock}?db=0")))
+    stores = (
+        ("memory", ()),
+        ("redis", ("--redis-url", url)),
+        ("redis_unix", ("--redis-url", f"unix://{sock}?db=0")),
+    )
     try:
         for store, extra in stores:
             proc, info = start_server(checkpoint, naive=False, extra=extra)

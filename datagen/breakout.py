@@ -243,7 +243,9 @@ RECIPES: dict[str, Recipe] = {
     "react": Recipe(REACT_EPISODES, REACT_DATASET_ID, 60.0),
     # Late reactions and random actions on the ball-x tracker.
     "late": Recipe(
-        {"strong": 80, "slow140": 80, "slow150": 80, "slow160": 80, "slow168": 80}, "gmt/breakout/late-v1", 30.0
+        {"strong": 80, "slow140": 80, "slow150": 80, "slow160": 80, "slow168": 80},
+        "gmt/breakout/late-v1",
+        30.0,
     ),
 }
 DEFAULT_RECIPE = "mixed"
@@ -681,7 +683,8 @@ def main(argv: list[str] | None = None) -> int:
         description="Scripted Breakout agents (RAM) at several skill levels into a Minari dataset.",
     )
     recipes = "; ".join(
-        f"{name}: {' '.join(f'{k}={v}' for k, v in r.episodes.items())} -> {r.dataset_id}" for name, r in RECIPES.items()
+        f"{name}: {' '.join(f'{k}={v}' for k, v in r.episodes.items())} -> {r.dataset_id}"
+        for name, r in RECIPES.items()
     )
     p.add_argument(
         "--recipe",

@@ -199,7 +199,10 @@ def test_the_react_recipe_writes_its_own_dataset_with_its_levels(tmp_path, capsy
     assert len(ds.episodes) == 2
     path = resolve(b.REACT_DATASET_ID, tmp_path)
     meta = json.loads((path / "metadata.json").read_text())
-    assert meta["max_burst"] == 60.0 and "late172 (tracks the landing point, reacts below y 172" in meta["description"]
+    assert (
+        meta["max_burst"] == 60.0
+        and "late172 (tracks the landing point, reacts below y 172" in meta["description"]
+    )
     with h5py.File(path / "main_data.hdf5") as f:
         assert [f[f"episode_{i}"].attrs["policy"] for i in range(2)] == ["ace", "late172"]
     assert set(b.RECIPES["react"].episodes) <= set(b.LEVELS)

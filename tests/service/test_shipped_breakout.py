@@ -1,8 +1,9 @@
-"""The shipped Breakout checkpoint, served for real: frames go out over REST and gRPC, and the goal changes play.
+"""The shipped Breakout checkpoints, served for real: frames go out over REST and gRPC, and the goal changes play.
 
-A real server on a loopback port serves `checkpoints/breakout-gmt`; the client builds its environment from the
-preprocessing the model declares (`GET /models/{name}`) and steps real ALE Breakout. The high goal must score
-more than the low goal over the same seeds, which the evaluation did not use (the low goal's data acts at random
+A real server on a loopback port serves `checkpoints/breakout-gmt` (3 goals) and `checkpoints/breakout5-gmt`
+(5 goals); the client builds its environment from the
+preprocessing the model declares (`GET /models/{name}`) and steps real ALE Breakout. The highest goal must score
+more than the lowest goal over the same seeds, which the evaluation did not use (the low goal's data acts at random
 most of the time), and a goal
 change mid-episode over gRPC must take effect at the step it was made.
 """
@@ -20,7 +21,8 @@ from gmt.client.runner import RunConfig, run
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")  # AtariPreprocessing
 
-CKPT = Path(__file__).resolve().parents[2] / "checkpoints" / "breakout-gmt"
+ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
+NAMES = ("breakout-gmt", "breakout5-gmt")
 # 600 steps: in the first 300 the high goal is still on the 1-point bricks and the low goal's game is usually
 # still running, so they part by only ~4 points per episode (`gmt eval ... --first-seed 1000 --steps 300`: low
 # 3.7, high 7.5); by 600 the low goal's games are mostly over (its holds last ~257 steps).
@@ -30,40 +32,46 @@ FIRST_SEED = 1000  # seeds the evaluation (0-14, eval.json) did not use
 
 @pytest.fixture(scope="module")
 def server():
-    if not (CKPT / "gmt.json").is_file():
-        pytest.fail("checkpoints/breakout-gmt is not shipped")
-    s = RunningServer(make_settings(checkpoints=[CKPT])).start()
+    for name in NAMES:
+        if not (ROOT / name / "gmt.json").is_file():
+            pytest.fail(f"checkpoints/{name} is not shipped")
+    s = RunningServer(make_settings(checkpoints=[ROOT / name for name in NAMES])).start()
     yield s
     s.stop()
 
 
-def test_the_spec_declares_the_training_datas_preprocessing(server):
-    declared = json.loads((CKPT / "gmt.json").read_text())["env"]["preprocessing"]
+@pytest.mark.parametrize("name", NAMES)
+def test_the_spec_declares_the_training_datas_preprocessing(server, name):
+    declared = json.loads((ROOT / name / "gmt.json").read_text())["env"]["preprocessing"]
     with RestClient(server.url) as c:
-        spec = c.get_model("breakout-gmt")
+        spec = c.get_model(name)
     assert spec.preprocessing == declared and declared["observation_shape"] == [4, 64, 64]
     assert spec.action_modes[0] == "sample"  # the checkpoint's default_action_mode
     with GrpcClient(server.target) as c:
-        g = c.get_model("breakout-gmt")
+        g = c.get_model(name)
     assert g.preprocessing == declared and g.action_modes == spec.action_modes
 
 
-def test_the_high_goal_outscores_the_low_goal_over_rest(server):
+@pytest.mark.parametrize("name", NAMES)
+def test_the_highest_goal_outscores_the_lowest_goal_over_rest(server, name):
+    with RestClient(server.url) as c:
+        top = len(c.get_model(name).goals) - 1
     total = {}
-    for goal in ("low", "high"):
-        cfg = RunConfig(
-            model="breakout-gmt", goal=goal, steps=STEPS, episodes=SEEDS, seed=FIRST_SEED, transport="rest"
-        )
+    for goal in (0, top):
+        cfg = RunConfig(model=name, goal=goal, steps=STEPS, episodes=SEEDS, seed=FIRST_SEED, transport="rest")
         with RestClient(server.url) as c:
             eps = run(c, cfg, echo=lambda _: None)
         assert all(a in range(4) for e in eps for a in e.trace.action)
         total[goal] = sum(sum(e.trace.reward) for e in eps)
-    assert total["high"] > total["low"] + 5, total
+    assert total[top] > total[0] + 5, total
 
 
-def test_a_goal_change_over_grpc_takes_effect_at_its_step(server):
-    cfg = RunConfig(model="breakout-gmt", goal="high", schedule=[(100, "low")], steps=150, transport="grpc")
+@pytest.mark.parametrize("name", NAMES)
+def test_a_goal_change_over_grpc_takes_effect_at_its_step(server, name):
+    with GrpcClient(server.target) as c:
+        top = len(c.get_model(name).goals) - 1
+    cfg = RunConfig(model=name, goal=top, schedule=[(100, 0)], steps=150, transport="grpc")
     with GrpcClient(server.target) as c:
         (ep,) = run(c, cfg, echo=lambda _: None)
     goals = ep.trace.goal
-    assert set(goals[:100]) == {2} and set(goals[100:]) == {0}, goals
+    assert set(goals[:100]) == {top} and set(goals[100:]) == {0}, goals
