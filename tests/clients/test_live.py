@@ -32,7 +32,15 @@ class LiveRun:
 
     def __init__(self, *args: str) -> None:
         cmd = [str(GMT), "run", "--live", "--port", "0", "--steps", "1000000", "--goal", "low", *args]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            # As in a terminal: a test run started in the background (`cmd &`) inherits an ignored SIGINT, and a
+            # Python started with SIGINT ignored never raises KeyboardInterrupt, so Ctrl-C below would do nothing.
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
