@@ -83,28 +83,25 @@ eval: $(VENV)/.installed-eval
 	$(BIN)/gmt eval $(CHECKPOINT) --seeds 15 --threads 2 --json $(CHECKPOINT)/eval.json \
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
 
+# The training settings both Breakout checkpoints share (each adds its data, goals and steps).
+BREAKOUT_TRAIN = --statistic return --attention window --context-length 4 --sequence-length 8 --batch-size 64 --lr 5e-4 --warmup-steps 300 --threads 2 --seed 0 --log-every 50 --save-every 2000 --default-action-mode sample
+
 # The exact commands behind the shipped checkpoints/breakout-gmt (its PROVENANCE.md): ~40 min on 2 cores.
 train-breakout: $(VENV)/.installed-train
-	$(BIN)/gmt train --dataset gmt/breakout/mixed-v0 --out checkpoints/breakout-gmt --statistic return --k 3 \
-		--attention window --context-length 4 --sequence-length 8 --batch-size 64 --steps 14000 --lr 5e-4 \
-		--warmup-steps 300 --threads 2 --seed 0 --log-every 50 --save-every 2000 --default-action-mode sample
+	$(BIN)/gmt train --dataset gmt/breakout/mixed-v0 --out checkpoints/breakout-gmt --k 3 --steps 14000 $(BREAKOUT_TRAIN)
 
 eval-breakout: $(VENV)/.installed-eval $(VENV)/.installed-atari
-	$(BIN)/gmt eval checkpoints/breakout-gmt --seeds 15 --threads 2 --json checkpoints/breakout-gmt/eval.json \
-		--markdown checkpoints/breakout-gmt/eval.md --plot checkpoints/breakout-gmt/eval.png
+	$(MAKE) eval CHECKPOINT=checkpoints/breakout-gmt
 
 # The exact commands behind checkpoints/breakout5-gmt (its PROVENANCE.md): ~4 min collection, ~44 min training.
 data-breakout5: $(VENV)/.installed-data $(VENV)/.installed-atari
 	$(BIN)/python -m gmt.datagen.breakout --recipe late
 
 train-breakout5: $(VENV)/.installed-train
-	$(BIN)/gmt train --dataset gmt/breakout/late-v1 --out checkpoints/breakout5-gmt --statistic return --k 5 \
-		--attention window --context-length 4 --sequence-length 8 --batch-size 64 --steps 12000 --lr 5e-4 \
-		--warmup-steps 300 --threads 2 --seed 0 --log-every 50 --save-every 2000 --default-action-mode sample
+	$(BIN)/gmt train --dataset gmt/breakout/late-v1 --out checkpoints/breakout5-gmt --k 5 --steps 12000 $(BREAKOUT_TRAIN)
 
 eval-breakout5: $(VENV)/.installed-eval $(VENV)/.installed-atari
-	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --json checkpoints/breakout5-gmt/eval.json \
-		--markdown checkpoints/breakout5-gmt/eval.md --plot checkpoints/breakout5-gmt/eval.png
+	$(MAKE) eval CHECKPOINT=checkpoints/breakout5-gmt
 	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --action-mode argmax \
 		--json checkpoints/breakout5-gmt/eval-argmax.json --markdown checkpoints/breakout5-gmt/eval-argmax.md
 
