@@ -2,9 +2,9 @@
 
 A tracking agent moves the paddle under the ball or its predicted landing point (FIRE launches a new ball);
 weaker levels of it see late (`lag`), aim badly (`jitter`), press random buttons (`random_prob`) or wait until the
-ball is low before moving (`react_y`); a uniform-random policy is the lowest level. Two recipes (`RECIPES`) pick
-levels: `mixed` (random actions) and `react` (late reactions). Every level is rolled out in the preprocessed environment a checkpoint will declare (`Preprocessing`:
-Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the
+ball is low before moving (`react_y`); a uniform-random policy is the lowest level. `RECIPES` name the level
+sets: `mixed` (random actions), `react` (late reactions) and `late` (both). Every level is rolled out in the
+preprocessed environment a checkpoint will declare (`Preprocessing`: Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the
 frames are stored as uint8 in a Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a
 trajectory and of any segment is a plain sum.
 
@@ -216,8 +216,6 @@ LEVELS: dict[str, Skill] = {
 # Episodes per level: the same number each, so that no level outweighs the others in the k-means + silhouette
 # relabelling (with many more short low-return episodes it settles on k = 2).
 DEFAULT_EPISODES = {"random": 80, "weak": 80, "medium": 80, "good": 80, "strong": 80}
-REACT_EPISODES = {"ace": 100, "late135": 100, "late152": 100, "late164": 100, "late172": 100}
-REACT_DATASET_ID = "gmt/breakout/react-v1"
 
 
 @dataclass(frozen=True)
@@ -240,7 +238,11 @@ RECIPES: dict[str, Recipe] = {
     "mixed": Recipe(DEFAULT_EPISODES, DATASET_ID, 30.0),
     # Late reactions, a deterministic weakness (docs/breakout.md); tunnels up to 60 points are kept, since the
     # best level's high returns come from them.
-    "react": Recipe(REACT_EPISODES, REACT_DATASET_ID, 60.0),
+    "react": Recipe(
+        {"ace": 100, "late135": 100, "late152": 100, "late164": 100, "late172": 100},
+        "gmt/breakout/react-v1",
+        60.0,
+    ),
     # Late reactions and random actions on the ball-x tracker.
     "late": Recipe(
         {"strong": 80, "slow140": 80, "slow150": 80, "slow160": 80, "slow168": 80},
@@ -715,7 +717,7 @@ def main(argv: list[str] | None = None) -> int:
         "--max-burst",
         type=float,
         help="Replace episodes scoring more than this between two paddle touches; < 0 keeps all (default: the "
-        "recipe's, 30 for mixed, 60 for react).",
+        "recipe's).",
     )
     p.add_argument(
         "--measure",
@@ -732,7 +734,7 @@ def main(argv: list[str] | None = None) -> int:
     recipe = RECIPES[args.recipe]
     try:
         episodes = _parse_episodes(args.episodes) or dict(recipe.episodes)
-        for level in episodes or ():
+        for level in episodes:
             make_agent(level)
     except (argparse.ArgumentTypeError, ValueError) as e:
         p.error(str(e))

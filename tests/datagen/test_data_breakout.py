@@ -195,9 +195,9 @@ def test_the_react_recipe_writes_its_own_dataset_with_its_levels(tmp_path, capsy
 
     from gmt.model.data.minari_io import resolve
 
-    ds = load_dataset(b.REACT_DATASET_ID, tmp_path)
+    ds = load_dataset(b.RECIPES["react"].dataset_id, tmp_path)
     assert len(ds.episodes) == 2
-    path = resolve(b.REACT_DATASET_ID, tmp_path)
+    path = resolve(b.RECIPES["react"].dataset_id, tmp_path)
     meta = json.loads((path / "metadata.json").read_text())
     assert (
         meta["max_burst"] == 60.0

@@ -128,11 +128,6 @@ def redis_clean(redis_url):
 
 
 @pytest.fixture(params=["tcp", "unix"])
-def redis_clean_any(request, redis_server):
-    """The emptied redis-server reached over loopback TCP, then over its Unix socket (both take the fast path)."""
-    import redis
-
-    r = redis.Redis.from_url(redis_server[0])
-    r.flushall()
-    r.close()
+def redis_clean_any(request, redis_server, redis_clean):
+    """`redis_clean` reached over loopback TCP, then over its Unix socket (both take the fast path)."""
     return redis_server[0] if request.param == "tcp" else redis_server[1]
