@@ -20,9 +20,10 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
 - `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.bench.failover`): {sessions, killed,
   promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
-- `store`: {stores: {memory | redis | redis_unix: {rest, rest_batch, rest_1_session}}, redis_vs_memory and
-  redis_unix_vs_memory: {rest, rest_batch, p50_1_session_added_ms}}: the same server with sessions in memory and
-  in a local redis-server reached over loopback TCP and over its Unix socket, same run.
+- `store`: {stores: {memory | redis | redis_unix: {rest, rest_batch, rest_1_session: {..., rounds}}},
+  redis_vs_memory and redis_unix_vs_memory: {rest, rest_batch, p50_1_session_added_ms(_rounds)}}: the same server
+  with sessions in memory and in a local redis-server reached over loopback TCP and over its Unix socket, all three
+  up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
 One module per section (`engine`, `serving`, `store`, `cluster`, `failover`, `training`, `alternatives`), what

@@ -1,10 +1,12 @@
-"""Handing freed heap memory back to the OS soon after a burst of frees (glibc's `malloc_trim`)."""
+"""The server process's heap: handing freed memory back to the OS soon after a burst of frees (glibc's
+`malloc_trim`), and keeping the objects of startup out of the garbage collector's passes."""
 
 from __future__ import annotations
 
 import asyncio
 import ctypes
 import ctypes.util
+import gc
 
 
 def return_freed_memory() -> None:
@@ -14,6 +16,19 @@ def return_freed_memory() -> None:
         ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+def freeze_startup_heap() -> int:
+    """Collect once, then move every object alive now (torch, the models, the apps: ~250,000 objects) into the
+    collector's permanent generation (`gc.freeze`); returns how many objects it holds.
+
+    Every full collection otherwise walks them all: ~80 ms each, several per second at full load, on the event
+    loop (POST /act with 256 sessions: p99 144 ms -> 33 ms, acts/s +14%, in one run here; docs/performance.md).
+    Frozen objects are still freed when their last reference goes; only a reference cycle among them is kept.
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 class Trimmer:

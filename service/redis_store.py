@@ -135,6 +135,7 @@ class RedisSessionStore(SessionStore):
         prefix: Key prefix.
         min_replicas: Redis replicas that must hold a write before it is acknowledged (0: do not wait).
         wait_timeout_s: Longest wait for them.
+        spin_s: How long a lone session's write polls for its reply (`Settings.store_spin_us`; 0: never).
     """
 
     def __init__(
@@ -147,6 +148,7 @@ class RedisSessionStore(SessionStore):
         *,
         min_replicas: int = 0,
         wait_timeout_s: float = 1.0,
+        spin_s: float = 0.0,
     ) -> None:
         super().__init__(idle_timeout_s, max_sessions, clock)
         import redis.asyncio as aioredis  # optional dependency: only needed with --redis-url
@@ -165,6 +167,7 @@ class RedisSessionStore(SessionStore):
         self._fast_lock = asyncio.Lock()
         self.redis = self._client.redis
         self.min_replicas = min_replicas
+        self.spin_s = spin_s
         self._wait_ms = max(1, round(wait_timeout_s * 1000))
         # Sessions whose last write here may not have reached `min_replicas` replicas: confirmed before use.
         self._unconfirmed: set[str] = set()
@@ -389,10 +392,27 @@ class RedisSessionStore(SessionStore):
         the error that failed it (one future per caller, not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
-        if not self._queue:
-            loop.call_soon(self._flush)
+        first = not self._queue
         self._queue.append((entries, fut))
+        if first:
+            if self._lone(len(self._queue)):
+                self._flush()  # polls for the reply: the future is answered before the caller awaits it
+            else:
+                loop.call_soon(self._flush)
         return fut
+
+    def _lone(self, writes: int) -> bool:
+        """Whether `writes` queued writes are a lone session's, whose reply is worth polling for (`spin_s`): one
+        write, the only session served here, and nothing else in flight on the open fast connection."""
+        conn = self._fast
+        return (
+            self.spin_s > 0
+            and writes == 1
+            and len(self._held) <= 1
+            and conn is not None
+            and not conn.closed
+            and not conn.in_flight
+        )
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
         self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
@@ -416,6 +436,8 @@ class RedisSessionStore(SessionStore):
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
         them): at once on the open fast connection, else from a task that connects first."""
         queue, self._queue = self._queue, []
+        if not queue:  # sent already (a lone write goes at once)
+            return
         keys = [k for entries, _ in queue for ks, _ in entries for k in ks]
         argv = [a for entries, _ in queue for _, args in entries for a in args]
         # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
@@ -424,8 +446,8 @@ class RedisSessionStore(SessionStore):
             commands.append(["WAIT", self.min_replicas, self._wait_ms])
         conn = self._fast
         if conn is not None and not conn.closed:
-            futures = conn.send(*commands)
-            futures[-1].add_done_callback(lambda _: self._answer(queue, conn, futures))
+            spin_s = self.spin_s if self._lone(len(queue)) else 0.0
+            conn.send(lambda replies: self._answer(queue, conn, replies), *commands, spin_s=spin_s)
             return
         task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
@@ -441,13 +463,15 @@ class RedisSessionStore(SessionStore):
             return
         self._resolve(queue, replies)
 
-    def _answer(self, queue: list, conn: resp.RespConnection, futures: list[asyncio.Future]) -> None:
-        try:
-            replies = self._checked(conn, [f.result() for f in futures])
-        except resp.ConnectionLost as e:
-            replies = Unavailable(f"session store unreachable: {e}")
-        except ServiceError as e:
-            replies = e
+    def _answer(self, queue: list, conn: resp.RespConnection, replies: list | BaseException) -> None:
+        """Resolve the turn's writes from the fast connection's replies (called as they are parsed)."""
+        if isinstance(replies, resp.ConnectionLost):
+            replies = Unavailable(f"session store unreachable: {replies}")
+        elif not isinstance(replies, BaseException):
+            try:
+                replies = self._checked(conn, replies)
+            except ServiceError as e:
+                replies = e
         self._resolve(queue, replies)
 
     def _resolve(self, queue: list, replies: list | BaseException) -> None:
@@ -709,4 +733,5 @@ def store_for(settings: Settings, clock: Clock) -> RedisSessionStore | None:
         clock,
         min_replicas=settings.store_min_replicas,
         wait_timeout_s=settings.store_wait_timeout_s,
+        spin_s=settings.store_spin_us / 1e6,
     )

@@ -16,6 +16,7 @@ import uvicorn
 from gmt.service.core import Core
 from gmt.service.grpc.server import GrpcServer
 from gmt.service.limits import connection_caps
+from gmt.service.memory import freeze_startup_heap
 from gmt.service.rest.app import create_app
 from gmt.service.rest.protocol import ConnectionGuard, GuardedHttpProtocol
 from gmt.service.settings import Settings
@@ -115,9 +116,13 @@ class Server:
         self._uvicorn: _Uvicorn | None = None
         self._uvicorn_task: asyncio.Task | None = None
 
-    async def start(self) -> None:
+    async def start(self, freeze_heap: bool = False) -> None:
         """Listen for REST (its lifespan loads the models), then for gRPC; the bound ports are in `rest_port`
         and `grpc_port`.
+
+        Args:
+            freeze_heap: Once the models are loaded, hide every object alive then from the garbage collector
+                (`memory.freeze_startup_heap`): for a process that only serves, as `gmt serve` is.
         """
         s = self.settings
         store = self.core.store
@@ -173,6 +178,7 @@ class Server:
             await self._uvicorn_task
             await self.core.close()
             raise
+        frozen = freeze_startup_heap() if freeze_heap else None
         log.info(
             "serving",
             extra={
@@ -188,6 +194,7 @@ class Server:
                 "descriptors": caps.descriptors,
                 "rest_max_connections": caps.rest,
                 "grpc_max_connections": caps.grpc,
+                "gc_frozen_objects": frozen,
             },
         )
 
@@ -209,7 +216,7 @@ class Server:
 async def serve(settings: Settings) -> None:
     """Run until SIGINT or SIGTERM, then shut down gracefully."""
     server = Server(settings)
-    await server.start()
+    await server.start(freeze_heap=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

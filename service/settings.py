@@ -41,6 +41,9 @@ class Settings(BaseSettings):
         store_min_replicas: With a Redis store, acknowledge a step (and a new session) only once this many Redis
             replicas hold it (Redis WAIT); fewer within the wait timeout answers `unavailable` (0 = do not wait).
         store_wait_timeout_s: Longest wait for those replicas (under the store's 5 s socket timeout).
+        store_spin_us: With a Redis store, a lone session's write (the only session this replica serves, no other
+            write in flight) waits for Redis's reply by polling the socket for up to this long instead of sleeping
+            in the event loop: ~0.07 ms less per act here, for that much CPU (0 = never poll).
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
@@ -94,6 +97,7 @@ class Settings(BaseSettings):
     redis_url: str | None = None
     store_min_replicas: int = Field(0, ge=0)
     store_wait_timeout_s: float = Field(1.0, gt=0, le=4.0)
+    store_spin_us: int = Field(500, ge=0, le=5000)
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)

@@ -129,3 +129,23 @@ def test_cluster_section_loads_two_replicas_through_nginx_without_errors(window_
     total = {when: sum(d.values()) for when, d in res["rss_bytes"].items()}
     assert res["rss_per_live_session_bytes"] == (total["live"] - total["started"]) // 4
     assert res["rss_growth_second_wave_bytes"] == total["second_wave"] - total["live"]
+
+
+@pytest.mark.skipif(
+    shutil.which("wrk") is None or shutil.which("redis-server") is None,
+    reason="needs wrk and redis-server (apt-get install wrk redis-server)",
+)
+def test_store_section_alternates_rounds_over_three_live_servers(window_ckpt):
+    from gmt.bench.store import bench_store
+
+    res = bench_store(window_ckpt, sessions=3, seconds=2.0, rounds=2)
+    for store in ("memory", "redis", "redis_unix"):
+        for load in ("rest_1_session", "rest", "rest_batch"):
+            row = res["stores"][store][load]
+            assert len(row["rounds"]) == 2 and row["errors"] == 0 and row["acts_per_s"] > 0, (store, load, row)
+            assert row["acts_per_s"] == round(sum(r["acts_per_s"] for r in row["rounds"]) / 2, 1)
+        assert res["stores"][store]["rest_1_session"]["sessions"] == 1
+        assert res["stores"][store]["rest"]["sessions"] == 3
+    m, r = res["stores"]["memory"], res["stores"]["redis"]
+    assert res["redis_vs_memory"]["rest"] == round(r["rest"]["acts_per_s"] / m["rest"]["acts_per_s"], 3)
+    assert len(res["redis_vs_memory"]["p50_1_session_added_ms_rounds"]) == 2

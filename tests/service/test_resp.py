@@ -123,3 +123,37 @@ def test_replies_split_anywhere_are_parsed_whole():
         assert got == want, cut
     with pytest.raises(resp.RespError):
         resp.parse(b"?what\r\n")
+
+
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+def test_a_lone_command_polled_for_is_answered_before_send_returns(server, loop):
+    """With `spin_s`, the only commands in flight get their replies read right there; a reply that takes longer
+    than the poll comes through the event loop as usual, and later commands still get their own replies."""
+    port, _ = server
+
+    async def scenario():
+        c = resp.RespConnection("127.0.0.1", port, password="pw")
+        await c.open()
+        got = []
+        c.send(got.append, ["SET", "k", "v"], ["GET", "k"], spin_s=5.0)  # bounded, not slept: Redis answers first
+        assert got == [[b"OK", b"v"]]
+        c.send(got.append, ["ECHO", "no poll"])  # without spin_s the reply waits for the loop
+        assert len(got) == 1
+        assert await c.call(["ECHO", "after"]) == [b"after"] and got[1] == [b"no poll"]
+        # A reply slower than the poll (BLPOP times out after 0.2 s): read by the transport, in order.
+        c.send(got.append, ["BLPOP", "never", "0.2"], spin_s=0.001)
+        assert len(got) == 2
+        assert await c.call(["ECHO", "next"]) == [b"next"] and got[2] == [None]
+        # Not polled while another command waits: its reply must not be read out from under it.
+        c.send(got.append, ["BLPOP", "never", "0.2"])
+        c.send(got.append, ["PING"], spin_s=5.0)
+        assert len(got) == 3
+        assert await c.call(["ECHO", "last"]) == [b"last"] and got[3:] == [[None], [b"PONG"]]
+        c.close()
+
+    if loop == "uvloop":  # what `gmt serve` runs on: its transport's socket is read the same way
+        import uvloop
+
+        uvloop.run(scenario())
+    else:
+        asyncio.run(scenario())
