@@ -459,7 +459,7 @@ def test_load_and_unload_under_256_sessions_give_no_errors(
                 # waits on the counter, not on time: on a busy 2-core machine six quick calls can all land
                 # between two acts of the load process.
                 seen = acts_answered(http)
-                wait_for(lambda: acts_answered(http) > seen, f"acts answered after {method} {path}")
+                wait_for(lambda seen=seen: acts_answered(http) > seen, f"acts answered after {method} {path}")
             during = acts_answered(http) - before
             sessions = {v["version"]: v["sessions"] for v in versions_of(http)["versions"]}
             assert sessions == {versions["v1"]: 256, versions["v2"]: 0}
