@@ -142,7 +142,11 @@ def test_store_section_alternates_rounds_over_three_live_servers(window_ckpt):
     for store in ("memory", "redis", "redis_unix"):
         for load in ("rest_1_session", "rest", "rest_batch"):
             row = res["stores"][store][load]
-            assert len(row["rounds"]) == 2 and row["errors"] == 0 and row["acts_per_s"] > 0, (store, load, row)
+            assert len(row["rounds"]) == 2 and row["errors"] == 0 and row["acts_per_s"] > 0, (
+                store,
+                load,
+                row,
+            )
             assert row["acts_per_s"] == round(sum(r["acts_per_s"] for r in row["rounds"]) / 2, 1)
         assert res["stores"][store]["rest_1_session"]["sessions"] == 1
         assert res["stores"][store]["rest"]["sessions"] == 3

@@ -135,7 +135,9 @@ def test_a_lone_command_polled_for_is_answered_before_send_returns(server, loop)
         c = resp.RespConnection("127.0.0.1", port, password="pw")
         await c.open()
         got = []
-        c.send(got.append, ["SET", "k", "v"], ["GET", "k"], spin_s=5.0)  # bounded, not slept: Redis answers first
+        c.send(
+            got.append, ["SET", "k", "v"], ["GET", "k"], spin_s=5.0
+        )  # bounded, not slept: Redis answers first
         assert got == [[b"OK", b"v"]]
         c.send(got.append, ["ECHO", "no poll"])  # without spin_s the reply waits for the loop
         assert len(got) == 1
