@@ -22,8 +22,8 @@ def freeze_startup_heap() -> int:
     """Collect once, then move every object alive now (torch, the models, the apps: ~250,000 objects) into the
     collector's permanent generation (`gc.freeze`); returns how many objects it holds.
 
-    Every full collection otherwise walks them all: ~80 ms each, several per second at full load, on the event
-    loop (POST /act with 256 sessions: p99 144 ms -> 33 ms, acts/s +14%, in one run here; docs/performance.md).
+    Every full collection otherwise walks them all: ~80 ms each on the event loop, timed with `gc.callbacks`
+    (POST /act with 256 sessions: p99 144 ms -> 33 ms, acts/s +14%, in one run here; docs/performance.md).
     Frozen objects are still freed when their last reference goes; only a reference cycle among them is kept.
     """
     gc.collect()
