@@ -43,7 +43,8 @@ class Settings(BaseSettings):
         store_wait_timeout_s: Longest wait for those replicas (under the store's 5 s socket timeout).
         store_spin_us: With a Redis store, a lone session's write (the only session this replica serves, no other
             write in flight) waits for Redis's reply by polling the socket for up to this long instead of sleeping
-            in the event loop: ~0.06 ms less per act here, for that much CPU (0 = never poll).
+            in the event loop: ~0.06 ms less per act here, for that much CPU (0 = never poll: for a Redis whose round
+            trip is longer than the limit, as across a network, polling only burns it).
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
