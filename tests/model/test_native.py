@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import numpy as np
 import pytest
@@ -170,11 +171,19 @@ def test_the_pool_grows_safely_while_acts_run_in_another_thread():
             engine.act(ctxs, obs, True)
             rounds[0] += 1
 
+    def acted_since(n: int) -> None:  # the worker has acted again (a deadline, not a sleep)
+        deadline = time.monotonic() + 60
+        while rounds[0] <= n and time.monotonic() < deadline and worker.is_alive():
+            time.sleep(0.001)
+        assert rounds[0] > n, "the acting thread made no progress"
+
     worker = threading.Thread(target=acting)
     worker.start()
     try:
-        while engine.pool.n_slots < 128:  # 16 -> 128: three doublings while the worker acts
+        while engine.pool.n_slots < 128:  # 16 -> 128: three doublings, each while the worker acts
+            acted_since(rounds[0])
             engine.new_context(0)
+        acted_since(rounds[0])
     finally:
         stop.set()
         worker.join()

@@ -158,7 +158,9 @@ def test_a_bad_row_inside_a_batch_fails_only_its_own_request(make_server, tmp_pa
     fragile = tiny_checkpoint()
     fragile.obs_norm.mean[0], fragile.obs_norm.std[0] = 0.0, 1e9 / 3e38  # x0 = 1e9 normalises to 3e38
     save_checkpoint(fragile, tmp_path / "tiny-gmt")
-    server = make_server(checkpoints=[tmp_path], batch_wait_ms=300)
+    # The three acts must reach the batcher within the wait (2 s: room for a slow machine); the lone retry
+    # below waits it out too (3 live sessions, 1 act queued), inside the client's 5 s timeout.
+    server = make_server(checkpoints=[tmp_path], batch_wait_ms=2_000)
     obs = np.random.default_rng(4).normal(size=(3, OBS_DIM)).astype(np.float32)
     obs[:, 0] = 0.0
     bad = obs[1].copy()

@@ -207,10 +207,10 @@ def test_settings_reach_http2(make_server):
         "--sessions",
         sid,
         "--seconds",
-        "2",
+        "5",  # the bytes are bounded by flow control, not by time; the time only has to cover a slow start
     )
     try:
-        attack.proc.wait(30)
+        attack.proc.wait(60)
         done = attack.stop()
     finally:
         attack.kill()
@@ -284,8 +284,9 @@ def test_a_call_past_max_concurrent_rpcs_is_refused_at_once(make_server):
         t = time.monotonic()
         with pytest.raises(grpc.RpcError) as e:
             stub.ListModels(pb.ListModelsRequest(), timeout=10)
+        # Refused, not queued: a queued call would end DEADLINE_EXCEEDED at its 10 s timeout.
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, e.value.details()
-        assert time.monotonic() - t < 2
+        assert time.monotonic() - t < 8
         held[0].cancel()
         deadline = time.monotonic() + 10
         while True:
@@ -313,17 +314,36 @@ def closed_by_server(sock: socket.socket, timeout: float) -> float | None:
     return None
 
 
+def still_open(sock: socket.socket) -> bool:
+    """Whether the server has not closed `sock` (what it sent so far, e.g. its HTTP/2 SETTINGS, is read)."""
+    sock.setblocking(False)
+    try:
+        while True:
+            if not sock.recv(65536):
+                return False
+    except BlockingIOError:
+        return True
+    except ConnectionResetError:
+        return False
+    finally:
+        sock.setblocking(True)
+
+
 def test_grpc_connection_cap_and_handshake_timeout(make_server):
-    s = make_server(grpc_max_connections=3, grpc_handshake_timeout_s=1.0)
+    s = make_server(grpc_max_connections=3, grpc_handshake_timeout_s=4.0)
     port = s.server.grpc_port
     opened = time.monotonic()
     held = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]  # no HTTP/2 preface
     extra = socket.create_connection(("127.0.0.1", port))
     try:
-        assert closed_by_server(extra, 5) - opened < 0.5  # past the cap: closed at once
-        for sock in held:  # the handshake timeout closes the others, after about a second
-            when = closed_by_server(sock, 10)
-            assert when is not None and 0.8 < when - opened < 5, when and when - opened
+        # Past the cap: closed at once, while the three held connections are still open (their handshake
+        # timeout has not run out). Asserted by order, not by a short time bound.
+        assert closed_by_server(extra, 30) is not None
+        for sock in held:
+            assert still_open(sock)
+        for sock in held:  # the handshake timeout closes the others, after about four seconds
+            when = closed_by_server(sock, 60)
+            assert when is not None and 3.2 < when - opened < 60, when and when - opened
         with grpc.insecure_channel(s.target) as channel:
             health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=10)
             assert health.status == health_pb2.HealthCheckResponse.SERVING
