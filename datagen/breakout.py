@@ -4,9 +4,10 @@ A tracking agent moves the paddle under the ball or its predicted landing point 
 weaker levels of it see late (`lag`), aim badly (`jitter`), press random buttons (`random_prob`) or wait until the
 ball is low before moving (`react_y`); a uniform-random policy is the lowest level. `RECIPES` name the level
 sets: `mixed` (random actions), `react` (late reactions) and `late` (both). Every level is rolled out in the
-preprocessed environment a checkpoint will declare (`Preprocessing`: Gymnasium's `AtariPreprocessing` + `FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the
-frames are stored as uint8 in a Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a
-trajectory and of any segment is a plain sum.
+preprocessed environment a checkpoint will declare (`Preprocessing`: Gymnasium's `AtariPreprocessing` +
+`FrameStackObservation`, the same wrappers `gmt.common.envs` applies), and the frames are stored as uint8 in a
+Minari dataset with the rewards, so the statistic `return` (sum of rewards) of a trajectory and of any segment is
+a plain sum.
 
 RAM (ALE Breakout, 128 bytes): ball x at 99, ball y at 101 (0 while no ball is in play), paddle x at 72, score
 as two BCD bytes at 76 (hundreds) and 77 (tens and units). The often-quoted "score at 84" is not the score in

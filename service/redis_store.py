@@ -395,24 +395,13 @@ class RedisSessionStore(SessionStore):
         first = not self._queue
         self._queue.append((entries, fut))
         if first:
-            if self._lone(len(self._queue)):
-                self._flush()  # polls for the reply: the future is answered before the caller awaits it
+            if self.spin_s > 0 and len(self._held) <= 1 and self._fast is not None and not self._fast.closed:
+                # A lone session's write (the only session served here): sent now, its reply polled for, so the
+                # future is answered before the caller awaits it.
+                self._flush(self.spin_s)
             else:
                 loop.call_soon(self._flush)
         return fut
-
-    def _lone(self, writes: int) -> bool:
-        """Whether `writes` queued writes are a lone session's, whose reply is worth polling for (`spin_s`): one
-        write, the only session served here, and nothing else in flight on the open fast connection."""
-        conn = self._fast
-        return (
-            self.spin_s > 0
-            and writes == 1
-            and len(self._held) <= 1
-            and conn is not None
-            and not conn.closed
-            and not conn.in_flight
-        )
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
         self._forget(session.id)  # unknown whether it was written (or replicated): adopt afresh next time
@@ -432,12 +421,11 @@ class RedisSessionStore(SessionStore):
         held.version, held.step = session.ctx.version, session.ctx.step
         session.written()
 
-    def _flush(self) -> None:
+    def _flush(self, spin_s: float = 0.0) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
-        them): at once on the open fast connection, else from a task that connects first."""
+        them): at once on the open fast connection (polling for the reply up to `spin_s`,
+        `RespConnection.send`), else from a task that connects first."""
         queue, self._queue = self._queue, []
-        if not queue:  # sent already (a lone write goes at once)
-            return
         keys = [k for entries, _ in queue for ks, _ in entries for k in ks]
         argv = [a for entries, _ in queue for _, args in entries for a in args]
         # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
@@ -446,7 +434,6 @@ class RedisSessionStore(SessionStore):
             commands.append(["WAIT", self.min_replicas, self._wait_ms])
         conn = self._fast
         if conn is not None and not conn.closed:
-            spin_s = self.spin_s if self._lone(len(queue)) else 0.0
             conn.send(lambda replies: self._answer(queue, conn, replies), *commands, spin_s=spin_s)
             return
         task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))

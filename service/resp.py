@@ -199,11 +199,6 @@ class RespConnection:
                 self.close(ConnectionLost(f"Redis refused the connection's setup: {reply}"))
                 raise ConnectionLost(f"Redis refused the connection's setup: {reply}")
 
-    @property
-    def in_flight(self) -> int:
-        """Commands sent whose replies have not all come."""
-        return len(self._waiting)
-
     def send(self, callback, *commands: list, spin_s: float = 0.0) -> None:
         """Write `commands` now; `callback` is called once, from the connection's reader, with the list of their
         replies when the last one arrives (an error reply is a `RespError` in its place), or with a
