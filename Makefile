@@ -141,12 +141,12 @@ eval-walker2d: $(VENV)/.installed-eval
 # one core each. The behaviour is the scripted gait of behaviour/ant (`gmt data gait`, datagen/gait.py).
 data-ant: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env Ant-v5 --no-random --episodes-per-level 150 --pool-start slow=0.5 \
-		--pool-start medium=0.5 --pool-start fast=0.5 --out-id gmt/ant/gait-060708-v0
+		--pool-start medium=0.5 --pool-start fast=0.5 --out-id gmt/ant/gait-455565-v0
 
 train-ant: $(VENV)/.installed-train
-	$(BIN)/gmt train --dataset gmt/ant/gait-060708-v0 --out checkpoints/ant-gmt --attention window --batch-size 32 \
-		--lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 2 --steps 5000 --masking token \
-		--max-timestep 1 --default-action-mode mean --switch-relabel-steps 20
+	$(BIN)/gmt train --dataset gmt/ant/gait-455565-v0 --out checkpoints/ant-gmt --attention window --batch-size 32 \
+		--lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 1 --steps 5000 --masking token \
+		--max-timestep 1 --default-action-mode mean
 
 eval-ant: $(VENV)/.installed-eval
 	$(BIN)/gmt eval checkpoints/ant-gmt --seeds 15 --threads 1 --json checkpoints/ant-gmt/eval.json \
