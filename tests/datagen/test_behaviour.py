@@ -24,12 +24,18 @@ def test_a_written_snapshot_records_its_kind(tmp_path):
     assert isinstance(policy, BehaviourPolicy) and policy.meta.kind == "actor"
 
 
-def test_committed_snapshots_without_a_kind_are_read_by_their_extra():
+def test_snapshots_without_a_kind_are_read_by_their_extra(tmp_path):
+    """Snapshots written before `kind` existed: the committed Hopper one, and an Ant gait level with its key removed."""
     from gmt.datagen.gait import GaitPolicy
 
-    ant = BEHAVIOUR_DIR / "ant" / "slow.json"
+    meta = json.loads((BEHAVIOUR_DIR / "ant" / "slow.json").read_text())
+    del meta["kind"]
+    ant = tmp_path / "ant" / "slow.json"
+    ant.parent.mkdir()
+    ant.write_text(json.dumps(meta))
+    ant.with_suffix(".safetensors").write_bytes((BEHAVIOUR_DIR / "ant" / "slow.safetensors").read_bytes())
     hopper = BEHAVIOUR_DIR / "hopper" / "slow.json"
-    assert "kind" not in json.loads(ant.read_text()) and "kind" not in json.loads(hopper.read_text())
+    assert "kind" not in json.loads(hopper.read_text())
     assert isinstance(load_behaviour(ant, gym.make("Ant-v5").action_space), GaitPolicy)
     assert isinstance(load_behaviour(hopper, gym.make("Hopper-v5").action_space), BehaviourPolicy)
     meta = BehaviourMeta("Hopper-v5", "x", [], "tanh", [], [], extra={"command": 1.0, "governor": {"kp": 1}})
