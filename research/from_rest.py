@@ -45,9 +45,7 @@ def main() -> None:
         for seed in range(args.seeds):
             obs, _ = env.reset(seed=seed)
             rng = np.random.default_rng(seed)
-            getattr(
-                policy, "start_episode", lambda: None
-            )()  # gait levels keep a phase; PPO actors keep nothing
+            policy.start_episode()
             policy.target = command
             v = []
             for _ in range(args.end):

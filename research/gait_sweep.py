@@ -20,18 +20,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from gmt.common.segments import held_windows
 from gmt.datagen.behaviour import load_behaviour
 
 WINDOW = 75  # steps measured in an every-100 segment
 FIRST = 100  # windows start after the hold's settle-in
+EVERY = 5  # steps between window starts
 LOW_FREQ = 0.5  # the loop's lowest stride frequency (Hz), as in the levels written for 0.45-0.65 m/s
-
-
-def window_means(v: np.ndarray, window: int = WINDOW, first: int = FIRST, stride: int = 5) -> np.ndarray:
-    """Means of `v` over [a, a + window) for a = first, first + stride, ... while the window fits."""
-    c = np.concatenate([[0.0], np.cumsum(v)])  # [T + 1]
-    starts = np.arange(first, len(v) - window + 1, stride)
-    return (c[starts + window] - c[starts]) / window
 
 
 def main() -> None:
@@ -66,7 +61,7 @@ def main() -> None:
                     break
             v = np.asarray(v)
             held.append(v[FIRST:].mean())
-            windows.append(window_means(v))
+            windows.append(held_windows(v, first=FIRST, length=WINDOW, every=EVERY))
         w, mean = np.concatenate(windows), float(np.mean(held))
         share = np.mean(np.abs(w - mean) <= 0.1 * mean)
         print(

@@ -5,15 +5,16 @@ import sys
 import numpy as np
 import pytest
 
+from gmt.common.segments import held_windows, settle_in
 from research import gait_sweep
 
 
-def test_window_means_are_the_means_of_each_window_after_the_settle_in():
+def test_the_windows_it_judges_are_every_100s_measured_span_after_the_settle_in():
     v = np.random.default_rng(0).normal(size=300)
-    got = gait_sweep.window_means(v, window=75, first=100, stride=5)
+    got = held_windows(v, first=gait_sweep.FIRST, length=gait_sweep.WINDOW, every=gait_sweep.EVERY)
     starts = range(100, 300 - 75 + 1, 5)
     assert got == pytest.approx([v[a : a + 75].mean() for a in starts])
-    assert len(gait_sweep.window_means(v[:150], window=75, first=100)) == 0  # no window fits
+    assert gait_sweep.WINDOW == 100 - settle_in(100)  # the span every 100 measures
 
 
 def test_the_tool_holds_a_shipped_level_at_each_speed(monkeypatch, capsys):
