@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import subprocess
 from dataclasses import asdict, dataclass, field
@@ -86,7 +87,13 @@ class Checkpoint:
 
 
 def code_revision() -> str:
-    """The git commit of this code (with '+dirty' for uncommitted changes), or 'unknown'."""
+    """The git commit of this code (with '+dirty' for uncommitted changes), or 'unknown'.
+
+    $GMT_CODE_REVISION, when set, is taken as it is: an install without the repository (a wheel built from a
+    clean commit and carried to another machine) has no git to ask.
+    """
+    if os.environ.get("GMT_CODE_REVISION"):
+        return os.environ["GMT_CODE_REVISION"]
     root = Path(__file__).resolve().parents[1]
     try:
         rev = subprocess.run(

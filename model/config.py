@@ -137,6 +137,10 @@ class TrainConfig:
         switch_relabel_steps: Inference setting stored in the checkpoint: on a goal change (without a blend),
             the last this-many steps of a session's context take the new goal token (0: none;
             `gmt.model.engine.PolicyEngine.set_goal`); at most the model's history.
+        time_limit_s: Stop training after this many seconds of optimiser steps (0 = no limit), at whatever
+            step is reached first of `steps` and the limit. The cosine decay follows the larger of the step
+            share and the elapsed share of the limit, so a cut run still ends at the floor learning rate.
+            Set `steps` past what the time allows to train "for as long as the limit".
     """
 
     steps: int = 20000
@@ -163,6 +167,7 @@ class TrainConfig:
     augment_degrees: float = 0.0
     default_action_mode: str | None = None
     switch_relabel_steps: int = 0
+    time_limit_s: float = 0.0
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -187,6 +192,8 @@ class TrainConfig:
             )
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if self.time_limit_s < 0:
+            raise ValueError(f"time_limit_s must be >= 0, got {self.time_limit_s}")
         if self.warmup_steps < 0 or self.lr <= 0:
             raise ValueError("warmup_steps must be >= 0 and lr > 0")
 

@@ -10,12 +10,37 @@ import torch.nn.functional as F
 
 @dataclass
 class LossParts:
-    """The total loss and its parts (detached floats for logging)."""
+    """The total loss and its parts for logging, read as floats only when asked for.
+
+    Reading a part waits for the device; a training step that does not log never does (on a GPU the CPU then
+    queues the next steps while this one runs).
+
+    Attributes:
+        total: The loss to back-propagate.
+        action_loss: Detached action loss.
+        goal_loss: Detached next-goal loss.
+        accuracy: Detached next-goal accuracy (None when the batch has no next-goal pair).
+    """
 
     total: torch.Tensor
-    action: float
-    goal: float
-    goal_accuracy: float
+    action_loss: torch.Tensor
+    goal_loss: torch.Tensor
+    accuracy: torch.Tensor | None
+
+    @property
+    def action(self) -> float:
+        """The action loss."""
+        return self.action_loss.item()
+
+    @property
+    def goal(self) -> float:
+        """The next-goal loss."""
+        return self.goal_loss.item()
+
+    @property
+    def goal_accuracy(self) -> float:
+        """The next-goal accuracy (NaN without next-goal pairs)."""
+        return float("nan") if self.accuracy is None else self.accuracy.item()
 
 
 def gmt_loss(
@@ -63,9 +88,9 @@ def gmt_loss(
         else:
             a_loss = ((action_pred - actions) ** 2)[valid].sum() / n_action
         g_loss = F.cross_entropy(logits, target, reduction="sum") / max(n_pairs, 1)
-    acc = (logits.argmax(-1) == target).float().mean().item() if target.numel() > 0 else float("nan")
+    acc = (logits.argmax(-1) == target).float().mean() if target.numel() > 0 else None
     total = a_loss + alpha * g_loss
-    return LossParts(total=total, action=a_loss.item(), goal=g_loss.item(), goal_accuracy=acc)
+    return LossParts(total, a_loss.detach(), g_loss.detach(), acc)
 
 
 def loss_counts(actions: torch.Tensor, valid: torch.Tensor, discrete_actions: bool) -> tuple[int, int]:

@@ -214,9 +214,18 @@ class WindowSampler:
             rtg = [np.cumsum(np.asarray(r, dtype=np.float64)[::-1])[::-1] for r in rewards]
             self.rtg = torch.from_numpy(np.concatenate(rtg).astype(np.float32))  # [N]
 
+    def to(self, device: torch.device) -> WindowSampler:
+        """Move the concatenated episodes to `device` (in place); windows are then gathered there."""
+        for name in ("states", "actions", "goals", "start", "timesteps", "rtg"):
+            x = getattr(self, name)
+            if x is not None:
+                setattr(self, name, x.to(device))
+        return self
+
     def windows(self, ends: torch.Tensor) -> Windows:
-        """Windows ending at the given global transition indices ([B] int64)."""
-        offs = torch.arange(-self.K + 1, 1)  # [K]
+        """Windows ending at the given global transition indices ([B] int64, on any device)."""
+        ends = ends.to(self.states.device)
+        offs = torch.arange(-self.K + 1, 1, device=ends.device)  # [K]
         idx = ends[:, None] + offs[None, :]  # [B, K]
         valid = idx >= self.start[ends][:, None]  # [B, K]
         idx = torch.where(valid, idx, ends[:, None])  # padding reads a real row, then zeroed

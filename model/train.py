@@ -74,11 +74,18 @@ def goal_returns(dataset, labels: list[int], n_goals: int) -> list[float]:
     return [float(returns[lab == g].mean()) if (lab == g).any() else float("nan") for g in range(n_goals)]
 
 
-def lr_at(step: int, tc: TrainConfig) -> float:
-    """Linear warmup then cosine decay to `min_lr_ratio * lr`."""
+def lr_at(step: int, tc: TrainConfig, time_share: float = 0.0) -> float:
+    """Linear warmup then cosine decay to `min_lr_ratio * lr`.
+
+    Args:
+        step: Optimiser step.
+        tc: The run's configuration.
+        time_share: Elapsed share of `tc.time_limit_s` (0 without a limit); the decay follows it when it is
+            ahead of the step share.
+    """
     if step < tc.warmup_steps:
         return tc.lr * (step + 1) / tc.warmup_steps
-    progress = min((step - tc.warmup_steps) / max(tc.steps - tc.warmup_steps, 1), 1.0)
+    progress = min(max((step - tc.warmup_steps) / max(tc.steps - tc.warmup_steps, 1), time_share), 1.0)
     return tc.lr * (tc.min_lr_ratio + (1 - tc.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
@@ -153,6 +160,8 @@ def train(
     if tc.threads:
         torch.set_num_threads(tc.threads)
     par = Parallel.from_env(tc.device)
+    if tc.time_limit_s and par.world > 1:  # each process would stop at its own step: DDP would wait forever
+        raise ValueError("time_limit_s needs a single training process (not torchrun)")
     torch.manual_seed(tc.seed)
     cfg = model_config_for(dataset, len(goals), **(model_overrides or {}))
     augment = bool(tc.augment_shift or tc.augment_degrees)
@@ -172,6 +181,13 @@ def train(
             "a Decision Transformer is conditioned on returns: it takes one goal label per episode"
         )
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
+    on_gpu = par.device.type != "cpu"
+    if on_gpu:
+        # fp32 matrix products on tensor cores (TF32), and cuDNN's fastest convolution for the fixed shapes
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+        torch.backends.cudnn.benchmark = True
+        if not augment:  # the whole dataset on the accelerator: batches are gathered there, not copied over
+            sampler.to(par.device)
     model = GMT(cfg).to(par.device)
     dt = cfg.conditioning == "return"
     rows = par.rows(tc.batch_size)
@@ -192,15 +208,20 @@ def train(
         disable=not (progress and par.is_main),
         desc="train",
     )
+    done = start
     for step in bar:
+        share = (time.time() - t0) / tc.time_limit_s if tc.time_limit_s else 0.0
+        if share >= 1.0:
+            break
+        lr = lr_at(step, tc, share)
         for g in opt.param_groups:
-            g["lr"] = lr_at(step, tc)
+            g["lr"] = lr
         # Every process draws the same global batch (same generator) and trains on its rows of it.
         w = sampler.sample(tc.batch_size, gen)
         if dt:  # Decision Transformer: returns-to-go in the goal slot, no masking
             goals_in = w.rtg
-        else:
-            goals_in = mask_goals(w.goals, w.valid, tc.masking, tc.mask_prob, cfg.mask_token, gen)
+        else:  # masks drawn on the CPU from the run's generator, wherever the batch is: the same on any device
+            goals_in = mask_goals(w.goals.cpu(), w.valid.cpu(), tc.masking, tc.mask_prob, cfg.mask_token, gen)
         if augment:  # before taking this process's rows: every process augments the same global batch
             w = replace(w, states=augment_frames(w.states, tc.augment_shift, tc.augment_degrees, gen))
         counts = loss_counts(w.actions, w.valid, cfg.discrete_actions) if par.world > 1 else None
@@ -221,6 +242,7 @@ def train(
         (parts.total * par.world).backward()  # DDP averages gradients over processes: this undoes it
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
         opt.step()
+        done = step + 1
         if step % tc.log_every == 0 or step == tc.steps - 1:
             loss, a_loss, g_loss = par.sum([parts.total.item(), parts.action, parts.goal])
             last = {
@@ -229,7 +251,7 @@ def train(
                 "goal_loss": g_loss,
                 "goal_accuracy": parts.goal_accuracy,
                 "grad_norm": float(gnorm),
-                "lr": lr_at(step, tc),
+                "lr": lr,
             }
             curve.append([step, round(loss, 6)])
             bar.set_postfix(loss=f"{loss:.4f}", act=f"{a_loss:.4f}", goal=f"{g_loss:.3f}")
@@ -246,6 +268,7 @@ def train(
         par.close()
         return None
     model.cpu()
+    sampler.to(torch.device("cpu"))  # calibration runs the CPU model over the sampler's windows
     noise = (
         None
         if cfg.discrete_actions or dt  # a Decision Transformer acts with its mean action
@@ -262,7 +285,8 @@ def train(
             **asdict(replace(tc)),
             "final": last,
             "wall_time_s": round(elapsed, 1),
-            "steps_per_s": round((tc.steps - start) / max(elapsed, 1e-9), 2),
+            "steps_done": done,
+            "steps_per_s": round((done - start) / max(elapsed, 1e-9), 2),
             "loss_curve": curve,
             "processes": par.world,
             "device": str(par.device.type),

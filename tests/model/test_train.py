@@ -198,3 +198,41 @@ def test_a_default_action_mode_the_model_cannot_serve_is_refused_before_training
             ds, ds.labels, ds.goals, tmp_path / "c", _tc(default_action_mode="expert"), SMALL, progress=False
         )
     assert not (tmp_path / "c" / META).exists()
+
+
+def test_the_learning_rate_follows_the_time_limit_when_it_is_ahead_of_the_steps():
+    from gmt.model.train import lr_at
+
+    tc = _tc(steps=1000, warmup_steps=10, lr=1e-3, time_limit_s=60)
+    floor = tc.lr * tc.min_lr_ratio
+    assert lr_at(5, tc, 0.9) == pytest.approx(tc.lr * 6 / 10)  # warmup is counted in steps
+    assert lr_at(10, tc, 0.0) == pytest.approx(tc.lr)
+    assert lr_at(10, tc, 1.0) == pytest.approx(floor)  # the time is up: the floor, whatever the step
+    assert lr_at(505, tc, 0.5) == pytest.approx(lr_at(505, tc, 0.0))  # the step share leads: unchanged
+    assert lr_at(100, tc, 0.5) == pytest.approx(lr_at(505, tc, 0.0))  # the time share leads
+    with pytest.raises(ValueError, match="time_limit_s"):
+        _tc(time_limit_s=-1)
+
+
+def test_a_time_limit_ends_training_early_and_records_the_steps_done(tmp_path):
+    ds = SyntheticDataset()
+    ckpt = train(
+        ds, ds.labels, ds.goals, tmp_path / "t", _tc(steps=10**7, time_limit_s=0.5), SMALL, progress=False
+    )
+    info = json.loads((tmp_path / "t" / META).read_text())["training"]
+    assert 1 <= info["steps_done"] < 10**7
+    assert info["steps_done"] == ckpt.meta["training"]["steps_done"]
+    assert info["wall_time_s"] < 60  # it stopped at the limit, not after ten million steps
+    assert info["final"]["lr"] < 3e-3  # the schedule decayed with the elapsed time
+
+
+def test_a_sampler_moved_to_another_device_gathers_its_windows_there():
+    ds = SyntheticDataset()
+    cfg = model_config_for(ds, 3, **SMALL)
+    sampler, _, _ = build_sampler(ds, ds.labels, cfg)
+    ends = torch.tensor([0, 5, sampler.n - 1])
+    ref = sampler.windows(ends)
+    # every tensor must move: one left behind would mix devices in the gather and raise
+    meta = sampler.to(torch.device("meta")).windows(ends)
+    for x, y in zip(meta.model_inputs(), ref.model_inputs(), strict=True):
+        assert x.device.type == "meta" and x.shape == y.shape and x.dtype == y.dtype

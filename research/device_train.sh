@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Train on the device machine (one GPU, 16 cores), in one call: set up, measure the CPU beside the GPU, train.
+#
+# Prepared here (see docs/device.md):
+#   .whl/      the wheels the machine lacks (its python3 has torch, numpy, h5py, scikit-learn, typer, tqdm) and
+#              this package's own wheel (`pip wheel --no-deps . -w .whl`)
+#   .devdata/  packed datasets (`python -m research.carry_dataset pack ...`), one folder per dataset id leaf
+# Run there, both folders carried:
+#   REV=<commit> DATASET=gmt/breakout/react-v1 LIMIT=390 bash research/device_train.sh RUN_ARGS_A -- RUN_ARGS_B
+# REV (the clean commit the wheel was built from) goes into each checkpoint's code_revision.
+# Each run is `gmt train --dataset $DATASET --device cuda --time-limit-s $LIMIT --out $OUT/<name> ARGS`, the two
+# at once on the one GPU (each is mostly kernel launches at these sizes); the first argument of each is its name.
+# Meanwhile `gmt train --device cpu` of the first run's arguments on 12 threads for CPU_STEPS steps gives the
+# same machine's CPU figure. Everything it writes is under $OUT: a log and a tar per run (the tool brings back 8 files).
+set -u
+OUT=${OUT:-/tmp/out}
+LIMIT=${LIMIT:-390}
+CPU_STEPS=${CPU_STEPS:-30}
+DEVICE=${DEVICE:-cuda}          # cpu for a dry run here
+WHEELS=${WHEELS:-.whl/*.whl}
+log() { echo "[$(date +%T)] $*"; }
+
+log "install"
+# shellcheck disable=SC2086
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site $WHEELS || exit 1
+export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 GMT_DATA_DIR=$PWD/data/minari GMT_CODE_REVISION=${REV:-unknown}
+gmt() { python3 -c 'from gmt.service.cli import main; main()' "$@"; }
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+python3 -c "import gmt, torch; print(gmt.__file__, 'torch', torch.__version__, torch.cuda.is_available() and torch.cuda.get_device_name())" || exit 1
+
+log "unpack $DATASET"
+python3 -m research.carry_dataset unpack ".devdata/${DATASET##*/}" "data/minari/$DATASET" --workers 16 || exit 1
+
+# split "A args -- B args"
+A=() B=() side=A
+for x in "$@"; do
+  if [ "$x" = "--" ]; then side=B; continue; fi
+  if [ $side = A ]; then A+=("$x"); else B+=("$x"); fi
+done
+run() {  # name device threads args...
+  local name=$1 dev=$2 th=$3; shift 3
+  gmt train --dataset "$DATASET" --device "$dev" --threads "$th" --out "$OUT/$name" "$@" \
+    >"$OUT/$name.log" 2>&1
+  log "$name exit $?"
+}
+log "train"
+run "${A[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${A[@]:1}" &
+[ ${#B[@]} -gt 0 ] && run "${B[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${B[@]:1}" &
+run cpu-baseline cpu 12 "${A[@]:1}" --steps "$CPU_STEPS" --log-every 10 &
+wait
+nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader || true
+for f in "$OUT"/*.log; do echo "== $f"; tr '\r' '\n' <"$f" | grep -v '^\s*$' | tail -4; done
+for d in "$OUT"/*/; do n=$(basename "$d"); tar cf "$OUT/$n.tar" -C "$OUT" "$n" && rm -rf "$d"; done
+ls -la "$OUT"
