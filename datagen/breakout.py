@@ -171,6 +171,10 @@ class Skill:
         react_y: The paddle stays put until the descending ball is below this RAM y (the paddle meets it at
             183); 0 reacts at once. A late reaction cannot reach far landing points: balls are lost by a rule
             of the visible ball, so a weaker level plays worse by policy, not only by random actions.
+        disturb: Probability of a disturbance (DART, Laskey et al. 2017): the game gets a uniform-random action,
+            but the step records the level's own action. The data then shows the level recovering from states
+            off its own path, and what it records is always its policy (`infos["executed_action"]` holds what
+            the game got).
     """
 
     name: str
@@ -179,6 +183,7 @@ class Skill:
     random_prob: float = 0.0
     predict: bool = True
     react_y: int = 0
+    disturb: float = 0.0
 
 
 # One tracker (aims at the ball's x, no lag, no aiming error) weakened only by random actions: a rate that is
@@ -212,6 +217,14 @@ LEVELS: dict[str, Skill] = {
         Skill("slow150", react_y=150, random_prob=0.2, predict=False),
         Skill("slow160", react_y=160, random_prob=0.3, predict=False),
         Skill("slow168", react_y=168, random_prob=0.45, predict=False),
+        # The fourth recipe (gmt/breakout/dart-v1): the `react` levels, each disturbed at 20% of its steps and
+        # recording its own action there, so that a model imitating the best level sees how it recovers (a
+        # model trained on react-v1 fitted its data and still lost the ball: docs/breakout.md).
+        Skill("dart0", disturb=0.2),
+        Skill("dart135", react_y=135, disturb=0.2),
+        Skill("dart152", react_y=152, disturb=0.2),
+        Skill("dart164", react_y=164, disturb=0.2),
+        Skill("dart172", react_y=172, disturb=0.2),
     )
 }
 # Episodes per level: the same number each, so that no level outweighs the others in the k-means + silhouette
@@ -250,6 +263,12 @@ RECIPES: dict[str, Recipe] = {
         "gmt/breakout/late-v1",
         30.0,
     ),
+    # The `react` levels with disturbances whose steps record the level's own action (DART).
+    "dart": Recipe(
+        {"dart0": 100, "dart135": 100, "dart152": 100, "dart164": 100, "dart172": 100},
+        "gmt/breakout/dart-v1",
+        60.0,
+    ),
 }
 DEFAULT_RECIPE = "mixed"
 # Agent steps per episode at most: the 1000-step episodes of the evaluation protocol (docs/architecture.md; the
@@ -284,12 +303,24 @@ class TrackingAgent:
         return x - self.offset + self._aim_error
 
     def act(self, state: RamState, rng: np.random.Generator) -> int:
+        """The action the game gets; `self.label` is then the action the step records (they differ only
+        under a disturbance)."""
         s = self.skill
         self._seen.append(state)
         if s.random_prob and rng.random() < s.random_prob:
             action = int(rng.integers(4))
             self._prev_dir = {RIGHT: 1, LEFT: -1}.get(action, 0)
+            self.label = action
             return action
+        self.label = self._policy(state, rng)
+        if s.disturb and rng.random() < s.disturb:
+            action = int(rng.integers(4))
+            self._prev_dir = {RIGHT: 1, LEFT: -1}.get(action, 0)
+            return action
+        return self.label
+
+    def _policy(self, state: RamState, rng: np.random.Generator) -> int:
+        s = self.skill
         if not state.in_play:
             self._seen.clear()
             self._prev_dir = 0
@@ -333,6 +364,7 @@ def describe_level(level: str) -> str:
     parts += [f"lag {s.lag} steps"] if s.lag else []
     parts += [f"aim error std {s.jitter:g}"] if s.jitter else []
     parts += [f"{s.random_prob:.0%} random actions"] if s.random_prob else []
+    parts += [f"{s.disturb:.0%} disturbed steps recording its own action"] if s.disturb else []
     return ", ".join(parts)
 
 
@@ -356,15 +388,19 @@ class Played:
     terminated: bool
     truncated: bool
     ball_y: np.ndarray  # [T + 1] RAM ball y after reset and after every step (0: no ball in play)
+    executed: np.ndarray | None = None  # [T] the actions the game got, for an agent that disturbs its play
 
     def to_episode(self, episode_id: int) -> Episode:
+        infos = {"lives": self.lives}
+        if self.executed is not None:
+            infos["executed_action"] = self.executed
         return Episode(
             observations=self.observations[:-1],
             actions=self.actions,
             rewards=self.rewards,
             terminated=self.terminated,
             truncated=self.truncated,
-            infos={"lives": self.lives},
+            infos=infos,
             final_observation=self.observations[-1],
             episode_id=episode_id,
         )
@@ -414,7 +450,7 @@ def play(
     obs, _ = env.reset(seed=seed)
     agent.reset()
     frames = [obs] if keep_frames else []
-    actions, rewards, lives = [], [], []
+    actions, executed, rewards, lives = [], [], [], []
     state = read_ram(env)
     ball_y = [state.ball_y]
     terminated = truncated = False
@@ -424,7 +460,8 @@ def play(
         state = read_ram(env)
         if keep_frames:
             frames.append(obs)
-        actions.append(action)
+        actions.append(getattr(agent, "label", action))  # the agent's own action (DART: not the executed one)
+        executed.append(action)
         rewards.append(reward)
         lives.append(info["lives"])
         ball_y.append(state.ball_y)
@@ -438,7 +475,13 @@ def play(
         terminated=bool(terminated),
         truncated=bool(truncated),
         ball_y=np.asarray(ball_y, dtype=np.int64),
+        executed=np.asarray(executed, dtype=np.int64) if _disturbs(agent) else None,
     )
+
+
+def _disturbs(agent) -> bool:
+    skill = getattr(agent, "skill", None)
+    return bool(skill is not None and skill.disturb)
 
 
 @dataclass

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Train on the device machine (one GPU, 16 cores), in one call: set up, measure the CPU beside the GPU, train.
 #
-# Prepared here (see docs/device.md):
+# Prepared here (docs/training.md, "On a GPU"):
 #   .whl/      the wheels the machine lacks (its python3 has torch, numpy, h5py, scikit-learn, typer, tqdm) and
 #              this package's own wheel (`pip wheel --no-deps . -w .whl`)
 #   .devdata/  packed datasets (`python -m research.carry_dataset pack ...`), one folder per dataset id leaf

@@ -206,3 +206,23 @@ def test_the_react_recipe_writes_its_own_dataset_with_its_levels(tmp_path, capsy
     with h5py.File(path / "main_data.hdf5") as f:
         assert [f[f"episode_{i}"].attrs["policy"] for i in range(2)] == ["ace", "late172"]
     assert set(b.RECIPES["react"].episodes) <= set(b.LEVELS)
+
+
+def test_a_disturbed_level_records_its_own_action_where_the_game_got_a_random_one(env):
+    skill = b.Skill("d", disturb=0.3)
+    played = b.play(env, b.TrackingAgent(skill), 11, np.random.default_rng(3), 300)
+    differ = played.executed != played.actions
+    # a random action equals the level's own one time in four: about 0.3 x 3/4 of the steps differ
+    assert 0.12 < differ.mean() < 0.33, differ.mean()
+    # the recorded actions are the undisturbed policy's: replaying the executed actions through a fresh agent
+    # of the same level (which sees the same states) gives back every recorded action
+    env.reset(seed=11)
+    clean, rng = b.TrackingAgent(b.Skill("d")), np.random.default_rng(0)
+    for executed, recorded in zip(played.executed, played.actions, strict=True):
+        clean._seen.append(b.read_ram(env))  # what `act` does before asking the policy
+        assert clean._policy(b.read_ram(env), rng) == recorded
+        clean._prev_dir = {b.RIGHT: 1, b.LEFT: -1}.get(int(executed), 0)
+        env.step(int(executed))
+    assert "executed_action" in played.to_episode(0).infos
+    plain = b.play(env, b.make_agent("strong"), 11, np.random.default_rng(3), 50, keep_frames=False)
+    assert plain.executed is None  # levels without disturbances write the same data as before
