@@ -306,18 +306,25 @@ class TrackingAgent:
         """The action the game gets; `self.label` is then the action the step records (they differ only
         under a disturbance)."""
         s = self.skill
-        self._seen.append(state)
         if s.random_prob and rng.random() < s.random_prob:
-            action = int(rng.integers(4))
-            self._prev_dir = {RIGHT: 1, LEFT: -1}.get(action, 0)
-            self.label = action
-            return action
-        self.label = self._policy(state, rng)
+            self._seen.append(state)
+            self.label = self.played(int(rng.integers(4)))
+            return self.label
+        self.label = self.decide(state, rng)
         if s.disturb and rng.random() < s.disturb:
-            action = int(rng.integers(4))
-            self._prev_dir = {RIGHT: 1, LEFT: -1}.get(action, 0)
-            return action
+            return self.played(int(rng.integers(4)))
         return self.label
+
+    def decide(self, state: RamState, rng: np.random.Generator) -> int:
+        """The level's own action on `state` (no random action, no disturbance), taken as played; call
+        `played` when the game got another one."""
+        self._seen.append(state)
+        return self._policy(state, rng)
+
+    def played(self, action: int) -> int:
+        """Note that the game got `action` (the paddle's carry follows it); returns it."""
+        self._prev_dir = {RIGHT: 1, LEFT: -1}.get(action, 0)
+        return action
 
     def _policy(self, state: RamState, rng: np.random.Generator) -> int:
         s = self.skill

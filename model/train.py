@@ -181,8 +181,7 @@ def train(
             "a Decision Transformer is conditioned on returns: it takes one goal label per episode"
         )
     sampler, norm, codec = build_sampler(dataset, labels, cfg, tc.sequence_steps(cfg))
-    on_gpu = par.device.type != "cpu"
-    if on_gpu:
+    if par.device.type != "cpu":
         # fp32 matrix products on tensor cores (TF32), and cuDNN's fastest convolution for the fixed shapes
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True

@@ -18,7 +18,7 @@ import json
 import numpy as np
 
 from gmt.common.envs import make_env
-from gmt.datagen.breakout import LEFT, LEVELS, RIGHT, TrackingAgent, read_ram
+from gmt.datagen.breakout import LEVELS, TrackingAgent, read_ram
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.evaluate_return import model_info
@@ -60,14 +60,13 @@ def agreement(
         ret, lives0, lives, before = 0.0, info.get("lives", 5), info.get("lives", 5), None
         for _ in range(steps):
             state = read_ram(env)
-            teacher._seen.append(state)  # what `act` does before its policy decides
-            label = teacher._policy(state, np.random.default_rng(0))
+            label = teacher.decide(state, np.random.default_rng(0))
             (a,) = engine.act([ctx], [obs])
             if isinstance(a, Exception):
                 raise a
             a = int(a)
             played = label if teacher_drives else a
-            teacher._prev_dir = {RIGHT: 1, LEFT: -1}.get(played, 0)  # the paddle moves as it was moved
+            teacher.played(played)  # the paddle moves as it was moved
             critical = before is not None and state.ball_y > before.ball_y and state.ball_y > LOW_HALF
             same += a == label
             deciding += critical

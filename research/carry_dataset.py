@@ -80,8 +80,8 @@ def pack(src: Path, dst: Path, chunk: int = 32, preset: int = 6) -> dict:
     return index
 
 
-def _unpack_chunk(args: tuple[Path, int, list[str], dict]) -> dict[str, np.ndarray]:
-    path, _, names, episodes = args
+def _unpack_chunk(args: tuple[Path, list[str], dict]) -> dict[str, np.ndarray]:
+    path, names, episodes = args
     blob, out, at = lzma.decompress(path.read_bytes()), {}, 0
     for name in names:
         e = episodes[name]
@@ -104,7 +104,7 @@ def unpack(src: Path, dst: Path, workers: int = 1) -> int:
     names = list(index["episodes"])
     chunk = index["chunk"]
     jobs = [
-        (src / f"frames-{i:04d}.xz", i, names[c : c + chunk], index["episodes"])
+        (src / f"frames-{i:04d}.xz", names[c : c + chunk], index["episodes"])
         for i, c in enumerate(range(0, len(names), chunk))
     ]
     (dst / "data").mkdir(parents=True, exist_ok=True)

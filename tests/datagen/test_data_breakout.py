@@ -219,9 +219,8 @@ def test_a_disturbed_level_records_its_own_action_where_the_game_got_a_random_on
     env.reset(seed=11)
     clean, rng = b.TrackingAgent(b.Skill("d")), np.random.default_rng(0)
     for executed, recorded in zip(played.executed, played.actions, strict=True):
-        clean._seen.append(b.read_ram(env))  # what `act` does before asking the policy
-        assert clean._policy(b.read_ram(env), rng) == recorded
-        clean._prev_dir = {b.RIGHT: 1, b.LEFT: -1}.get(int(executed), 0)
+        assert clean.decide(b.read_ram(env), rng) == recorded
+        clean.played(int(executed))
         env.step(int(executed))
     assert "executed_action" in played.to_episode(0).infos
     plain = b.play(env, b.make_agent("strong"), 11, np.random.default_rng(3), 50, keep_frames=False)
