@@ -188,6 +188,24 @@ def test_a_late_reaction_waits_for_the_ball_by_a_rule_of_what_is_visible():
     assert "reacts below y 152" in b.describe_level("late152") and "random" in b.describe_level("ace")
 
 
+def test_a_leading_level_aims_a_few_steps_ahead_and_never_past_the_paddle_line():
+    """`lead` extrapolates the descending ball by at most `lead` steps (folded at the walls), and by exactly the
+    steps left where the ball is closer to the paddle's line than that: then it aims at the landing point."""
+    lead, track, land = (b.TrackingAgent(b.LEVELS[n]) for n in ("lead4", "strong", "ace"))
+    off = b.PADDLE_OFFSET
+    before, now = b.RamState(100, 100, 80, 0), b.RamState(103, 105, 80, 0)  # vx 3, vy 5, 15.6 steps to go
+    assert lead.target(now, before) == 103 + 4 * 3 - off
+    assert track.target(now, before) == 103 - off
+    assert land.target(now, before) == pytest.approx(103 + 3 * (b.PADDLE_Y - 105) / 5 - off)
+    near_b, near = b.RamState(100, 170, 80, 0), b.RamState(103, 175, 80, 0)  # 1.6 steps to the paddle line
+    assert lead.target(near, near_b) == pytest.approx(land.target(near, near_b))
+    wall_b, wall = b.RamState(b.WALL_RIGHT - 7, 100, 80, 0), b.RamState(b.WALL_RIGHT - 4, 105, 80, 0)
+    assert lead.target(wall, wall_b) == b.WALL_RIGHT - 8 - off  # 4 + 12 folded back at the right wall
+    rising = b.RamState(103, 95, 80, 0)  # ascending: follows the ball's x
+    assert lead.target(rising, before) == 103 - off
+    assert "tracks the ball 4 steps ahead, reacts below y 152" == b.describe_level("lead152")
+
+
 def test_the_react_recipe_writes_its_own_dataset_with_its_levels(tmp_path, capsys):
     argv = ["--recipe", "react", "--max-steps", "8", "--data-dir", str(tmp_path), "--no-progress"]
     assert b.main([*argv, "--episodes", "ace=1", "late172=1"]) == 0
