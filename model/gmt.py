@@ -73,7 +73,7 @@ class CausalSelfAttention(nn.Module):
         q, k, v = self.qkv(x).split(x.shape[-1], dim=2)  # 3 x [B, n, C]
         q, k, v = self._heads(q), self._heads(k), self._heads(v)  # 3 x [B, h, n, C/h]
         B, h, n, _ = k.shape
-        heads = torch.arange(h)[None, :, None]  # [1, h, 1]
+        heads = torch.arange(h, device=k.device)[None, :, None]  # [1, h, 1]
         at = (slots[:, None, None], heads, pos[:, None, :])  # broadcast to [B, h, n]
         k_cache[at] = k
         v_cache[at] = v
@@ -308,7 +308,9 @@ class GMT(nn.Module):
             & (key[:, None, :] <= idx[:, :, None])
             & (qstep - kstep < self.cfg.context_length)
         )
-        see |= torch.arange(W)[None, None, :] == pos[:, :, None]  # every token sees itself: no empty row
+        see |= (
+            torch.arange(W, device=pos.device)[None, None, :] == pos[:, :, None]
+        )  # every token sees itself: no empty row
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
         view = self._slot_reader(slots)
         for layer, block in enumerate(self.blocks):
@@ -323,7 +325,7 @@ class GMT(nn.Module):
         # No broadcast view for repeated slots: torch folds a product with a stride-0 batch into one larger
         # matrix product, whose last bits differ from the per-row products of other batches.
         B, first = slots.shape[0], int(slots[0])
-        if bool((slots == torch.arange(first, first + B)).all()):  # consecutive slots
+        if bool((slots == torch.arange(first, first + B, device=slots.device)).all()):  # consecutive slots
             return lambda cache: cache[first : first + B]
         return lambda cache: cache.index_select(0, slots)
 

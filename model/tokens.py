@@ -24,10 +24,15 @@ class ObsNormalizer:
     mean: np.ndarray | None = None
     std: np.ndarray | None = None
 
+    @staticmethod
+    def is_image(observations: np.ndarray) -> bool:
+        """Whether a [N, *obs_shape] array holds images (uint8, 3 dims per obs), which pass unchanged."""
+        return observations.dtype == np.uint8 and observations.ndim == 4
+
     @classmethod
     def fit(cls, observations: np.ndarray) -> ObsNormalizer:
-        """Statistics of a [N, *obs_shape] array; images (uint8, 3 dims per obs) are not standardised."""
-        if observations.dtype == np.uint8 and observations.ndim == 4:
+        """Statistics of a [N, *obs_shape] array; images are not standardised."""
+        if cls.is_image(observations):
             return cls()
         x = observations.astype(np.float64)
         return cls(mean=x.mean(0).astype(np.float32), std=np.maximum(x.std(0), 1e-6).astype(np.float32))
@@ -178,7 +183,7 @@ class WindowSampler:
 
     def __init__(
         self,
-        states: list[np.ndarray],
+        states: list[np.ndarray] | np.ndarray,
         actions: list[np.ndarray],
         goals: list[int | np.ndarray],
         K: int,
@@ -187,16 +192,22 @@ class WindowSampler:
         """Build from per-episode arrays.
 
         Args:
-            states: per episode [T, *obs_shape] normalised states.
+            states: per episode [T, *obs_shape] normalised states (copied into one array), or all of them
+                already concatenated [N, *obs_shape] (kept without a copy).
             actions: per episode [T, A] encoded actions (or [T] ids).
             goals: per episode its goal label, or [T] labels per step (served sessions with goal switches).
             K: Window length.
             rewards: per episode [T] rewards; windows then carry returns-to-go (the sum of the rewards from
                 each step to the episode's end).
         """
-        lengths = np.array([len(x) for x in states])
+        lengths = np.array([len(x) for x in actions])
+        if isinstance(states, np.ndarray):
+            if len(states) != lengths.sum():
+                raise ValueError(f"{len(states)} concatenated states for {lengths.sum()} actions")
+        elif [len(x) for x in states] != lengths.tolist():
+            raise ValueError("every episode needs as many states as actions")
         self.K = K
-        self.states = torch.from_numpy(np.concatenate(states))  # [N, *obs_shape]
+        self.states = torch.from_numpy(states if isinstance(states, np.ndarray) else np.concatenate(states))
         self.actions = torch.from_numpy(np.concatenate(actions))  # [N, A] or [N]
         per_step = [
             np.full(n, g, dtype=np.int64) if np.ndim(g) == 0 else np.asarray(g, dtype=np.int64)

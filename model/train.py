@@ -49,22 +49,49 @@ def model_config_for(dataset, n_goals: int, **overrides) -> GMTConfig:
 def build_sampler(
     dataset, labels: list[int | np.ndarray], cfg: GMTConfig, sequence_steps: int | None = None
 ) -> tuple[WindowSampler, ObsNormalizer, ActionCodec]:
-    """Normalise a dataset's episodes and wrap them in a sampler of `sequence_steps`-step sequences (default K)."""
+    """Normalise a dataset's episodes and wrap them in a sampler of `sequence_steps`-step sequences (default K).
+
+    Images are not normalised, so the sampler's one array of frames is also the dataset's: each episode's
+    observations become a view into it as it is filled, and the frames are held once, not twice.
+    """
     import gymnasium as gym
 
     obs = [ep.observations.reshape(len(ep.observations), *cfg.obs_shape) for ep in dataset.episodes]
-    norm = ObsNormalizer.fit(np.concatenate(obs))
+    images = bool(obs) and ObsNormalizer.is_image(obs[0])
+    norm = ObsNormalizer() if images else ObsNormalizer.fit(np.concatenate(obs))
     act = dataset.action_space
     codec = (
         ActionCodec()
         if isinstance(act, gym.spaces.Discrete)
         else ActionCodec(act.low.astype(np.float32), act.high.astype(np.float32))
     )
-    states = [norm(o) for o in obs]
+    del obs
+    states = (
+        _frames_held_once(dataset.episodes, cfg.obs_shape)
+        if images
+        else [norm(ep.observations.reshape(len(ep.observations), *cfg.obs_shape)) for ep in dataset.episodes]
+    )
     actions = [codec.encode(ep.actions) for ep in dataset.episodes]
     rewards = [ep.rewards for ep in dataset.episodes] if cfg.conditioning == "return" else None
     sampler = WindowSampler(states, actions, labels, sequence_steps or cfg.context_length, rewards)
     return sampler, norm, codec
+
+
+def _frames_held_once(episodes, obs_shape: tuple[int, ...]) -> np.ndarray:
+    """All episodes' uint8 frames in one [N, *obs_shape] array; each episode's observations (and its final
+    observation, copied out of the array it was read with) then point into it, so the arrays they were read
+    into are freed one episode at a time."""
+    frames = np.empty((sum(len(ep.observations) for ep in episodes), *obs_shape), dtype=np.uint8)
+    i = 0
+    for ep in episodes:
+        n = len(ep.observations)
+        frames[i : i + n] = ep.observations.reshape(n, *obs_shape)
+        shape = ep.observations.shape
+        if getattr(ep, "final_observation", None) is not None:
+            ep.final_observation = np.array(ep.final_observation)  # its own copy: no view keeps the old array
+        ep.observations = frames[i : i + n].reshape(shape)
+        i += n
+    return frames
 
 
 def goal_returns(dataset, labels: list[int], n_goals: int) -> list[float]:

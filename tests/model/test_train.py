@@ -12,6 +12,7 @@ from gmt.model.checkpoint import META, WEIGHTS, CheckpointError, load_checkpoint
 from gmt.model.config import TrainConfig
 from gmt.model.fixtures import SyntheticDataset, _Episode
 from gmt.model.losses import gmt_loss
+from gmt.model.tokens import WindowSampler
 from gmt.model.train import RESUME_DIR, build_sampler, model_config_for, train
 
 SMALL = {"context_length": 4, "n_layer": 1, "n_head": 1, "n_embd": 32}
@@ -189,6 +190,35 @@ def test_frame_augmentation_trains_reproducibly_and_only_on_images(tmp_path):
         train(vec, vec.labels, vec.goals, tmp_path / "v", tc, SMALL, progress=False)
     with pytest.raises(ValueError, match="augment_shift"):
         TrainConfig(augment_shift=-1)
+
+
+def test_frames_are_held_once_the_sampler_is_built():
+    """The dataset's episodes then read the sampler's one array of frames, and the arrays they were loaded into
+    (T + 1 frames each, as `load_dataset` reads them, with a final observation viewing the last) are freed."""
+    import gc
+    import weakref
+
+    ds = _Frames()
+    loaded = []
+    for ep in ds.episodes:  # as load_dataset leaves them: views of one array of T + 1 frames
+        raw = np.concatenate([ep.observations, ep.observations[-1:] // 2])
+        ep.observations, ep.final_observation = raw[:-1], raw[-1]
+        loaded.append(weakref.ref(raw))
+        del raw
+    before = [(ep.observations.copy(), ep.final_observation.copy()) for ep in ds.episodes]
+    cfg = model_config_for(ds, 3, **SMALL)
+    sampler, _, _ = build_sampler(ds, ds.labels, cfg)
+    gc.collect()
+    assert all(ref() is None for ref in loaded)  # nothing keeps the loaded arrays alive
+    frames = sampler.states.numpy()
+    for ep, (obs, final) in zip(ds.episodes, before, strict=True):
+        assert np.shares_memory(ep.observations, frames) and np.array_equal(ep.observations, obs)
+        assert np.array_equal(ep.final_observation, final)
+    assert frames.shape == (sum(len(ep.actions) for ep in ds.episodes), 4, 36, 36)
+    w = sampler.windows(torch.tensor([len(ds.episodes[0].actions)]))  # the second episode's first step
+    assert torch.equal(w.states[0, -1], torch.from_numpy(before[1][0][0]))
+    with pytest.raises(ValueError, match="concatenated states"):
+        WindowSampler(frames[:-1], [ep.actions for ep in ds.episodes], ds.labels, K=4)
 
 
 def test_a_default_action_mode_the_model_cannot_serve_is_refused_before_training(tmp_path):
