@@ -8,6 +8,7 @@ from typing import Literal
 MaskingMode = Literal["token", "trajectory", "none"]
 AttentionSpan = Literal["full", "window"]
 Conditioning = Literal["goal", "return"]
+ImageEncoderKind = Literal["nature", "fine"]
 Device = Literal["auto", "cpu", "cuda"]
 
 
@@ -34,6 +35,9 @@ class GMTConfig:
             embedded linearly (Decision Transformer, the paper's baseline); such a model is evaluated by
             `gmt.model.evaluate_dt` and not served.
         return_scale: Returns-to-go are divided by this before their embedding (`return` conditioning only).
+        image_encoder: Image models: `nature`, the Nature-DQN CNN (first layer 8 x 8 at stride 4); `fine`, two
+            coordinate planes added to the frames (CoordConv) and four layers that start at stride 2, for a
+            policy that depends on where a small object is to a pixel (about 3x the nature CNN's work).
     """
 
     obs_shape: tuple[int, ...]
@@ -49,6 +53,7 @@ class GMTConfig:
     attention: AttentionSpan = "full"
     conditioning: Conditioning = "goal"
     return_scale: float = 1000.0
+    image_encoder: ImageEncoderKind = "nature"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "obs_shape", tuple(int(s) for s in self.obs_shape))
@@ -66,6 +71,8 @@ class GMTConfig:
             raise ValueError(f"conditioning must be goal or return, got {self.conditioning!r}")
         if not self.return_scale > 0:
             raise ValueError(f"return_scale must be positive, got {self.return_scale}")
+        if self.image_encoder not in ("nature", "fine"):
+            raise ValueError(f"image_encoder must be nature or fine, got {self.image_encoder!r}")
 
     @property
     def history_steps(self) -> int:

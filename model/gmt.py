@@ -109,27 +109,33 @@ class Block(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """Nature-DQN CNN for uint8 frames [C, H, W] scaled to [0, 1]."""
+    """A CNN for uint8 frames [C, H, W] scaled to [0, 1] (`GMTConfig.image_encoder`)."""
 
     def __init__(self, cfg: GMTConfig) -> None:
         super().__init__()
         c, h, w = cfg.obs_shape
-        self.net = nn.Sequential(
-            nn.Conv2d(c, 32, 8, stride=4),
-            nn.ReLU(),
-            nn.Conv2d(32, 64, 4, stride=2),
-            nn.ReLU(),
-            nn.Conv2d(64, 64, 3, stride=1),
-            nn.ReLU(),
-            nn.Flatten(),
-        )
+        self.fine = cfg.image_encoder == "fine"
+        if self.fine:
+            # x and y in [-1, 1], one plane each, appended to every frame stack (CoordConv, Liu et al. 2018)
+            ys, xs = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")
+            self.register_buffer("coords", torch.stack((xs, ys))[None], persistent=False)  # [1, 2, H, W]
+            layers = [(c + 2, 32, 4, 2), (32, 64, 4, 2), (64, 64, 3, 2), (64, 64, 3, 1)]
+        else:
+            layers = [(c, 32, 8, 4), (32, 64, 4, 2), (64, 64, 3, 1)]
+        mods: list[nn.Module] = []
+        for c_in, c_out, k, stride in layers:
+            mods += [nn.Conv2d(c_in, c_out, k, stride=stride), nn.ReLU()]
+        self.net = nn.Sequential(*mods, nn.Flatten())
         with torch.no_grad():
-            n_flat = self.net(torch.zeros(1, c, h, w)).shape[1]
+            n_flat = self.net(torch.zeros(1, layers[0][0], h, w)).shape[1]
         self.fc = nn.Linear(n_flat, cfg.n_embd)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         B, T = x.shape[:2]
-        z = self.net(x.reshape(B * T, *x.shape[2:]).float() / 255.0)  # [B*T, flat]
+        z = x.reshape(B * T, *x.shape[2:]).float() / 255.0  # [B*T, C, H, W]
+        if self.fine:
+            z = torch.cat((z, self.coords.expand(B * T, -1, -1, -1)), dim=1)  # [B*T, C + 2, H, W]
+        z = self.net(z)  # [B*T, flat]
         return torch.tanh(self.fc(z)).view(B, T, -1)  # [B, T, C]
 
 

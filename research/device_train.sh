@@ -11,7 +11,8 @@
 # Each run is `gmt train --dataset $DATASET --device cuda --time-limit-s $LIMIT --out $OUT/<name> ARGS`, the two
 # at once on the one GPU (each is mostly kernel launches at these sizes); the first argument of each is its name.
 # Meanwhile `gmt train --device cpu` of the first run's arguments on 12 threads for CPU_STEPS steps gives the
-# same machine's CPU figure. Everything it writes is under $OUT: a log and a tar per run (the tool brings back 8 files).
+# same machine's CPU figure (CPU_STEPS=0: none). Everything it writes is under $OUT: a log and a tar per run (the tool
+# brings back 8 files).
 set -u
 OUT=${OUT:-/tmp/out}
 LIMIT=${LIMIT:-390}
@@ -46,7 +47,7 @@ run() {  # name device threads args...
 log "train"
 run "${A[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${A[@]:1}" &
 [ ${#B[@]} -gt 0 ] && run "${B[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${B[@]:1}" &
-run cpu-baseline cpu 12 "${A[@]:1}" --steps "$CPU_STEPS" --log-every 10 &
+[ "$CPU_STEPS" -gt 0 ] && run cpu-baseline cpu 12 "${A[@]:1}" --steps "$CPU_STEPS" --log-every 10 &
 wait
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader || true
 for f in "$OUT"/*.log; do echo "== $f"; tr '\r' '\n' <"$f" | grep -v '^\s*$' | tail -4; done

@@ -192,6 +192,31 @@ def test_frame_augmentation_trains_reproducibly_and_only_on_images(tmp_path):
         TrainConfig(augment_shift=-1)
 
 
+def test_the_fine_image_encoder_learns_where_the_dot_is_and_round_trips(tmp_path):
+    """`image_encoder="fine"` trains on frames, is saved with its kind, and its reload acts exactly alike."""
+    ds = _Frames()
+    fine = train(
+        ds,
+        ds.labels,
+        ds.goals,
+        tmp_path / "f",
+        _tc(steps=120),
+        {**SMALL, "image_encoder": "fine"},
+        progress=False,
+    )
+    assert json.loads((tmp_path / "f" / META).read_text())["model"]["image_encoder"] == "fine"
+    back = load_checkpoint(tmp_path / "f")
+    assert back.config.image_encoder == "fine" and state_dicts_equal(back.model, fine.model)
+    sampler, _, _ = build_sampler(ds, ds.labels, fine.config)
+    w = sampler.windows(torch.arange(0, sampler.n))
+    with torch.inference_mode():
+        pred, _ = back.model(*w.model_inputs())
+    accuracy = (pred.argmax(-1) == w.actions)[w.valid].float().mean().item()
+    assert accuracy > 0.6, accuracy  # four actions: chance is 0.25
+    with pytest.raises(ValueError, match="image_encoder must be nature or fine"):
+        model_config_for(ds, 3, image_encoder="coarse")
+
+
 def test_frames_are_held_once_the_sampler_is_built():
     """The dataset's episodes then read the sampler's one array of frames, and the arrays they were loaded into
     (T + 1 frames each, as `load_dataset` reads them, with a final observation viewing the last) are freed."""
