@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -342,6 +343,7 @@ def train(
         switch_relabel_steps=tc.switch_relabel_steps,
     )
     save_checkpoint(ckpt, out)
+    shutil.rmtree(resume_dir, ignore_errors=True)  # the run is complete: nothing is left to resume
     par.close()
     return ckpt
 

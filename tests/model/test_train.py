@@ -62,16 +62,29 @@ def test_training_is_deterministic_under_a_seed(tmp_path):
     assert not state_dicts_equal(a.model, c.model)
 
 
-def test_resume_continues_exactly(tmp_path):
+def test_resume_continues_exactly(tmp_path, monkeypatch):
+    import gmt.model.train as train_module
+
     ds = SyntheticDataset()
     full = train(ds, ds.labels, ds.goals, tmp_path / "full", _tc(steps=30), SMALL, progress=False)
-    # Interrupted run: stop at 20 (resume state saved at step 20), then resume to 30.
-    train(ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False)
+    # Interrupted run: killed just after its resume state was saved at step 20, then resumed to 30.
+    save = train_module._save_resume
+
+    def save_then_die(*args):
+        save(*args)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "_save_resume", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        train(ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False)
+    monkeypatch.setattr(train_module, "_save_resume", save)
     assert (tmp_path / "part" / RESUME_DIR / "state.json").exists()
+    assert not (tmp_path / "part" / META).exists()
     resumed = train(
         ds, ds.labels, ds.goals, tmp_path / "part", _tc(steps=30, save_every=20), SMALL, progress=False
     )
     assert state_dicts_equal(full.model, resumed.model)
+    assert not (tmp_path / "part" / RESUME_DIR).exists()  # a finished run leaves nothing to resume
 
 
 def test_checkpoint_round_trip_is_exact(tmp_path):
