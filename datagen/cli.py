@@ -387,6 +387,11 @@ def collect(
         "reset pose), so the level speeds up at the pace the plan finds; SPEED (m/s) scores those episodes' "
         "continuations instead of the level's own speed (above it: a more urgent start); repeat per level.",
     ),
+    plan_rest_commands: list[str] = typer.Option(
+        None,
+        help="LEVEL=C1,C2,... (one of the --plan-from-rest levels): the commands of LEVEL's episodes from rest "
+        "instead of its --plan commands, e.g. a sprint from standing above the level's own range; repeat per level.",
+    ),
     plan_target: list[str] = typer.Option(
         None,
         help="LEVEL=SPEED (one of the --plan levels): score LEVEL's planned pool-started episodes against SPEED "
@@ -433,13 +438,25 @@ def collect(
         if not (sep and name and math.isfinite(speed)):
             raise typer.BadParameter(f"expected LEVEL=SPEED, got {item!r}", param_hint="--plan-target")
         targets[name] = speed
+    rest_commands = {}
+    for item in plan_rest_commands or []:
+        try:
+            name, commands = parse_plan(item)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--plan-rest-commands") from None
+        if name not in rest:
+            raise typer.BadParameter(
+                f"{name!r} has no --plan-from-rest: rest commands are for its episodes from rest",
+                param_hint="--plan-rest-commands",
+            )
+        rest_commands[name] = commands
     plans = {}
     for item in plan or []:
         try:
             name, commands = parse_plan(item)
             plans[name] = PlanConfig(
                 commands, plan_candidates, plan_every, plan_horizon, plan_steps, target=targets.get(name),
-                from_rest=name in rest, rest_target=rest.get(name),
+                from_rest=name in rest, rest_target=rest.get(name), rest_commands=rest_commands.get(name),
             )  # fmt: skip
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--plan") from None

@@ -40,6 +40,9 @@ class PlanConfig:
         rest_target: Speed (m/s) the continuations of an episode from rest are scored against (None: as
             `target`). Above the level's speed it makes the start from standing urgent: the plan then keeps
             choosing the fastest continuation until the horizon's mean passes the level's speed.
+        rest_commands: Commands of the candidates of an episode from rest (None: as `commands`), e.g. commands
+            above the level's range for a sprint from standing, apart from the braking commands of the
+            pool-started episodes.
     """
 
     commands: tuple[float, ...]
@@ -50,6 +53,7 @@ class PlanConfig:
     target: float | None = None
     from_rest: bool = False
     rest_target: float | None = None
+    rest_commands: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.commands or not all(np.isfinite(c) for c in self.commands):
@@ -63,12 +67,21 @@ class PlanConfig:
             value = getattr(self, name)
             if value is not None and not np.isfinite(value):
                 raise ValueError(f"{name} must be finite, got {value}")
-        if self.rest_target is not None and not self.from_rest:
-            raise ValueError("rest_target scores episodes from rest: it needs from_rest")
+        if (self.rest_target is not None or self.rest_commands is not None) and not self.from_rest:
+            raise ValueError("rest_target and rest_commands are for episodes from rest: they need from_rest")
+        if self.rest_commands is not None and not (
+            self.rest_commands and all(np.isfinite(c) for c in self.rest_commands)
+        ):
+            raise ValueError(f"rest_commands must be finite speeds, got {self.rest_commands}")
 
     def for_rest(self) -> PlanConfig:
-        """The plan of an episode from rest: scored against `rest_target` where one is given."""
-        return self if self.rest_target is None else replace(self, target=self.rest_target)
+        """The plan of an episode from rest: scored against `rest_target` and given `rest_commands` where
+        these are set."""
+        return replace(
+            self,
+            target=self.target if self.rest_target is None else self.rest_target,
+            commands=self.commands if self.rest_commands is None else self.rest_commands,
+        )
 
 
 def parse_plan(item: str) -> tuple[str, tuple[float, ...]]:

@@ -237,12 +237,29 @@ def test_a_plan_target_reaches_only_its_levels_plan(tmp_path, monkeypatch):
     r = runner.invoke(
         app,
         ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
-         "--plan", "fast=2.0", "--plan-target", "slow=0.95", "--plan-from-rest", "slow=1.1"],
+         "--plan", "fast=2.0", "--plan-target", "slow=0.95", "--plan-from-rest", "slow=1.1",
+         "--plan-rest-commands", "slow=3.6,1.6"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     (cfg,) = seen
     assert cfg.plan["slow"].target == 0.95 and cfg.plan["slow"].for_rest().target == 1.1
-    assert cfg.plan["fast"].target is None
+    assert cfg.plan["slow"].commands == (1.0, 1.3) and cfg.plan["slow"].for_rest().commands == (3.6, 1.6)
+    assert cfg.plan["fast"].target is None and cfg.plan["fast"].rest_commands is None
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [("fast=3.0", "'fast' has no --plan-from-rest"), ("slow=quick", "LEVEL=COMMAND"), ("slow", "LEVEL=COMMAND")],
+)  # fmt: skip
+def test_bad_rest_commands_are_refused_before_collecting(tmp_path, item, message):
+    r = runner.invoke(
+        app,
+        ["data", "collect", "--env", "Hopper-v5", "--data-dir", str(tmp_path), "--plan", "slow=1.0,1.3",
+         "--plan", "fast=2.0", "--plan-from-rest", "slow", "--plan-rest-commands", item],
+    )  # fmt: skip
+    assert r.exit_code == 2
+    assert "--plan-rest-commands" in r.output and message in r.output, r.output
+    assert not any(tmp_path.iterdir())
 
 
 def _raise_exit():

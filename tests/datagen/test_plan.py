@@ -1,5 +1,6 @@
 """Receding-horizon selection over a commanded level's continuations (`gmt.datagen.plan`), and planned collection."""
 
+import json
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -118,8 +119,14 @@ def test_plans_and_levels_that_cannot_plan_are_refused():
         CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,))})
     # From rest a level needs no pool starts to be planned.
     CollectConfig(ENV, pool_start={"slow": 0.0}, plan={"slow": PlanConfig((1.0,), from_rest=True)})
-    with pytest.raises(ValueError, match="needs from_rest"):
+    with pytest.raises(ValueError, match="need from_rest"):
         PlanConfig((1.0,), rest_target=1.2)
+    with pytest.raises(ValueError, match="need from_rest"):
+        PlanConfig((1.0,), rest_commands=(3.0,))
+    with pytest.raises(ValueError, match="rest_commands must be finite"):
+        PlanConfig((1.0,), from_rest=True, rest_commands=(float("nan"),))
+    sprint = PlanConfig((1.0, 0.5), from_rest=True, rest_commands=(3.0, 1.0))
+    assert sprint.for_rest().commands == (3.0, 1.0) and sprint.commands == (1.0, 0.5)
     with pytest.raises(ValueError, match="rest_target must be finite"):
         PlanConfig((1.0,), from_rest=True, rest_target=float("inf"))
     plan = PlanConfig((1.0,), from_rest=True, rest_target=1.2, target=0.9)
@@ -137,6 +144,10 @@ def _metadata(root, dataset_id: str) -> list[dict]:
 
     with h5py.File(root / dataset_id / "data" / "main_data.hdf5", "r") as f:
         return [dict(f[f"episode_{i}"].attrs) for i in range(len(f))]
+
+
+def _description(root, dataset_id: str) -> str:
+    return json.loads((root / dataset_id / "data" / "metadata.json").read_text())["description"]
 
 
 def test_a_planned_collection_plans_only_that_levels_pool_starts_and_is_reproducible(tmp_path):
@@ -206,6 +217,14 @@ def test_a_plan_from_rest_also_plans_the_levels_episodes_that_start_at_the_reset
         np.testing.assert_array_equal(urgent.episodes[i].actions, rest.episodes[i].actions)
     for i in range(2, 4):
         assert not np.allclose(urgent.episodes[i].actions[:10], rest.episodes[i].actions[:10])
+    # So do commands of their own for the episodes from rest (a sprint from standing).
+    rc = PlanConfig((1.0, -2.0), from_rest=True, rest_commands=(3.0,), **base)
+    _, sprint = run("gmt/rest-commands-v0", {"slow": rc}, pooled)
+    for i in range(2):
+        np.testing.assert_array_equal(sprint.episodes[i].actions, rest.episodes[i].actions)
+    for i in range(2, 4):
+        assert not np.allclose(sprint.episodes[i].actions[:10], rest.episodes[i].actions[:10])
+    assert "from rest with commands 3" in _description(root, "gmt/rest-commands-v0")
     # Without pool starts at all, every episode of the level is planned from rest.
     res, _ = run("gmt/rest-only-v0", {"slow": PlanConfig((1.0, -2.0), from_rest=True, **base)}, {})
     assert res.levels["slow"]["planned"] == 4 and res.levels["slow"]["pool_starts"] == 0
