@@ -240,10 +240,6 @@ LEVELS: dict[str, Skill] = {
         Skill("lead152", predict=False, lead=4, react_y=152),
         Skill("lead162", predict=False, lead=4, react_y=162),
         Skill("lead170", predict=False, lead=4, react_y=170),
-        Skill("leadA4r130", predict=False, lead=4, react_y=130),
-        Skill("leadA4r145", predict=False, lead=4, react_y=145),
-        Skill("leadA4r158", predict=False, lead=4, react_y=158),
-        Skill("leadA4r168", predict=False, lead=4, react_y=168),
     )
 }
 # Episodes per level: the same number each, so that no level outweighs the others in the k-means + silhouette

@@ -314,9 +314,8 @@ class GMT(nn.Module):
             & (key[:, None, :] <= idx[:, :, None])
             & (qstep - kstep < self.cfg.context_length)
         )
-        see |= (
-            torch.arange(W, device=pos.device)[None, None, :] == pos[:, :, None]
-        )  # every token sees itself: no empty row
+        # every token sees itself: no empty row
+        see |= torch.arange(W, device=pos.device)[None, None, :] == pos[:, :, None]
         attn_mask = see.unsqueeze(1)  # [B, 1, 3, W]
         view = self._slot_reader(slots)
         for layer, block in enumerate(self.blocks):
