@@ -370,6 +370,11 @@ def collect(
         help="A GMT checkpoint whose own rollouts (holding the goal nearest each other level's speed) give the "
         "pool-started episodes their start states, instead of the other levels' policies.",
     ),
+    pool_cycle: int = typer.Option(
+        None,
+        help="With --pool-checkpoint: its rollouts cycle through all its goals every N steps instead of holding "
+        "goals, so the pools also hold the states between two speeds.",
+    ),
     plan: list[str] = typer.Option(
         None,
         help="LEVEL=C1,C2,...: plan the start of LEVEL's pool-started episodes in the simulator, choosing among "
@@ -483,6 +488,7 @@ def collect(
             drop_falls=not keep_falls,
             pool_start=shares,
             pool_checkpoint=pool_checkpoint,
+            pool_cycle=pool_cycle,
             plan=plans,
         )
     except ValueError as e:

@@ -77,6 +77,8 @@ class CollectConfig:
         pool_checkpoint: A GMT checkpoint whose own rollouts give the start-state pools instead of the other
             levels' policies: for each pool-started level, the model holds the goal nearest each other level's
             measured speed (`start_states.CheckpointPolicy`). None: the other levels' policies.
+        pool_cycle: With `pool_checkpoint`: its rollouts cycle through all its goals every this many steps
+            (from goal 0) instead of holding goals, so the pools hold the states of a quickly switched model.
         plan: Level -> how that level plans the start of its pool-started episodes, and of its episodes from
             rest where the plan says `from_rest` (`plan.PlannedPolicy`: the commanded level picks, in the
             simulator, the continuation that reaches its speed soonest); None or {} for no planning.
@@ -98,6 +100,7 @@ class CollectConfig:
     max_attempts: int = 3
     pool_start: dict[str, float] | None = None
     pool_checkpoint: Path | None = None
+    pool_cycle: int | None = None
     plan: dict[str, PlanConfig] | None = None
     overwrite: bool = True
 
@@ -115,6 +118,8 @@ class CollectConfig:
         for level, share in self.pool_start.items():
             if not 0.0 <= share <= 1.0:
                 raise ValueError(f"pool_start[{level!r}] must be in [0, 1], got {share}")
+        if self.pool_cycle is not None and (self.pool_checkpoint is None or self.pool_cycle < 1):
+            raise ValueError(f"pool_cycle must be >= 1 and needs a pool_checkpoint, got {self.pool_cycle}")
         self.plan = dict(self.plan or {})
         unplanned = sorted(
             level
@@ -220,8 +225,11 @@ def collect_level(
     return episodes, metadata, summary
 
 
-def checkpoint_sources(path: Path, policies: dict) -> dict[str, dict[str, CheckpointPolicy]]:
-    """Level -> {"gmt:<goal>": the checkpoint holding the goal nearest the level's measured speed}."""
+def checkpoint_sources(
+    path: Path, policies: dict, cycle_every: int | None = None
+) -> dict[str, dict[str, CheckpointPolicy]]:
+    """Level -> {"gmt:<goal>": the checkpoint holding the goal nearest the level's measured speed}, or with
+    `cycle_every` {"gmt:cycle<N>": the checkpoint cycling all its goals every N steps} for every level."""
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.engine import PolicyEngine
 
@@ -229,6 +237,9 @@ def checkpoint_sources(path: Path, policies: dict) -> dict[str, dict[str, Checkp
     if ckpt.statistic != "mean_x_velocity":
         raise ValueError(f"{path}: a pool checkpoint must have x-velocity goals, not {ckpt.statistic!r}")
     engine = PolicyEngine(ckpt)
+    if cycle_every is not None:
+        cycling = CheckpointPolicy(engine, 0, cycle_every=cycle_every)
+        return {name: {f"gmt:cycle{cycle_every}": cycling} for name in policies}
     out = {}
     for name, policy in policies.items():
         speed = getattr(getattr(policy, "meta", None), "mean_speed", None)
@@ -264,7 +275,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     sources = (
         {name: {name: p} for name, p in policies.items()}
         if cfg.pool_checkpoint is None
-        else checkpoint_sources(cfg.pool_checkpoint, policies)
+        else checkpoint_sources(cfg.pool_checkpoint, policies, cfg.pool_cycle)
     )
     pools = {
         name: build_pool(
@@ -303,6 +314,8 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
                 "the other policies"
                 if cfg.pool_checkpoint is None
                 else f"the GMT {cfg.pool_checkpoint} holding the other goals"
+                if cfg.pool_cycle is None
+                else f"the GMT {cfg.pool_checkpoint} cycling its goals every {cfg.pool_cycle} steps"
             )
             + " visited (episode metadata start_from / start_step). "
             for name, share in cfg.pool_start.items()

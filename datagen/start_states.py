@@ -111,13 +111,19 @@ class CheckpointPolicy:
 
     Args:
         engine: A `gmt.model.engine.PolicyEngine` over the checkpoint.
-        goal: The goal id held for every episode.
+        goal: The goal id held for every episode (the first goal of a cycle).
         seed: First seed of the sampled action noise (one more per episode).
+        cycle_every: Instead of holding `goal`, switch to the next goal id (wrapping) every this many steps,
+            as the evaluation's multi-switch cycles do: the pool then also holds the states between two
+            speeds that a quickly switched model passes through. None: hold.
     """
 
-    def __init__(self, engine, goal: int, seed: int = 0):
+    def __init__(self, engine, goal: int, seed: int = 0, cycle_every: int | None = None):
         engine.check_goal(goal)
+        if cycle_every is not None and cycle_every < 1:
+            raise ValueError(f"cycle_every must be >= 1, got {cycle_every}")
         self.engine, self.goal, self.seed, self.ctx = engine, goal, seed, None
+        self.cycle_every, self.t = cycle_every, 0
 
     def start_episode(self) -> None:
         """A fresh context (empty history) for the next episode."""
@@ -125,11 +131,16 @@ class CheckpointPolicy:
             self.engine.release(self.ctx)
         self.ctx = self.engine.new_context(self.goal, seed=self.seed)
         self.seed += 1
+        self.t = 0
 
     def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """The model's action for the goal (its own sampling, seeded per episode; `rng` is not used)."""
         if self.ctx is None:
             self.start_episode()
+        if self.cycle_every and self.t and self.t % self.cycle_every == 0:
+            n = self.engine.n_goals
+            self.engine.set_goal(self.ctx, (self.goal + self.t // self.cycle_every) % n)
+        self.t += 1
         (action,) = self.engine.act([self.ctx], [obs])
         if isinstance(action, Exception):
             raise action

@@ -223,3 +223,40 @@ def test_pool_starts_can_come_from_a_trained_models_own_states(tmp_path):
         assert any(np.array_equal(first, o) for o in visited)
     with pytest.raises(ValueError, match="no measured speed"):
         checkpoint_sources(tmp_path / "ckpt", {"random": object()})
+
+
+def test_a_cycling_pool_checkpoint_switches_its_goals_on_schedule_and_feeds_every_level(tmp_path):
+    """`pool_cycle`: the model's rollouts cycle goals 0, 1, 2, 0, ... every N steps, as the evaluation's cycles do."""
+    from gmt.datagen.start_states import CheckpointPolicy
+    from gmt.model.engine import PolicyEngine
+    from gmt.model.fixtures import tiny_checkpoint
+
+    ckpt = tiny_checkpoint(tmp_path / "ckpt", ENV, n_goals=3, calibrated=True)
+    engine = PolicyEngine(ckpt)
+    policy = CheckpointPolicy(engine, 0, cycle_every=3)
+    env = gym.make(ENV)
+    obs, _ = env.reset(seed=0)
+    goals = []
+    for _ in range(10):
+        obs, *_ = env.step(policy.act(obs))
+        goals.append(int(engine.pool.goal[policy.ctx.slot]))
+    assert goals == [0, 0, 0, 1, 1, 1, 2, 2, 2, 0]
+    policy.start_episode()  # a new episode starts the cycle again
+    policy.act(obs)
+    assert int(engine.pool.goal[policy.ctx.slot]) == 0
+    with pytest.raises(ValueError, match="cycle_every"):
+        CheckpointPolicy(engine, 0, cycle_every=0)
+
+    beh, root = tmp_path / "behaviour", tmp_path / "d"
+    fake_snapshot(beh, "fast", 1.8, 0)
+    fake_snapshot(beh, "slow", 0.9, 1)
+    cfg = CollectConfig(
+        ENV, 4, 3, data_dir=root, behaviour_dir=beh, max_steps=40, include_random=False, drop_stuck=False,
+        pool_start={"slow": 0.5, "fast": 0.5}, pool_checkpoint=tmp_path / "ckpt", pool_cycle=10,
+    )  # fmt: skip
+    res = collect(cfg, progress=False)
+    assert res.levels["slow"]["pool_starts"] == 2 and res.levels["fast"]["pool_starts"] == 2
+    starts = {_episode_attrs(root, i).get("start_from") for i in range(8)}
+    assert starts == {"gmt:cycle10", None}  # both levels start from the cycling model, or from rest
+    with pytest.raises(ValueError, match="needs a pool_checkpoint"):
+        CollectConfig(ENV, pool_cycle=10)
