@@ -234,7 +234,7 @@ LEVELS: dict[str, Skill] = {
         # ahead (no further than the paddle's line), a rule of the ball's position and velocity that a frame
         # stack shows (a model learnt the ball-x tracker at 89% agreement, the landing-point one at 80%:
         # docs/breakout.md), weakened by late reactions. Measured (40 episodes, 1000 steps, seed 1): lead4
-        # 66.5 +- 39.3 (lead 2 / 3 / 6: 65.4 / 60.7 / 57.8, all with tunnels); with 2% random actions 56.8.
+        # 66.5 +- 39.3 (lead 3 / 6: 60.7 / 57.8, all with tunnels); lead4 with 2% random actions 56.8 (30, seed 0).
         Skill("lead4", predict=False, lead=4),
         Skill("lead140", predict=False, lead=4, react_y=140),
         Skill("lead152", predict=False, lead=4, react_y=152),
