@@ -349,9 +349,11 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
 def _plan_sentence(name: str, p) -> str:
     """The dataset description's sentence on how a level's episodes were planned."""
     episodes = f"{name}'s pool-started{' and from-rest' * p.from_rest} episodes"
-    rest_parts = ([] if p.rest_target is None else [f"against {p.rest_target:g} m/s"]) + (
-        [] if p.rest_commands is None else ["with commands " + ", ".join(f"{c:g}" for c in p.rest_commands)]
-    )
+    rest_parts = []
+    if p.rest_target is not None:
+        rest_parts.append(f"against {p.rest_target:g} m/s")
+    if p.rest_commands is not None:
+        rest_parts.append("with commands " + ", ".join(f"{c:g}" for c in p.rest_commands))
     rest = f" (from rest {' and '.join(rest_parts)})" if rest_parts else ""
     target = "the level's speed" if p.target is None else f"{p.target:g} m/s"
     commands = ", ".join(f"{c:g}" for c in p.commands)

@@ -56,8 +56,10 @@ class PlanConfig:
     rest_commands: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
-        if not self.commands or not all(np.isfinite(c) for c in self.commands):
-            raise ValueError(f"commands must be finite speeds, got {self.commands}")
+        for name in ("commands", "rest_commands"):
+            value = getattr(self, name)
+            if value is not None and not (value and all(np.isfinite(c) for c in value)):
+                raise ValueError(f"{name} must be finite speeds, got {value}")
         for name in ("candidates", "every", "horizon", "steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -69,10 +71,6 @@ class PlanConfig:
                 raise ValueError(f"{name} must be finite, got {value}")
         if (self.rest_target is not None or self.rest_commands is not None) and not self.from_rest:
             raise ValueError("rest_target and rest_commands are for episodes from rest: they need from_rest")
-        if self.rest_commands is not None and not (
-            self.rest_commands and all(np.isfinite(c) for c in self.rest_commands)
-        ):
-            raise ValueError(f"rest_commands must be finite speeds, got {self.rest_commands}")
 
     def for_rest(self) -> PlanConfig:
         """The plan of an episode from rest: scored against `rest_target` and given `rest_commands` where

@@ -66,12 +66,11 @@ def build_sampler(
         if isinstance(act, gym.spaces.Discrete)
         else ActionCodec(act.low.astype(np.float32), act.high.astype(np.float32))
     )
-    del obs
-    states = (
-        _frames_held_once(dataset.episodes, cfg.obs_shape)
-        if images
-        else [norm(ep.observations.reshape(len(ep.observations), *cfg.obs_shape)) for ep in dataset.episodes]
-    )
+    if images:
+        del obs  # views of the loaded arrays: none may outlive the copy into the sampler's array
+        states = _frames_held_once(dataset.episodes, cfg.obs_shape)
+    else:
+        states = [norm(o) for o in obs]
     actions = [codec.encode(ep.actions) for ep in dataset.episodes]
     rewards = [ep.rewards for ep in dataset.episodes] if cfg.conditioning == "return" else None
     sampler = WindowSampler(states, actions, labels, sequence_steps or cfg.context_length, rewards)
