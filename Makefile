@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
+.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-hopper-pool train-hopper-pool data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -105,17 +105,30 @@ eval-breakout5: $(VENV)/.installed-eval $(VENV)/.installed-atari
 	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --action-mode argmax \
 		--json checkpoints/breakout5-gmt/eval-argmax.json --markdown checkpoints/breakout5-gmt/eval-argmax.md
 
-# The data and training behind checkpoints/hopper-gmt (its PROVENANCE.md): ~20 min collection and ~31 min
-# training on one core each. The pool-started episodes start from states of behaviour/hopper-gmt/pool-gmt, a GMT
-# trained on the same collection without that flag (PROVENANCE.md, step 3).
-data-hopper: $(VENV)/.installed-data
-	$(BIN)/gmt data collect --env Hopper-v5 --no-random --behaviour-dir behaviour/hopper-gmt --episodes-per-level 300 \
-		--plan slow=1.6,1.2,0.8 --pool-checkpoint behaviour/hopper-gmt/pool-gmt --out-id gmt/hopper/dagger-x2-v0
+# The data and training behind checkpoints/hopper-gmt (its PROVENANCE.md): ~11 min collection and ~20 min
+# training on one core each. The pool-started episodes start from states of behaviour/hopper3-gmt/pool-gmt, a
+# three-goal GMT, while it cycles its goals every 100 steps; data-hopper-pool and train-hopper-pool remake that
+# model (~14 and ~25 min) from behaviour/hopper3-gmt/two-goal-gmt, the two-goal hopper-gmt shipped until 2026-11-27.
+data-hopper-pool: $(VENV)/.installed-data
+	$(BIN)/gmt data collect --env Hopper-v5 --no-random --behaviour-dir behaviour/hopper3-gmt --episodes-per-level 200 \
+		--pool-start slow=0.5 --pool-start medium=0.5 --pool-start fast=0.5 --plan slow=1.6,1.2,0.8 \
+		--plan medium=2.6,2.06,1.6,1.2 --pool-checkpoint behaviour/hopper3-gmt/two-goal-gmt --out-id gmt/hopper/dagger3b-v0
 
-train-hopper: $(VENV)/.installed-train
-	$(BIN)/gmt train --dataset gmt/hopper/dagger-x2-v0 --out checkpoints/hopper-gmt --attention window \
+train-hopper-pool: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/hopper/dagger3b-v0 --out behaviour/hopper3-gmt/pool-gmt --attention window \
 		--batch-size 32 --lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 0 --steps 5000 --masking token \
 		--max-timestep 1 --default-action-mode mean
+
+data-hopper: $(VENV)/.installed-data
+	$(BIN)/gmt data collect --env Hopper-v5 --no-random --behaviour-dir behaviour/hopper3-gmt --episodes-per-level 200 \
+		--pool-start slow=0.5 --pool-start medium=0.5 --pool-start fast=0.5 --plan slow=1.6,1.2,0.8 \
+		--plan medium=2.6,2.06,1.6,1.2 --pool-checkpoint behaviour/hopper3-gmt/pool-gmt --pool-cycle 100 \
+		--out-id gmt/hopper/cycle100-v0
+
+train-hopper: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset gmt/hopper/cycle100-v0 --out checkpoints/hopper-gmt --attention window \
+		--batch-size 32 --lr 5e-4 --warmup-steps 500 --threads 1 --no-bf16 --seed 0 --steps 5000 --masking token \
+		--max-timestep 1 --k 3 --default-action-mode mean --switch-relabel-steps 20
 
 eval-hopper: $(VENV)/.installed-eval
 	$(BIN)/gmt eval checkpoints/hopper-gmt --seeds 15 --threads 1 --json checkpoints/hopper-gmt/eval.json \
