@@ -278,3 +278,19 @@ def test_the_behaviour_folders_the_written_command_lines_collect_from_exist():
     assert dirs, "no --behaviour-dir in the Makefile or a PROVENANCE.md"
     for where, d in dirs:
         assert any((ROOT / d).glob("*/*.safetensors")), f"{where}: {d} holds no behaviour snapshot"
+
+
+def test_the_pool_checkpoints_the_written_command_lines_start_from_exist_for_their_environment():
+    """A written collection that starts episodes from a GMT's states names a committed checkpoint of its task."""
+    from gmt.model.checkpoint import load_checkpoint
+
+    pools = [
+        (where, m.group(1), e.group(1))
+        for where, line in _written_command_lines()
+        for m, e in [(re.search(r"--pool-checkpoint (\S+)", line), re.search(r"--env (\S+)", line))]
+        if m and not m.group(1).startswith("runs/")
+    ]
+    assert any(where == "Makefile" for where, _, _ in pools), "no --pool-checkpoint in the Makefile"
+    for where, path, env_id in pools:
+        assert (ROOT / path / "gmt.json").is_file(), f"{where}: {path} is not a checkpoint"
+        assert load_checkpoint(ROOT / path).env_id == env_id, f"{where}: {path} is not a {env_id} model"
