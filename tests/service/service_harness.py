@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import resource
 import subprocess
 import sys
 import threading
@@ -121,16 +120,16 @@ class ServeProcess:
         env = clean_env()
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
 
-        def limit_descriptors() -> None:  # `ulimit -n nofile` in the child
-            resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
-
+        if (
+            nofile
+        ):  # `ulimit -n nofile`, then exec `gmt` (no preexec_fn: Python between fork and exec can deadlock)
+            limit = (
+                "import os, resource, sys; n = int(sys.argv[1]); resource.setrlimit(resource.RLIMIT_NOFILE, (n, n)); "
+                "os.execv(sys.argv[2], sys.argv[2:])"
+            )
+            cmd = [sys.executable, "-c", limit, str(nofile), *cmd]
         self.proc = subprocess.Popen(
-            cmd,
-            stderr=subprocess.PIPE,
-            stdout=subprocess.DEVNULL,
-            text=True,
-            env=env,
-            preexec_fn=limit_descriptors if nofile else None,
+            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
         )
         self.lines: list[dict] = []
         self.serving: dict | None = None
