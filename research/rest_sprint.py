@@ -37,26 +37,26 @@ class SprintPlan(PlannedPolicy):
     Args:
         policy: A commanded `BehaviourPolicy`.
         env: The environment the episode runs in.
-        sprint: The plan until `settle_at` (its `target` is the sprint target).
-        settle: The plan from `settle_at` on (its `target` is the level's speed).
+        sprint: The plan until `settle_at` (its `target` is the sprint target, required).
+        settle: The plan from `settle_at` on (its `target`; None: the level's measured speed, as `PlannedPolicy`).
         hold: Steps a continuation holds its command before the level's own command takes over.
         settle_at: Step from which `settle` plans.
     """
 
     def __init__(self, policy, env, sprint: PlanConfig, settle: PlanConfig, hold: int, settle_at: int):
-        super().__init__(policy, env, sprint)
+        if sprint.target is None:
+            raise ValueError("the sprint plan needs a target speed")
+        super().__init__(policy, env, settle)  # resolves the level's speed where `settle.target` is None
+        self.plans = ((sprint, sprint.target), (settle, self.target))
         self.own, self.hold, self.settle_at = policy.command, hold, settle_at
-        self.plans = (sprint, settle)
 
     def start_episode(self) -> None:
         super().start_episode()
-        self.cfg = self.plans[0]
-        self.target = self.cfg.target
+        self.cfg, self.target = self.plans[0]
 
     def _plan(self, rng):
         if self.t - 1 >= self.settle_at:  # act() has counted the current step already
-            self.cfg = self.plans[1]
-            self.target = self.cfg.target
+            self.cfg, self.target = self.plans[1]
         return super()._plan(rng)
 
     def _simulate(self, sim, rng):
@@ -85,8 +85,12 @@ def run(
     settle_at: int,
     seeds: int,
     steps: int,
-) -> list[dict]:
-    """Play `seeds` episodes from rest with the sprint plan; per episode the spans' mean speeds and the fall step."""
+) -> tuple[float, list[dict]]:
+    """Play `seeds` episodes from rest with the sprint plan.
+
+    Returns:
+        The settling plan's target speed, and per episode the spans' mean speeds and the fall step.
+    """
     env = gym.make(env_id, max_episode_steps=steps)
     policy = load_behaviour(level, env.action_space)
     if getattr(policy, "command", None) is None:
@@ -109,7 +113,7 @@ def run(
         v = np.asarray(speeds)
         spans = {f"[{a}, {b})": float(v[a:b].mean()) if len(v) >= b else float("nan") for a, b in SPANS}
         rows.append({"seed": seed, **spans, "fell at": fell})
-    return rows
+    return planner.plans[1][1], rows
 
 
 def main() -> None:
@@ -137,8 +141,6 @@ def main() -> None:
     if not 0 < args.hold <= args.horizon or args.settle_at < 0 or args.steps < SPANS[-1][1]:
         ap.error(f"need 0 < --hold <= --horizon, --settle-at >= 0 and --steps >= {SPANS[-1][1]}")
     torch.set_num_threads(1)
-    probe = load_behaviour(args.level, gym.make(args.env).action_space)
-    speed = probe.meta.mean_speed
     settle_commands = tuple(args.settle_commands or (2.0, 1.6, 1.2, 0.8))
     sprint = PlanConfig(
         commands=tuple(args.sprint_commands),
@@ -154,9 +156,8 @@ def main() -> None:
         every=args.every,
         horizon=args.settle_horizon,
         steps=args.planned_steps,
-        target=speed,
     )
-    rows = run(args.env, args.level, sprint, settle, args.hold, args.settle_at, args.seeds, args.steps)
+    speed, rows = run(args.env, args.level, sprint, settle, args.hold, args.settle_at, args.seeds, args.steps)
     print(
         f"{args.level} (level speed {speed:.3f} m/s): mean x-velocity over each first-segment span, from rest"
     )

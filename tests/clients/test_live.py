@@ -19,6 +19,7 @@ import httpx
 import numpy as np
 import pytest
 from browser_support import external, requested_urls, save_screenshot
+from service_harness import exec_after
 
 from gmt.client.base import GoalInfo, ModelInfo, SessionInfo
 from gmt.client.live import LiveView, encode_frame, png
@@ -33,13 +34,9 @@ class LiveRun:
     def __init__(self, *args: str) -> None:
         cmd = [str(GMT), "run", "--live", "--port", "0", "--steps", "1000000", "--goal", "low", *args]
         # As in a terminal: a test run started in the background (`cmd &`) inherits an ignored SIGINT, and a Python
-        # started with SIGINT ignored never raises KeyboardInterrupt, so Ctrl-C below would do nothing. A small
-        # Python restores it and execs `gmt`; a `preexec_fn` would run Python between fork and exec, which can
-        # deadlock the child while this process's gRPC threads hold locks (seen once in CI: no output at all).
-        restore = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", restore, *cmd], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-        )
+        # started with SIGINT ignored never raises KeyboardInterrupt, so Ctrl-C below would do nothing.
+        cmd = exec_after("import signal; signal.signal(signal.SIGINT, signal.SIG_DFL)", cmd)
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()

@@ -15,7 +15,7 @@ def _first_span(commands: tuple[float, ...]) -> float:
         commands=commands, candidates=2 * len(commands), every=20, horizon=60, steps=100, target=2.6
     )
     settle = PlanConfig(commands=(1.6, 1.2), candidates=2, every=20, horizon=40, steps=100, target=1.7)
-    (row,) = rest_sprint.run("Hopper-v5", LEVEL, sprint, settle, hold=20, settle_at=60, seeds=1, steps=300)
+    _, (row,) = rest_sprint.run("Hopper-v5", LEVEL, sprint, settle, hold=20, settle_at=60, seeds=1, steps=300)
     assert set(row) == {"seed", "[25, 100)", "[50, 200)", "[75, 300)", "fell at"}
     return row["[25, 100)"]
 

@@ -112,6 +112,13 @@ def clean_env(**extra: str) -> dict[str, str]:
 CLUSTER_ENV = {"GMT_SHUTDOWN_GRACE_S": "1", "GMT_LOG_LEVEL": "WARNING"}
 
 
+def exec_after(prelude: str, cmd: list[str]) -> list[str]:
+    """`cmd` run by a small Python that first runs `prelude` (a change to the process: a signal, a limit) and then
+    execs it, keeping the pid. Instead of `subprocess.Popen(preexec_fn=...)`, which runs Python between fork and
+    exec and can deadlock the child while this process's threads (gRPC's) hold locks: seen once in CI."""
+    return [sys.executable, "-c", f"{prelude}; import os, sys; os.execv(sys.argv[1], sys.argv[1:])", *cmd]
+
+
 class ServeProcess:
     """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
 
@@ -120,14 +127,10 @@ class ServeProcess:
         env = clean_env()
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
 
-        if (
-            nofile
-        ):  # `ulimit -n nofile`, then exec `gmt` (no preexec_fn: Python between fork and exec can deadlock)
-            limit = (
-                "import os, resource, sys; n = int(sys.argv[1]); resource.setrlimit(resource.RLIMIT_NOFILE, (n, n)); "
-                "os.execv(sys.argv[2], sys.argv[2:])"
+        if nofile:  # `ulimit -n nofile` in the child
+            cmd = exec_after(
+                f"import resource; resource.setrlimit(resource.RLIMIT_NOFILE, ({nofile}, {nofile}))", cmd
             )
-            cmd = [sys.executable, "-c", limit, str(nofile), *cmd]
         self.proc = subprocess.Popen(
             cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
         )
