@@ -7,6 +7,9 @@
 #   .devdata/  packed datasets (`python -m research.carry_dataset pack ...`), one folder per dataset id leaf
 # Run there, both folders carried:
 #   REV=<commit> DATASET=gmt/breakout/react-v1 LIMIT=390 bash research/device_train.sh RUN_ARGS_A -- RUN_ARGS_B
+# Optional: PACKS (dataset ids to unpack from .devdata/<leaf>, default $DATASET), PREPARE (a command run after
+# unpacking, e.g. `python3 -m research.breakout_dagger merge ...`, with `gmt` importable), DATASET_B (run B's
+# dataset, default $DATASET).
 # REV (the clean commit the wheel was built from) goes into each checkpoint's code_revision.
 # Each run is `gmt train --dataset $DATASET --device cuda --time-limit-s $LIMIT --out $OUT/<name> ARGS`, the two
 # at once on the one GPU (each is mostly kernel launches at these sizes); the first argument of each is its name.
@@ -29,8 +32,14 @@ gmt() { python3 -c 'from gmt.service.cli import main; main()' "$@"; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
 python3 -c "import gmt, torch; print(gmt.__file__, 'torch', torch.__version__, torch.cuda.is_available() and torch.cuda.get_device_name())" || exit 1
 
-log "unpack $DATASET"
-python3 -m research.carry_dataset unpack ".devdata/${DATASET##*/}" "data/minari/$DATASET" --workers 16 || exit 1
+for id in ${PACKS:-$DATASET}; do
+  log "unpack $id"
+  python3 -m research.carry_dataset unpack ".devdata/${id##*/}" "data/minari/$id" --workers 16 || exit 1
+done
+if [ -n "${PREPARE:-}" ]; then
+  log "prepare: $PREPARE"
+  bash -c "$PREPARE" || exit 1
+fi
 
 # split "A args -- B args"
 A=() B=() side=A
@@ -38,16 +47,16 @@ for x in "$@"; do
   if [ "$x" = "--" ]; then side=B; continue; fi
   if [ $side = A ]; then A+=("$x"); else B+=("$x"); fi
 done
-run() {  # name device threads args...
-  local name=$1 dev=$2 th=$3; shift 3
-  gmt train --dataset "$DATASET" --device "$dev" --threads "$th" --out "$OUT/$name" "$@" \
+run() {  # name dataset device threads args...
+  local name=$1 ds=$2 dev=$3 th=$4; shift 4
+  gmt train --dataset "$ds" --device "$dev" --threads "$th" --out "$OUT/$name" "$@" \
     >"$OUT/$name.log" 2>&1
   log "$name exit $?"
 }
 log "train"
-run "${A[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${A[@]:1}" &
-[ ${#B[@]} -gt 0 ] && run "${B[0]}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${B[@]:1}" &
-[ "$CPU_STEPS" -gt 0 ] && run cpu-baseline cpu 12 "${A[@]:1}" --steps "$CPU_STEPS" --log-every 10 &
+run "${A[0]}" "$DATASET" "$DEVICE" 2 --time-limit-s "$LIMIT" "${A[@]:1}" &
+[ ${#B[@]} -gt 0 ] && run "${B[0]}" "${DATASET_B:-$DATASET}" "$DEVICE" 2 --time-limit-s "$LIMIT" "${B[@]:1}" &
+[ "$CPU_STEPS" -gt 0 ] && run cpu-baseline "$DATASET" cpu 12 "${A[@]:1}" --steps "$CPU_STEPS" --log-every 10 &
 wait
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader || true
 for f in "$OUT"/*.log; do echo "== $f"; tr '\r' '\n' <"$f" | grep -v '^\s*$' | tail -4; done
