@@ -148,6 +148,9 @@ class TrainConfig:
             step is reached first of `steps` and the limit. The cosine decay follows the larger of the step
             share and the elapsed share of the limit, so a cut run still ends at the floor learning rate.
             Set `steps` past what the time allows to train "for as long as the limit".
+        init_from: A checkpoint directory whose weights the model starts from instead of random ones
+            (fine-tuning, e.g. a DAgger round on more data); its model configuration must equal this run's.
+            The optimiser, the learning-rate schedule and the observation normalisation start afresh.
     """
 
     steps: int = 20000
@@ -175,6 +178,7 @@ class TrainConfig:
     default_action_mode: str | None = None
     switch_relabel_steps: int = 0
     time_limit_s: float = 0.0
+    init_from: str | None = None
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:

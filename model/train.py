@@ -150,6 +150,23 @@ def _load_resume(d: Path, model: GMT, opt: torch.optim.Optimizer, gen: torch.Gen
     return int(meta["step"])
 
 
+def _init_from(model: GMT, path: str) -> dict:
+    """Copy a checkpoint's weights into `model`; its configuration must be the same (ValueError names the
+    fields that differ). Returns the checkpoint's path and fingerprint, for gmt.json."""
+    from gmt.model.checkpoint import load_checkpoint
+
+    src = load_checkpoint(path)
+    mine, theirs = model.cfg.to_dict(), src.model.cfg.to_dict()
+    diff = {k: (theirs.get(k), v) for k, v in mine.items() if theirs.get(k) != v}
+    if diff:
+        raise ValueError(
+            f"init_from {path}: its model differs from this run's in "
+            + ", ".join(f"{k} ({a!r} there, {b!r} here)" for k, (a, b) in diff.items())
+        )
+    model.load_state_dict(src.model.state_dict())
+    return {"path": str(path), "fingerprint": src.fingerprint}
+
+
 def train(
     dataset,
     labels: list[int | np.ndarray],
@@ -214,7 +231,10 @@ def train(
         torch.backends.cudnn.benchmark = True
         if not augment:  # the whole dataset on the accelerator: batches are gathered there, not copied over
             sampler.to(par.device)
-    model = GMT(cfg).to(par.device)
+    model = GMT(cfg)
+    if tc.init_from:
+        extra_meta = {**(extra_meta or {}), "init_from": _init_from(model, tc.init_from)}
+    model = model.to(par.device)
     dt = cfg.conditioning == "return"
     rows = par.rows(tc.batch_size)
     net = par.wrap(model)

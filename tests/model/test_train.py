@@ -87,6 +87,38 @@ def test_resume_continues_exactly(tmp_path, monkeypatch):
     assert not (tmp_path / "part" / RESUME_DIR).exists()  # a finished run leaves nothing to resume
 
 
+def test_init_from_starts_at_a_checkpoints_weights_and_refuses_another_shape(tmp_path):
+    ds = SyntheticDataset()
+    train(ds, ds.labels, ds.goals, tmp_path / "first", _tc(steps=150), SMALL, progress=False)
+    scratch = _eval_loss(
+        train(ds, ds.labels, ds.goals, tmp_path / "scratch", _tc(steps=3), SMALL, progress=False), ds
+    )
+    tuned = train(
+        ds,
+        ds.labels,
+        ds.goals,
+        tmp_path / "tuned",
+        _tc(steps=3, init_from=str(tmp_path / "first")),
+        SMALL,
+        progress=False,
+    )
+    # three steps from the trained weights keep their low loss; three from random ones do not
+    assert _eval_loss(tuned, ds) < 0.8 * scratch, (_eval_loss(tuned, ds), scratch)
+    meta = json.loads((tmp_path / "tuned" / META).read_text())
+    assert meta["init_from"]["fingerprint"] == load_checkpoint(tmp_path / "first").fingerprint
+    assert meta["training"]["init_from"] == str(tmp_path / "first")
+    with pytest.raises(ValueError, match=r"n_embd \(32 there, 16 here\)"):
+        train(
+            ds,
+            ds.labels,
+            ds.goals,
+            tmp_path / "other",
+            _tc(steps=3, init_from=str(tmp_path / "first")),
+            {**SMALL, "n_embd": 16},
+            progress=False,
+        )
+
+
 def test_checkpoint_round_trip_is_exact(tmp_path):
     ds = SyntheticDataset()
     ds.preprocessing = {"screen_size": 7}  # what a collector declared; the checkpoint carries it on
