@@ -97,5 +97,13 @@ def test_rollouts_record_the_teachers_labels_on_the_models_states_and_merge_keep
         np.testing.assert_array_equal(a.actions, b.actions)
         assert ("executed_action" in a.infos) == ("executed_action" in b.infos)
     with pytest.raises(ValueError, match="only the return statistic"):
-        merge("test/base-v1", ["test/dagger-v1"], "test/bad-v1", "mean_x_velocity", 2, 0, str(tmp_path / "bad.json"))
+        merge(
+            "test/base-v1",
+            ["test/dagger-v1"],
+            "test/bad-v1",
+            "mean_x_velocity",
+            2,
+            0,
+            str(tmp_path / "bad.json"),
+        )
     assert not (tmp_path / "test" / "bad-v1").exists()
