@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-hopper-pool train-hopper-pool data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
+.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-breakout-dagger train-breakout-dagger eval-breakout-dagger data-hopper-pool train-hopper-pool data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -104,6 +104,43 @@ eval-breakout5: $(VENV)/.installed-eval $(VENV)/.installed-atari
 	$(MAKE) eval CHECKPOINT=checkpoints/breakout5-gmt
 	$(BIN)/gmt eval checkpoints/breakout5-gmt --seeds 15 --threads 2 --action-mode argmax \
 		--json checkpoints/breakout5-gmt/eval-argmax.json --markdown checkpoints/breakout5-gmt/eval-argmax.md
+
+# The data and training behind checkpoints/breakout-dagger-gmt (its PROVENANCE.md): the lead-v1 levels (~6 min), more
+# of them (~8 min), then two DAgger rounds (~15 min each on two cores): the committed models of
+# behaviour/breakout-dagger-gmt play every goal and the scripted levels label their states; each round is merged
+# with the scripted data into one dataset and a goal table (data/labels/). The models were trained on a GPU (the
+# device machine: --device cuda --time-limit-s 120 stopped at step 8446); train-breakout-dagger runs the same
+# 8446 steps on whatever device there is (hours on a CPU).
+DAGGER = $(BIN)/python -m gmt.datagen.breakout_dagger
+BD = gmt/breakout
+data-breakout-dagger: $(VENV)/.installed-data $(VENV)/.installed-atari $(VENV)/.installed-train
+	$(BIN)/python -m gmt.datagen.breakout --recipe lead
+	$(BIN)/python -m gmt.datagen.breakout --recipe lead --episodes lead4=160 lead140=80 lead152=80 lead170=80 \
+		--seed 1 --out-id $(BD)/lead-more-v1
+	$(DAGGER) collect behaviour/breakout-dagger-gmt/round0-gmt --goals 4=lead4 0=lead170 1=lead152 --seeds 80 \
+		--out-id $(BD)/lead-dagger-a-v1 & \
+	$(DAGGER) collect behaviour/breakout-dagger-gmt/round0-gmt --goals 3=lead4 2=lead140 --seeds 80 \
+		--out-id $(BD)/lead-dagger-b-v1 & wait
+	$(DAGGER) merge $(BD)/lead-v1 $(BD)/lead-dagger-a-v1 $(BD)/lead-dagger-b-v1 --out-id $(BD)/lead-dagger-v1 --k 5 \
+		--labels data/labels/breakout-dagger-1.json
+	$(DAGGER) collect behaviour/breakout-dagger-gmt/round1-gmt --goals 4=lead4 0=lead170 1=lead152 --seeds 80 \
+		--seed-base 20000 --action-mode argmax --out-id $(BD)/lead-dagger2-a-v1 & \
+	$(DAGGER) collect behaviour/breakout-dagger-gmt/round1-gmt --goals 3=lead4 2=lead140 --seeds 80 \
+		--seed-base 20000 --action-mode argmax --out-id $(BD)/lead-dagger2-b-v1 & wait
+	$(DAGGER) merge $(BD)/lead-v1 $(BD)/lead-dagger-a-v1 $(BD)/lead-dagger-b-v1 $(BD)/lead-more-v1 \
+		$(BD)/lead-dagger2-a-v1 $(BD)/lead-dagger2-b-v1 --out-id $(BD)/lead-dagger2-v1 --k 5 \
+		--labels data/labels/breakout-dagger-2.json
+
+train-breakout-dagger: $(VENV)/.installed-train
+	$(BIN)/gmt train --dataset $(BD)/lead-dagger2-v1 --labels data/labels/breakout-dagger-2.json \
+		--out checkpoints/breakout-dagger-gmt --init-from behaviour/breakout-dagger-gmt/round1-gmt --statistic return \
+		--k 5 --attention window --context-length 4 --sequence-length 8 --steps 8446 --lr 3e-4 --warmup-steps 100 \
+		--seed 0 --log-every 200 --save-every 2000 --default-action-mode argmax --batch-size 256
+
+eval-breakout-dagger: $(VENV)/.installed-eval $(VENV)/.installed-atari
+	$(MAKE) eval CHECKPOINT=checkpoints/breakout-dagger-gmt
+	$(BIN)/gmt eval checkpoints/breakout-dagger-gmt --seeds 15 --threads 2 --action-mode sample \
+		--json checkpoints/breakout-dagger-gmt/eval-sample.json --markdown checkpoints/breakout-dagger-gmt/eval-sample.md
 
 # The data and training behind checkpoints/hopper-gmt (its PROVENANCE.md): ~11 min collection and ~20 min
 # training on one core each. The pool-started episodes start from states of behaviour/hopper3-gmt/pool-gmt, a

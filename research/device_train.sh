@@ -8,7 +8,7 @@
 # Run there, both folders carried:
 #   REV=<commit> DATASET=gmt/breakout/react-v1 LIMIT=390 bash research/device_train.sh RUN_ARGS_A -- RUN_ARGS_B
 # Optional: PACKS (dataset ids to unpack from .devdata/<leaf>, default $DATASET), PREPARE (a command run after
-# unpacking, e.g. `python3 -m research.breakout_dagger merge ...`, with `gmt` importable), DATASET_B (run B's
+# unpacking, e.g. `python3 -m gmt.datagen.breakout_dagger merge ...`, with `gmt` importable), DATASET_B (run B's
 # dataset, default $DATASET).
 # REV (the clean commit the wheel was built from) goes into each checkpoint's code_revision.
 # Each run is `gmt train --dataset $DATASET --device cuda --time-limit-s $LIMIT --out $OUT/<name> ARGS`, the two

@@ -294,3 +294,22 @@ def test_the_pool_checkpoints_the_written_command_lines_start_from_exist_for_the
     for where, path, env_id in pools:
         assert (ROOT / path / "gmt.json").is_file(), f"{where}: {path} is not a checkpoint"
         assert load_checkpoint(ROOT / path).env_id == env_id, f"{where}: {path} is not a {env_id} model"
+
+
+def test_the_checkpoints_written_trainings_start_from_are_committed_models_of_one_shape():
+    """A written `gmt train --init-from` names a committed checkpoint (a device run's copy under .devdata/ or a
+    scratch one under runs/ aside) whose model configuration the trained checkpoint shares."""
+    from gmt.model.checkpoint import load_checkpoint
+
+    inits = [
+        (where, m.group(1), o.group(1) if o else None)
+        for where, line in _written_command_lines()
+        for m, o in [(re.search(r"--init-from (\S+)", line), re.search(r"--out (\S+)", line))]
+        if m and not m.group(1).startswith(("runs/", ".devdata/"))
+    ]
+    assert any(where == "Makefile" for where, _, _ in inits), "no --init-from in the Makefile"
+    for where, path, out in inits:
+        assert (ROOT / path / "gmt.json").is_file(), f"{where}: {path} is not a checkpoint"
+        if out and (ROOT / out / "gmt.json").is_file():
+            a, b = load_checkpoint(ROOT / path).model.cfg, load_checkpoint(ROOT / out).model.cfg
+            assert a == b, f"{where}: {out} is not the shape of {path}"

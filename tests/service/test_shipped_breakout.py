@@ -1,7 +1,7 @@
 """The shipped Breakout checkpoints, served for real: frames go out over REST and gRPC, and the goal changes play.
 
-A real server on a loopback port serves `checkpoints/breakout-gmt` (3 goals) and `checkpoints/breakout5-gmt`
-(5 goals); the client builds its environment from the preprocessing the model declares (`GET /models/{name}`)
+A real server on a loopback port serves `checkpoints/breakout-gmt` (3 goals), `checkpoints/breakout5-gmt` and
+`checkpoints/breakout-dagger-gmt` (5 goals each); the client builds its environment from the preprocessing the model declares (`GET /models/{name}`)
 and steps real ALE Breakout. The highest goal must score more than the lowest goal over the same seeds, which the
 evaluation did not use, and a goal change mid-episode over gRPC must take effect at the step it was made.
 """
@@ -20,7 +20,7 @@ pytest.importorskip("ale_py")
 pytest.importorskip("cv2")  # AtariPreprocessing
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
-NAMES = ("breakout-gmt", "breakout5-gmt")
+NAMES = ("breakout-gmt", "breakout5-gmt", "breakout-dagger-gmt")
 # 600 steps: in the first 300 the high goal is still on the 1-point bricks and the low goal's game is usually
 # still running, so they part by only ~4 points per episode (`gmt eval ... --first-seed 1000 --steps 300`: low
 # 3.7, high 7.5); by 600 the low goal's games are mostly over (its holds last ~257 steps).
@@ -40,11 +40,13 @@ def server():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_the_spec_declares_the_training_datas_preprocessing(server, name):
-    declared = json.loads((ROOT / name / "gmt.json").read_text())["env"]["preprocessing"]
+    meta = json.loads((ROOT / name / "gmt.json").read_text())
+    declared = meta["env"]["preprocessing"]
     with RestClient(server.url) as c:
         spec = c.get_model(name)
     assert spec.preprocessing == declared and declared["observation_shape"] == [4, 64, 64]
-    assert spec.action_modes[0] == "sample"  # the checkpoint's default_action_mode
+    assert spec.action_modes[0] == meta["default_action_mode"]  # sessions that name no mode get it
+    assert meta["default_action_mode"] in ("sample", "argmax")
     with GrpcClient(server.target) as c:
         g = c.get_model(name)
     assert g.preprocessing == declared and g.action_modes == spec.action_modes

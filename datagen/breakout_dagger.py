@@ -17,10 +17,12 @@ episode gets the goal that was commanded, whatever it scored (it was played by t
 an episode of a scripted dataset (no `goal` in its metadata: more data of the same levels, the control) gets the
 goal whose centre is nearest its return, as k-means assigns.
 
-    python -m research.breakout_dagger collect runs/gpu2/lead-b256 --goals 4=lead4 3=lead4 --seeds 60 \\
-        --out-id gmt/breakout/lead-dagger-a-v1
-    python -m research.breakout_dagger merge gmt/breakout/lead-v1 gmt/breakout/lead-dagger-a-v1 \\
-        --out-id gmt/breakout/lead-dagger-v1 --k 5 --labels runs/dagger/labels.json
+    python -m gmt.datagen.breakout_dagger collect behaviour/breakout-dagger-gmt/round0-gmt \\
+        --goals 4=lead4 0=lead170 1=lead152 --seeds 80 --out-id gmt/breakout/lead-dagger-a-v1
+    python -m gmt.datagen.breakout_dagger merge gmt/breakout/lead-v1 gmt/breakout/lead-dagger-a-v1 \\
+        --out-id gmt/breakout/lead-dagger-v1 --k 5 --labels data/labels/breakout-dagger-1.json
+
+`make data-breakout-dagger` runs the whole chain behind `checkpoints/breakout-dagger-gmt` (its PROVENANCE.md).
 """
 
 from __future__ import annotations
@@ -157,7 +159,7 @@ def collect(
         + ", ".join(f"{g}={lv}" for g, lv in goals.items())
         + f", {seeds} episodes each from seed {seed_base} + 1000 x goal, at most {steps} steps. Actions are the "
         "level's label at each state; infos executed_action holds the model's. Written by "
-        "`python -m research.breakout_dagger collect`."
+        "`python -m gmt.datagen.breakout_dagger collect`."
     )
     path = write_dataset(
         out_id,
@@ -242,7 +244,7 @@ def merge(base: str, parts: list[str], out_id: str, statistic: str, k: int, seed
             "total_steps": steps,
             "description": f"{base} ({n_base} episodes) followed by "
             + ", ".join(f"{p} ({m} episodes)" for p, m in added.items())
-            + ", merged by `python -m research.breakout_dagger merge`.",
+            + ", merged by `python -m gmt.datagen.breakout_dagger merge`.",
             "dagger_merge": {"base": base, "base_episodes": n_base, "parts": added},
         }
     )
@@ -250,6 +252,7 @@ def merge(base: str, parts: list[str], out_id: str, statistic: str, k: int, seed
     d = table.to_dict()
     d["labels"] = [int(x) for x in goals_of]
     d["values"] = values
+    Path(labels).parent.mkdir(parents=True, exist_ok=True)
     GoalTable.from_dict(d).save(labels)
     counts = np.bincount(np.asarray(goals_of[n_base:], dtype=np.int64), minlength=k).tolist()
     return {"dataset": out_id, "episodes": n, "steps": steps, "rollout_episodes_per_goal": counts}
