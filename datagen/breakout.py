@@ -438,6 +438,30 @@ class Played:
             episode_id=episode_id,
         )
 
+    @classmethod
+    def from_steps(
+        cls,
+        frames: list,
+        actions: list[int],
+        rewards: list[float],
+        lives: list[float],
+        terminated: bool,
+        truncated: bool,
+        ball_y: list[int],
+        executed: list[int] | None = None,
+    ) -> Played:
+        """An episode from the per-step lists a player gathers (frames and ball_y: T + 1 entries, the rest T)."""
+        return cls(
+            observations=np.asarray(frames, dtype=np.uint8),
+            actions=np.asarray(actions, dtype=np.int64),
+            rewards=np.asarray(rewards, dtype=np.float32),
+            lives=np.asarray(lives, dtype=np.float64),
+            terminated=bool(terminated),
+            truncated=bool(truncated),
+            ball_y=np.asarray(ball_y, dtype=np.int64),
+            executed=None if executed is None else np.asarray(executed, dtype=np.int64),
+        )
+
     @property
     def ret(self) -> float:
         return float(self.rewards.sum())
@@ -500,15 +524,15 @@ def play(
         ball_y.append(state.ball_y)
         if len(actions) >= max_steps and not terminated:
             truncated = True
-    return Played(
-        observations=np.asarray(frames, dtype=np.uint8) if keep_frames else np.zeros((0,), np.uint8),
-        actions=np.asarray(actions, dtype=np.int64),
-        rewards=np.asarray(rewards, dtype=np.float32),
-        lives=np.asarray(lives, dtype=np.float64),
-        terminated=bool(terminated),
-        truncated=bool(truncated),
-        ball_y=np.asarray(ball_y, dtype=np.int64),
-        executed=np.asarray(executed, dtype=np.int64) if _disturbs(agent) else None,
+    return Played.from_steps(
+        frames if keep_frames else np.zeros((0,), np.uint8),
+        actions,
+        rewards,
+        lives,
+        terminated,
+        truncated,
+        ball_y,
+        executed if _disturbs(agent) else None,
     )
 
 

@@ -83,16 +83,7 @@ def rollout(engine, spec, goal: int, level: str, seed: int, mode: str, steps: in
         lives.append(info.get("lives", 0))
         ball_y.append(state.ball_y)
     env.close()
-    played = Played(
-        observations=np.asarray(frames, dtype=np.uint8),
-        actions=np.asarray(labels, dtype=np.int64),
-        rewards=np.asarray(rewards, dtype=np.float32),
-        lives=np.asarray(lives, dtype=np.float64),
-        terminated=bool(terminated),
-        truncated=bool(truncated),
-        ball_y=np.asarray(ball_y, dtype=np.int64),
-        executed=np.asarray(executed, dtype=np.int64),
-    )
+    played = Played.from_steps(frames, labels, rewards, lives, terminated, truncated, ball_y, executed)
     return played, float(np.mean(played.actions == played.executed))
 
 
@@ -109,13 +100,18 @@ def collect(
     """Play every goal of `goals` on `seeds` seeds and write the labelled episodes as dataset `out_id`."""
     from tqdm import tqdm
 
-    from gmt.datagen.breakout import ENV_ID, make_env, recompress
+    from gmt.common.envs import make_env
+    from gmt.datagen.breakout import ENV_ID, recompress
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.data.minari_io import write_dataset
     from gmt.model.engine import PolicyEngine
     from gmt.model.evaluate_return import model_info
 
     start = time.time()
+    if not 1 <= seeds <= 1000:
+        raise ValueError(
+            f"seeds must be 1-1000 (goal g's episodes start from seed base + 1000 g), got {seeds}"
+        )
     ckpt = load_checkpoint(checkpoint)
     for g in goals:
         if not 0 <= g < len(ckpt.goals):
@@ -153,7 +149,7 @@ def collect(
                 "agreement": float(np.mean(agree)),
                 "steps": int(sum(len(e.actions) for e in episodes[-seeds:])),
             }
-    env = make_env()  # the dataset's spaces: the same preprocessing the checkpoint was trained on
+    env = make_env(spec, max_steps=steps)  # the dataset's spaces: the game the checkpoint declares
     description = (
         f"DAgger rollouts of {checkpoint} ({mode} actions) on {ENV_ID}: goal=level "
         + ", ".join(f"{g}={lv}" for g, lv in goals.items())

@@ -21,12 +21,16 @@ from gmt.model.evaluate_return import model_info  # noqa: E402
 CKPT = Path(__file__).resolve().parents[2] / "checkpoints" / "breakout5-gmt"
 
 
-def test_parse_goals_names_the_problem():
+def test_bad_goals_and_seed_counts_are_refused_with_the_reason():
     assert parse_goals(["4=lead4", "0=lead170"]) == {4: "lead4", 0: "lead170"}
     with pytest.raises(ValueError, match="GOAL=LEVEL"):
         parse_goals(["lead4"])
     with pytest.raises(ValueError, match="unknown level 'nope'"):
         parse_goals(["1=nope"])
+    with pytest.raises(
+        ValueError, match="seeds must be 1-1000"
+    ):  # goal g's seeds would run into goal g + 1's
+        collect(str(CKPT), {1: "strong"}, 1001, "test/x-v1", progress=False)
 
 
 def test_rollouts_record_the_teachers_labels_on_the_models_states_and_merge_keeps_goals(
