@@ -1,8 +1,8 @@
 """The shipped Breakout checkpoints, served for real: frames go out over REST and gRPC, and the goal changes play.
 
 A real server on a loopback port serves `checkpoints/breakout-gmt` (3 goals), `checkpoints/breakout5-gmt` and
-`checkpoints/breakout-dagger-gmt` (5 goals each); the client builds its environment from the preprocessing the model declares (`GET /models/{name}`)
-and steps real ALE Breakout. The highest goal must score more than the lowest goal over the same seeds, which the
+`checkpoints/breakout-dagger-gmt` (5 goals each); the client builds its environment from the preprocessing the
+model declares (`GET /models/{name}`) and steps real ALE Breakout. The highest goal must score more than the lowest goal over the same seeds, which the
 evaluation did not use, and a goal change mid-episode over gRPC must take effect at the step it was made.
 """
 
