@@ -661,7 +661,7 @@ def collect_breakout(cfg: CollectConfig | None = None, progress: bool = True) ->
         overwrite=cfg.overwrite,
     )
     # The stacked frames are no "image space" to Minari, so they were stored raw, not JPEG: say so.
-    _update_metadata(
+    update_metadata(
         path,
         {
             "preprocessing": cfg.preprocessing.to_dict(),
@@ -696,7 +696,7 @@ def _summary(returns: list[float], lengths: list[int], cap: int) -> dict:
     }
 
 
-def _update_metadata(path: Path, extra: dict) -> None:
+def update_metadata(path: Path, extra: dict) -> None:
     """Add keys to the dataset's metadata.json (Minari keeps keys it does not know)."""
     meta_path = path / "metadata.json"
     meta = json.loads(meta_path.read_text())

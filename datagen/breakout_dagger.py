@@ -101,7 +101,7 @@ def collect(
     from tqdm import tqdm
 
     from gmt.common.envs import make_env
-    from gmt.datagen.breakout import ENV_ID, recompress
+    from gmt.datagen.breakout import ENV_ID, recompress, update_metadata
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.data.minari_io import write_dataset
     from gmt.model.engine import PolicyEngine
@@ -169,16 +169,9 @@ def collect(
         overwrite=True,
     )
     env.close()
-    _add_metadata(path, {"preprocessing": ckpt.preprocessing, "jpeg_encoding": False, "dagger": summary})
+    update_metadata(path, {"preprocessing": ckpt.preprocessing, "jpeg_encoding": False, "dagger": summary})
     recompress(path)
     return {"dataset": out_id, "path": str(path), "seconds": round(time.time() - start, 1), "goals": summary}
-
-
-def _add_metadata(path: Path, extra: dict) -> None:
-    meta_path = path / "metadata.json"
-    meta = json.loads(meta_path.read_text())
-    meta.update({k: v for k, v in extra.items() if v is not None})
-    meta_path.write_text(json.dumps(meta))
 
 
 def merge(base: str, parts: list[str], out_id: str, statistic: str, k: int, seed: int, labels: str) -> dict:
@@ -213,7 +206,7 @@ def merge(base: str, parts: list[str], out_id: str, statistic: str, k: int, seed
     added = {}
     with h5py.File(dst / "main_data.hdf5", "a") as out:
         for part in parts:
-            p = resolve(part)
+            before, p = n, resolve(part)
             with h5py.File(p / "main_data.hdf5", "r") as f:
                 for i in range(len(f.keys())):
                     g = f[f"episode_{i}"]
@@ -232,7 +225,7 @@ def merge(base: str, parts: list[str], out_id: str, statistic: str, k: int, seed
                     values.append(ret)
                     steps += int(g.attrs["total_steps"])
                     n += 1
-            added[part] = n - n_base - sum(added.values())
+            added[part] = added.get(part, 0) + n - before
     meta.update(
         {
             "dataset_id": out_id,

@@ -280,15 +280,22 @@ def test_the_behaviour_folders_the_written_command_lines_collect_from_exist():
         assert any((ROOT / d).glob("*/*.safetensors")), f"{where}: {d} holds no behaviour snapshot"
 
 
+def _written_checkpoint_args(flag: str, *skip: str) -> list[tuple[str, str, str]]:
+    """(where, path, line) of every written command line with `flag PATH`, PATH not under a `skip` prefix."""
+    return [
+        (where, m.group(1), line)
+        for where, line in _written_command_lines()
+        if (m := re.search(rf"{flag} (\S+)", line)) and not m.group(1).startswith(skip)
+    ]
+
+
 def test_the_pool_checkpoints_the_written_command_lines_start_from_exist_for_their_environment():
     """A written collection that starts episodes from a GMT's states names a committed checkpoint of its task."""
     from gmt.model.checkpoint import load_checkpoint
 
     pools = [
-        (where, m.group(1), e.group(1))
-        for where, line in _written_command_lines()
-        for m, e in [(re.search(r"--pool-checkpoint (\S+)", line), re.search(r"--env (\S+)", line))]
-        if m and not m.group(1).startswith("runs/")
+        (where, path, re.search(r"--env (\S+)", line).group(1))
+        for where, path, line in _written_checkpoint_args("--pool-checkpoint", "runs/")
     ]
     assert any(where == "Makefile" for where, _, _ in pools), "no --pool-checkpoint in the Makefile"
     for where, path, env_id in pools:
@@ -302,10 +309,8 @@ def test_the_checkpoints_written_trainings_start_from_are_committed_models_of_on
     from gmt.model.checkpoint import load_checkpoint
 
     inits = [
-        (where, m.group(1), o.group(1) if o else None)
-        for where, line in _written_command_lines()
-        for m, o in [(re.search(r"--init-from (\S+)", line), re.search(r"--out (\S+)", line))]
-        if m and not m.group(1).startswith(("runs/", ".devdata/"))
+        (where, path, o.group(1) if (o := re.search(r"--out (\S+)", line)) else None)
+        for where, path, line in _written_checkpoint_args("--init-from", "runs/", ".devdata/")
     ]
     assert any(where == "Makefile" for where, _, _ in inits), "no --init-from in the Makefile"
     for where, path, out in inits:
