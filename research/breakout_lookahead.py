@@ -34,28 +34,16 @@ from gmt.datagen.breakout import (
     LEVELS,
     NOOP,
     PADDLE_OFFSET,
-    RAM_BALL_X,
-    RAM_BALL_Y,
-    RAM_PADDLE_X,
-    RAM_SCORE_HUNDREDS,
-    RAM_SCORE_UNITS,
     RIGHT,
     RamState,
     TrackingAgent,
-    _bcd,
     bursts,
     make_env,
+    read_ram,
 )
 
 FRAME_SKIP = 4
 LOST = -1000.0  # a lookahead that loses a life
-
-
-def ram_state(ale) -> RamState:
-    """`read_ram` from the ALE interface itself (the lookahead steps it without the wrappers)."""
-    r = ale.getRAM()
-    score = 100 * _bcd(int(r[RAM_SCORE_HUNDREDS])) + _bcd(int(r[RAM_SCORE_UNITS]))
-    return RamState(int(r[RAM_BALL_X]), int(r[RAM_BALL_Y]), int(r[RAM_PADDLE_X]), score)
 
 
 class Lookahead:
@@ -67,8 +55,9 @@ class Lookahead:
         self.sequences = list(itertools.product((NOOP, RIGHT, LEFT), repeat=args.depth))
         self.spreads: list[int] = []
 
-    def reset(self, ale) -> None:
-        self.ale = ale
+    def reset(self, env) -> None:
+        """A new episode of `env` (the lookahead steps its ALE directly, under the wrappers)."""
+        self.env, self.ale = env, env.unwrapped.ale
         self.base.reset()
         self.base.offset = PADDLE_OFFSET
         self.hits: list[int] = []
@@ -86,11 +75,11 @@ class Lookahead:
     def _simulate(self, next_action) -> tuple[float, int | None]:
         """Steps the cloned game with `next_action(t, state)` to the first brick (or `--horizon`)."""
         ale, lives, total, first_x = self.ale, self.ale.lives(), 0.0, None
-        state = ram_state(ale)
+        state = read_ram(self.env)
         for t in range(self.args.horizon):
             a = next_action(t, state)
             r = sum(ale.act(a) for _ in range(FRAME_SKIP))
-            state = ram_state(ale)
+            state = read_ram(self.env)
             if ale.lives() < lives or ale.game_over():
                 return LOST, None
             total += r
@@ -163,18 +152,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=7, help="reset seeds from SeedSequence(seed)")
     args = p.parse_args(argv)
     env = make_env()
-    ale = env.unwrapped.ale
     agent = Lookahead(args)
     returns, start = [], time.time()
     for seed in np.random.SeedSequence(args.seed).generate_state(args.episodes):
         env.reset(seed=int(seed))
-        agent.reset(ale)
+        agent.reset(env)
         rng = np.random.default_rng(int(seed))
-        state, ret, ys, rewards, info = ram_state(ale), 0.0, [], [], {"lives": 5}
+        state, ret, ys, rewards, info = read_ram(env), 0.0, [], [], {"lives": 5}
         ys.append(state.ball_y)
         for _ in range(args.max_steps):
             _, r, terminated, _, info = env.step(agent.act(state, rng))
-            state = ram_state(ale)
+            state = read_ram(env)
             ret += r
             rewards.append(r)
             ys.append(state.ball_y)

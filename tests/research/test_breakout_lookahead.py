@@ -8,8 +8,8 @@ import pytest
 pytest.importorskip("ale_py")
 pytest.importorskip("cv2")
 
-from gmt.datagen.breakout import PADDLE_OFFSET, make_env  # noqa: E402
-from research.breakout_lookahead import Lookahead, main, ram_state  # noqa: E402
+from gmt.datagen.breakout import PADDLE_OFFSET, make_env, read_ram  # noqa: E402
+from research.breakout_lookahead import Lookahead, main  # noqa: E402
 
 
 def _args(**kw) -> argparse.Namespace:
@@ -19,10 +19,10 @@ def _args(**kw) -> argparse.Namespace:
 
 def _descending(env, agent, rng):
     """Plays lead4 until the ball comes down past y 120; returns the RAM state there."""
-    prev = ram_state(env.unwrapped.ale)
+    prev = read_ram(env)
     for _ in range(400):
         env.step(agent.base.act(prev, rng))
-        state = ram_state(env.unwrapped.ale)
+        state = read_ram(env)
         if state.in_play and prev.in_play and state.ball_y > prev.ball_y and state.ball_y >= 120:
             return state
         prev = state
@@ -35,7 +35,7 @@ def test_a_plan_leaves_the_real_game_untouched(mode):
     env.reset(seed=3)
     ale = env.unwrapped.ale
     agent = Lookahead(_args(mode=mode))
-    agent.reset(ale)
+    agent.reset(env)
     _descending(env, agent, np.random.default_rng(0))
     ram, lives, frame = ale.getRAM().copy(), ale.lives(), ale.getFrameNumber()
     if mode == "offset":
