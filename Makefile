@@ -203,9 +203,9 @@ eval-ant: $(VENV)/.installed-eval
 		--markdown checkpoints/ant-gmt/eval.md --plot checkpoints/ant-gmt/eval.png
 
 # Figures as JSON (schema: benchmarks/__init__.py; results: docs/performance.md): engine vs K, serving over every
-# transport beside `gmt serve --naive`, training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
+# transport beside `gmt serve --naive` (against the shipped HalfCheetah model), training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
 bench: $(VENV)/.installed-bench
-	$(BIN)/gmt bench --out bench.json
+	$(BIN)/gmt bench --checkpoint $(CHECKPOINT) --out bench.json
 
 # After changing a dependency in pyproject.toml: install every extra, then pin exactly what is installed.
 constraints:

@@ -60,7 +60,10 @@ def short_id(sid: str) -> str:
 
 
 MAX_ID_LENGTH = 128  # the longest session id accepted (the server issues 32 hex digits)
-_CLIENT_ID = re.compile(rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}")  # URL-unreserved: one spelling in any path
+SESSION_ID_PATTERN = (
+    rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}"  # a client-chosen id: URL-unreserved, one spelling in any path
+)
+_CLIENT_ID = re.compile(SESSION_ID_PATTERN)
 
 
 def check_session_id(sid: object) -> str:

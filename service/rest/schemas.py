@@ -208,9 +208,10 @@ class CreateSession(_Request):
     )
     action_mode: Literal["argmax", "sample", "expert", "mean"] | None = Field(
         None,
-        description="Discrete actions: argmax, sample or expert (default argmax). Continuous: mean, or sample "
-        "(mean + the goal's calibrated behaviour noise; the default when the checkpoint is calibrated). "
-        "`GET /models/{name}` lists a model's modes.",
+        description="Discrete actions: expert, argmax or sample. Continuous: mean, or sample (mean + the goal's "
+        "calibrated behaviour noise). Omitted: the model's default, the first of the modes `GET /models/{name}` "
+        "lists (the checkpoint declares it; else expert for discrete actions, sample for a calibrated continuous "
+        "model, mean otherwise).",
     )
     session_id: str | None = Field(
         None,

@@ -560,3 +560,39 @@ def test_control_stream_unknown_session_is_in_band(stub):
     reqs = [pb.ControlRequest(act=pb.ActRequest(session_id="nope", values=pb.FloatVector(values=[0.0] * N)))]
     (out,) = list(stub.Control(iter(reqs)))
     assert out.error.code == "not_found" and "session 'nope' not found" in out.error.message
+
+
+def test_every_error_code_has_a_row_in_the_documented_table():
+    """docs/serving.md's error table names every code the service answers, with its HTTP status."""
+    from pathlib import Path
+
+    from gmt.service import errors
+    from gmt.service.rest.app import HTTP_CODES
+
+    doc = (Path(__file__).parents[2] / "docs" / "serving.md").read_text()
+    rows = {
+        line.split("|")[1].strip(" `"): line.split("|")[2].strip()
+        for line in doc.splitlines()
+        if "| `" in line
+    }
+    classes = [c for c in vars(errors).values() if isinstance(c, type) and issubclass(c, errors.ServiceError)]
+    answered = {c.code: c.http_status for c in classes if c.code != "internal"} | {
+        code: status for status, code in HTTP_CODES.items()
+    }
+    answered["request_timeout"] = 408  # answered by the HTTP protocol itself (rest/protocol.py)
+    wrong = {
+        code: (status, rows.get(code)) for code, status in answered.items() if rows.get(code) != str(status)
+    }
+    assert not wrong, f"code: (HTTP status, documented) {wrong}"
+
+
+@pytest.mark.parametrize("name", ["CreateSession", "SetGoal", "ResetSession", "Act", "ActItem", "ActMany"])
+def test_openapi_request_bodies_rebuilt_from_the_models_keep_every_field(http, name):
+    """The OpenAPI bodies are rewritten from the loaded models (`rest/openapi.py`): none may lose a field the
+    server accepts, or Swagger and generated clients cannot send it."""
+    from gmt.service.rest import schemas
+
+    schema = http.get("/openapi.json").json()["components"]["schemas"][name]
+    variants = [schema, *schema.get("oneOf", [])]
+    documented = {p for v in variants for p in v.get("properties", {})}
+    assert set(getattr(schemas, name).model_fields) <= documented

@@ -28,6 +28,13 @@ def test_settings_from_environment_and_flags(monkeypatch, tmp_path):
     assert Settings().token is None
 
 
+def test_every_setting_has_a_row_in_the_configuration_table():
+    doc = (Path(__file__).parents[2] / "docs" / "serving.md").read_text()
+    table = doc.split("## Configuration", 1)[1]
+    missing = [name for name in Settings.model_fields if f"`GMT_{name.upper()}`" not in table]
+    assert not missing, f"docs/serving.md, Configuration: no row for {missing}"
+
+
 def test_serve_without_checkpoints_says_so_and_stops_gracefully(tmp_path):
     p = ServeProcess("--checkpoints", str(tmp_path / "checkpoints"))
     try:
