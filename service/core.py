@@ -60,6 +60,11 @@ def short_id(sid: str) -> str:
 
 
 MAX_ID_LENGTH = 128  # the longest session id accepted (the server issues 32 hex digits)
+MAX_PATH_LENGTH = 4096  # the longest checkpoint path a load accepts (Linux PATH_MAX)
+DOT_SEGMENTS = (
+    ".",
+    "..",
+)  # names an HTTP client rewrites in a path (RFC 3986 5.2.4): never a session or model
 SESSION_ID_PATTERN = (
     rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}"  # a client-chosen id: URL-unreserved, one spelling in any path
 )
@@ -83,7 +88,8 @@ def check_session_id(sid: object) -> str:
 
 
 def check_new_session_id(sid: str) -> str:
-    """A client-chosen id for a new session: 1 to 128 URL-unreserved characters (letters, digits, `._~-`).
+    """A client-chosen id for a new session: 1 to 128 URL-unreserved characters (letters, digits, `._~-`), not
+    `.` or `..`.
 
     Raises:
         InvalidArgument: anything else (the id is not echoed when it is too long).
@@ -93,12 +99,17 @@ def check_new_session_id(sid: str) -> str:
         raise InvalidArgument(
             f"session_id {shown} is not 1 to {MAX_ID_LENGTH} characters of letters, digits, '.', '_', '~' or '-'"
         )
+    if sid in DOT_SEGMENTS:
+        raise InvalidArgument(
+            f"session_id {sid!r} cannot be addressed: HTTP clients rewrite /sessions/{sid}/act to another path"
+        )
     return sid
 
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 UNLOAD_WAIT_S = 5.0  # longest wait, in a forced unload, for the acts already in the version's batcher
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
+MAX_LIST_OFFSET = 10**9  # the largest offset of `list_sessions` (far past any store; larger overflow int64)
 GoalRef = int | str | None
 _HEX = re.compile(r"[0-9a-fA-F]{12,64}")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
@@ -452,15 +463,22 @@ class Core:
         """
         if not isinstance(path, str) or not path or "\0" in path:
             raise InvalidArgument("path must name a checkpoint directory under the checkpoint roots")
+        if len(path) > MAX_PATH_LENGTH:
+            raise InvalidArgument(
+                f"path is {len(path)} characters long: a checkpoint path has at most {MAX_PATH_LENGTH}"
+            )
         roots = [r.resolve() for r in self.settings.checkpoints]
         p = Path(path)
         tries = [p] if p.is_absolute() else [Path.cwd() / p, *(r / p for r in roots)]
-        inside = [
-            t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)
-        ]
-        for t in inside:
-            if t.exists():
-                return t
+        try:
+            inside = [
+                t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)
+            ]
+            for t in inside:
+                if t.exists():
+                    return t
+        except OSError as e:  # a name longer than the file system allows, a loop of links, ...
+            raise InvalidArgument(f"path {path!r} cannot name a checkpoint directory: {e.strerror}") from None
         if inside:
             return inside[0]  # loading it says what is missing
         shown = ", ".join(str(r) for r in self.settings.checkpoints)
@@ -482,8 +500,13 @@ class Core:
             AlreadyExists: the version is loaded from another checkpoint (another fingerprint).
         """
         self._check_serving()
-        if not isinstance(name, str) or not (name in self.registry.names or _MODEL_NAME.fullmatch(name)):
-            raise InvalidArgument("a new model's name must be 1 to 128 letters, digits, '.', '_' or '-'")
+        if not isinstance(name, str) or not (
+            name in self.registry.names or (_MODEL_NAME.fullmatch(name) and name not in DOT_SEGMENTS)
+        ):
+            raise InvalidArgument(
+                "a new model's name must be 1 to 128 letters, digits, '.', '_' or '-', and not '.' or '..' "
+                "(HTTP clients rewrite those in a path)"
+            )
         if fingerprint is not None and not (isinstance(fingerprint, str) and _HEX.fullmatch(fingerprint)):
             raise InvalidArgument(
                 "fingerprint must be 12 to 64 hex digits (a prefix of the checkpoint's sha256)"
@@ -494,6 +517,10 @@ class Core:
                 m = await asyncio.to_thread(load_model, name, d, self.settings.naive, fingerprint)
             except CheckpointError as e:
                 raise InvalidArgument(f"checkpoint refused: {e}") from None
+            except OSError as e:  # unreadable files (permissions, a directory where a file should be, ...)
+                raise InvalidArgument(
+                    f"checkpoint refused: cannot read {e.filename or d}: {e.strerror}"
+                ) from None
             have = self.registry.add(m)
             self._unloaded.discard(m.key)
             if have is m:
@@ -850,10 +877,10 @@ class Core:
         Acts/s and last latency are as of the session's last act (in a shared store, as of the act before).
 
         Raises:
-            InvalidArgument: `offset` is negative or `limit` is not in 1..`MAX_LIST_SESSIONS`.
+            InvalidArgument: `offset` is not in 0..`MAX_LIST_OFFSET` or `limit` not in 1..`MAX_LIST_SESSIONS`.
         """
-        if isinstance(offset, bool) or not isinstance(offset, int) or offset < 0:
-            raise InvalidArgument(f"offset must be an integer >= 0, got {offset!r}")
+        if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= MAX_LIST_OFFSET:
+            raise InvalidArgument(f"offset must be an integer in 0..{MAX_LIST_OFFSET}, got {offset!r}")
         if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST_SESSIONS:
             raise InvalidArgument(f"limit must be an integer in 1..{MAX_LIST_SESSIONS}, got {limit!r}")
         total, briefs = await self.store.list_page(offset, limit)

@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field
 from starlette.types import Receive, Scope, Send
 
 from gmt.service.console.events import Subscription
-from gmt.service.core import MAX_LIST_SESSIONS, Core
+from gmt.service.core import MAX_LIST_OFFSET, MAX_LIST_SESSIONS, Core
 from gmt.service.errors import NotFound, ServiceError
 from gmt.service.rest import schemas as S
 from gmt.service.rest.routes import CoreDep, errors, session_header
@@ -86,7 +86,7 @@ class SessionListOut(BaseModel):
 )
 async def list_sessions(
     core: CoreDep,
-    offset: int = Query(0, ge=0, description="Sessions to skip."),
+    offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET, description="Sessions to skip."),
     limit: int = Query(50, ge=1, le=MAX_LIST_SESSIONS, description="Sessions to list at most."),
 ) -> SessionListOut:
     """Live sessions, newest first (memory store: by creation; Redis: by last use as of the replicas' last

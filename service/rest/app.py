@@ -6,6 +6,7 @@ import asyncio
 import logging
 import re
 import secrets
+import sys
 import time
 from contextlib import asynccontextmanager
 
@@ -93,9 +94,23 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
         allowed = _allowed_methods(request)
         if allowed:
             headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+    elif exc.status_code == 400 and exc.__cause__ is not None:  # FastAPI could not parse a JSON body
+        msg = _unparsable_body(exc.__cause__)
     else:
         msg = str(exc.detail)
     return error_response(exc.status_code, code, msg, headers)
+
+
+def _unparsable_body(cause: BaseException) -> str:
+    """What broke a body that Python's json module (FastAPI's routes) could not read, in the words the act
+    route's parser uses for the same bodies."""
+    if isinstance(cause, RecursionError):
+        return (
+            "request body is not valid JSON: recursion limit exceeded (arrays or objects nested too deeply)"
+        )
+    if isinstance(cause, ValueError) and "digits" in str(cause):
+        return f"request body is not valid JSON: number out of range (an integer of more than {sys.get_int_max_str_digits()} digits)"
+    return f"request body is not valid JSON: {type(cause).__name__}"
 
 
 def _allowed_methods(request: Request) -> list[str]:
@@ -228,6 +243,27 @@ class ServedBy:
         await self.app(scope, receive, send_with_header)
 
 
+class PlainBodies:
+    """A compressed request body (a Content-Encoding other than identity) answers 415 before any route reads it:
+    FastAPI's routes would try to parse the compressed bytes as JSON. `FastAct` applies the same rule itself."""
+
+    _SESSION = re.compile(r"^/sessions/([^/]+)")
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope["method"] in ("POST", "PUT", "PATCH"):
+            encoding = next((v for k, v in scope["headers"] if k == b"content-encoding"), None)
+            refusal = None if encoding is None else media.encoding_refusal(encoding.decode("latin-1"))
+            if refusal is not None:
+                m = self._SESSION.match(scope.get("path", ""))
+                headers = session_header(m.group(1)) if m else None
+                response = error_response(refusal.http_status, refusal.code, refusal.message, headers)
+                return await response(scope, receive, send)
+        await self.app(scope, receive, send)
+
+
 class AnswerCutOff:
     """A request still running when the shutdown grace period ends is cancelled by uvicorn, which would answer
     500; during shutdown this answers it `503 unavailable` instead (retryable: with the act's `step`, a retry
@@ -301,7 +337,10 @@ class FastAct:
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
             if raw:
                 content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
-                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
+                encoding = next((v for k, v in scope["headers"] if k == b"content-encoding"), None)
+                refusal = (
+                    None if encoding is None else media.encoding_refusal(encoding.decode("latin-1"))
+                ) or (media.refusal(None if content_type is None else content_type.decode("latin-1")))
                 if refusal is not None:
                     return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
@@ -348,7 +387,7 @@ class _App(FastAPI):
     settings: Settings | None = None
 
     def build_middleware_stack(self) -> ASGIApp:
-        inner = FastAct(super().build_middleware_stack(), self.settings)
+        inner = FastAct(PlainBodies(super().build_middleware_stack()), self.settings)
         return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings)), self.replica_id)
 
     def openapi(self) -> dict:

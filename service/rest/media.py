@@ -6,7 +6,8 @@ so does a body without a Content-Type: curl's `-d` sends `application/x-www-form
 a missing header would help no curl user, while a web page can make a browser send a body without a Content-Type,
 and without a CORS preflight, to a server on localhost (FastAPI refuses to parse such bodies for that reason). A
 request without a body is not concerned. `FastAct` applies the rule to `POST /sessions/{id}/act`, `require_json`
-(a dependency of every API route) to the others; `openapi` documents the 415.
+(a dependency of every API route) to the others; `openapi` documents the 415. A compressed body (a Content-Encoding
+other than identity) answers 415 too (`encoding_refusal`, applied by `app.PlainBodies` and `FastAct`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,16 @@ def is_json(content_type: str) -> bool:
     """Whether a Content-Type value declares JSON (`application/json` or `application/*+json`)."""
     media = content_type.split(";", 1)[0].strip().lower()
     return media == JSON or (media.startswith("application/") and media.endswith("+json"))
+
+
+def encoding_refusal(content_encoding: str) -> UnsupportedMediaType | None:
+    """The 415 for a body sent with a Content-Encoding other than identity (RFC 7694): this server decodes none."""
+    if content_encoding.strip().lower() in ("", "identity"):
+        return None
+    return UnsupportedMediaType(
+        f"request body sent with Content-Encoding {content_encoding.strip()[:_SHOWN]!r}; this server reads "
+        "uncompressed bodies only: send the JSON without Content-Encoding"
+    )
 
 
 def refusal(content_type: str | None) -> UnsupportedMediaType | None:

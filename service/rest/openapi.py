@@ -28,7 +28,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, SESSION_ID_PATTERN, Core, ModelView
+from gmt.service.core import MAX_ACT_ITEMS, SESSION_ID_PATTERN, VERSION_PATTERN, Core, ModelView
 from gmt.service.examples import Example
 from gmt.service.observations import MAX_ABS_VALUE
 from gmt.service.records import INFO_KEY, MAX_INFO_KEYS, MAX_REPORTED
@@ -251,11 +251,11 @@ def _create_session(models: list[ModelView], described: dict) -> dict:
                     "default.",
                 },
                 "session_id": {
-                    **_nullable({"type": "string", "pattern": f"^{SESSION_ID_PATTERN}$"}),
+                    **_nullable({"type": "string", "pattern": rf"^(?!\.\.?$){SESSION_ID_PATTERN}$"}),
                     "description": described.get("session_id", {}).get("description", ""),
                 },
-                "version": {  # any string: versions are loaded and unloaded after this document is built
-                    **_nullable({"type": "string"}),
+                "version": {  # any name: versions are loaded and unloaded after this document is built
+                    **_nullable({"type": "string", "pattern": f"^{VERSION_PATTERN.pattern}$"}),
                     "description": described.get("version", {}).get("description", ""),
                 },
                 "record": {

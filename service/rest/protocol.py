@@ -8,6 +8,9 @@ exhaust the process's descriptors, for gRPC and Redis too. Here:
 - a request's headers must arrive within `header_timeout_s` of its first byte (of the connection's opening, for
   its first request), else the server answers 408 and closes the connection;
 - its body must arrive within `body_timeout_s` of its headers, else the same;
+- a request line and headers larger than `MAX_HEAD_BYTES` answer 431 and the connection closes (httptools has no
+  limit of its own), and a request that is not valid HTTP/1.1 answers 400; both in the error envelope of every
+  other answer, `{"error": {"code", "message"}}` (uvicorn answers plain text);
 - at most `max_connections` connections are open: a new one past it closes the oldest connection that has no
   request in progress (one still sending its headers, or an idle keep-alive one), or, when every connection has a
   request in progress, the new one. The cap is kept below the descriptor limit (`gmt.service.limits`), so that
@@ -27,6 +30,11 @@ from gmt.service.metrics import Metrics
 
 log = logging.getLogger("gmt.rest")
 Phase = Literal["idle", "headers", "body", "busy"]
+MAX_HEAD_BYTES = 64 * 1024  # a request's line and headers at most (nginx's default allows 32 KiB)
+
+
+class _HeadTooLarge(Exception):
+    """Raised in a parser callback: httptools stops and uvicorn calls `send_400_response`."""
 
 
 class ConnectionGuard:
@@ -100,6 +108,8 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         self.counted = False
         self.phase: Phase = "idle"
         self._deadline: asyncio.TimerHandle | None = None
+        self._head_bytes = 0
+        self._head_too_large = False
 
     # Connection
 
@@ -138,7 +148,35 @@ class GuardedHttpProtocol(HttpToolsProtocol):
     def on_message_begin(self) -> None:
         super().on_message_begin()
         self.phase = "headers"
+        self._head_bytes = 0
         self.guard.update(self)
+
+    def on_url(self, url: bytes) -> None:
+        self._count_head(len(url))
+        super().on_url(url)
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self._count_head(len(name) + len(value) + 4)  # ": " and CRLF
+        super().on_header(name, value)
+
+    def _count_head(self, n: int) -> None:
+        self._head_bytes += n
+        if self._head_bytes > MAX_HEAD_BYTES:
+            self._head_too_large = True
+            raise _HeadTooLarge
+
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's answer to bytes its parser refused (plain text there), in the error envelope."""
+        if self._head_too_large:
+            status, code = b"431 Request Header Fields Too Large", "request_header_fields_too_large"
+            message = f"the request line and headers exceed {MAX_HEAD_BYTES} bytes"
+        else:
+            status, code = b"400 Bad Request", "invalid_argument"
+            message = (
+                "malformed HTTP request: the request line, a header, or the body's framing "
+                "(Content-Length / Transfer-Encoding) is not valid HTTP/1.1"
+            )
+        self._answer_and_close(status, code, message)
 
     def on_headers_complete(self) -> None:
         self._disarm()
@@ -188,18 +226,16 @@ class GuardedHttpProtocol(HttpToolsProtocol):
             cycle.disconnected = True
             cycle.message_event.set()
         what = "headers" if reason == "header_timeout" else "body"
-        body = orjson.dumps(
-            {
-                "error": {
-                    "code": "request_timeout",
-                    "message": f"the request's {what} did not arrive within {seconds:g} s",
-                }
-            }
-        )
+        message = f"the request's {what} did not arrive within {seconds:g} s"
+        self._answer_and_close(b"408 Request Timeout", "request_timeout", message)
+
+    def _answer_and_close(self, status: bytes, code: str, message: str) -> None:
+        """Answer `status` in the error envelope, outside the application, and close the connection."""
+        body = orjson.dumps({"error": {"code": code, "message": message}})
         self.transport.write(
-            b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
+            b"HTTP/1.1 %s\r\ncontent-type: application/json\r\n"
             b"content-length: %d\r\nconnection: close\r\nx-served-by: %s\r\n\r\n%s"
-            % (len(body), self.guard.served_by, body)
+            % (status, len(body), self.guard.served_by, body)
         )
         self.transport.close()
         self.guard.leave(self)

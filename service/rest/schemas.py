@@ -215,7 +215,8 @@ class CreateSession(_Request):
     )
     session_id: str | None = Field(
         None,
-        description="Your own id for the session (1 to 128 letters, digits, '.', '_', '~', '-'); the server draws "
+        description="Your own id for the session (1 to 128 letters, digits, '.', '_', '~', '-'; not '.' or '..'); "
+        "the server draws "
         "one when omitted. With it, creating is idempotent: a retry with the same id and body answers the session "
         "the first attempt created (a different body answers 409 already_exists).",
         examples=["bot-7-episode-12"],
@@ -507,6 +508,7 @@ class Promote(_Request):
         1.0,
         gt=0,
         le=1,
+        allow_inf_nan=False,
         description="1: the default version of new sessions. Below 1: a canary that gets this share of the new "
         "sessions that name no version (the default keeps the rest).",
     )

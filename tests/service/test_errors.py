@@ -5,6 +5,7 @@ twin session that saw the same observations.
 """
 
 import base64
+import gzip
 import json
 import shutil
 import subprocess
@@ -183,6 +184,31 @@ def test_rest_non_finite_target(http, rest_twins):
     check()
 
 
+UNPARSABLE = [
+    ("huge integer", '{"goal": 1' + "0" * 5000 + "}", "number out of range"),
+    ("deep nesting", '{"goal": ' + "[" * 3000 + "]" * 3000 + "}", "recursion limit exceeded"),
+]
+
+
+@pytest.mark.parametrize("body,message", [c[1:] for c in UNPARSABLE], ids=[c[0] for c in UNPARSABLE])
+@pytest.mark.parametrize("route", ["act", "goal", "reset", "create"])
+def test_rest_bodies_json_cannot_hold_name_the_problem_on_every_route(http, rest_twins, body, message, route):
+    """Python's json module (FastAPI's routes) and the act route's parser refuse these for different reasons;
+    the answer says the same on every route (it was "There was an error parsing the body")."""
+    sid, check = rest_twins
+    method, path = {
+        "act": ("POST", f"/sessions/{sid}/act"),
+        "goal": ("PUT", f"/sessions/{sid}/goal"),
+        "reset": ("POST", f"/sessions/{sid}/reset"),
+        "create": ("POST", "/sessions"),
+    }[route]
+    r = http.request(method, path, content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_argument", r.text
+    assert "not valid JSON" in r.json()["error"]["message"], r.text
+    assert message in r.json()["error"]["message"], r.text
+    check()
+
+
 def test_rest_body_too_large(http, rest_twins):
     sid, check = rest_twins
     body = obs_json([0.0] * 20_000)  # about 100 kB > the test server's 64 KiB limit
@@ -241,6 +267,23 @@ def test_rest_body_not_declared_json_is_415_naming_both_types(
     if "{sid}" in path:
         assert r.headers["x-session-id"] == sid
     check()  # nothing was applied
+
+
+@pytest.mark.parametrize("method,path,body", JSON_ROUTES, ids=[f"{m} {p}" for m, p, _ in JSON_ROUTES])
+def test_rest_compressed_body_is_415_naming_the_encoding(http, rest_twins, method, path, body):
+    sid, check = rest_twins
+    raw = gzip.compress(json.dumps(body).replace("{sid}", sid).encode())
+    headers = {"content-type": "application/json", "content-encoding": "gzip"}
+    r = http.request(method, path.format(sid=sid), content=raw, headers=headers)
+    assert r.status_code == 415, r.text
+    assert r.json()["error"]["code"] == "unsupported_media_type"
+    assert "Content-Encoding 'gzip'" in r.json()["error"]["message"], r.text
+    check()  # nothing was applied
+    plain = json.dumps(body).replace("{sid}", sid)
+    r = http.request(
+        method, path.format(sid=sid), content=plain, headers={**headers, "content-encoding": "identity"}
+    )
+    assert r.status_code < 300, r.text
 
 
 @pytest.mark.parametrize("content_type", ["application/json; charset=utf-8", "application/vnd.gmt+json"])
@@ -579,7 +622,8 @@ def test_every_error_code_has_a_row_in_the_documented_table():
     answered = {c.code: c.http_status for c in classes if c.code != "internal"} | {
         code: status for status, code in HTTP_CODES.items()
     }
-    answered["request_timeout"] = 408  # answered by the HTTP protocol itself (rest/protocol.py)
+    # answered by the HTTP protocol itself (rest/protocol.py)
+    answered |= {"request_timeout": 408, "request_header_fields_too_large": 431}
     wrong = {
         code: (status, rows.get(code)) for code, status in answered.items() if rows.get(code) != str(status)
     }

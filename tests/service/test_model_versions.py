@@ -264,6 +264,11 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
             assert r.status_code == 403 and "not under the checkpoint roots" in r.json()["error"]["message"]
         r = http.post(f"/models/{MODEL}/versions", json={})
         assert r.status_code == 400 and "path" in r.json()["error"]["message"]
+        # A name longer than the file system allows (was a 500: the OSError of Path.exists), a path past PATH_MAX.
+        r = http.post(f"/models/{MODEL}/versions", json={"path": "y" * 300})
+        assert r.status_code == 400 and "cannot name a checkpoint directory" in r.json()["error"]["message"]
+        r = http.post(f"/models/{MODEL}/versions", json={"path": "y/" * 3000})
+        assert r.status_code == 400 and "at most 4096" in r.json()["error"]["message"]
         assert http.get("/models").json() == {
             "models": [
                 {**m, "versions": [{**v, "sessions": 1} for v in m["versions"]]} for m in before["models"]
@@ -282,6 +287,14 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
             with pytest.raises(grpc.RpcError) as e:
                 admin.LoadVersion(apb.LoadVersionRequest(name=MODEL, path="/etc"))
             assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
+            with pytest.raises(grpc.RpcError) as e:
+                admin.LoadVersion(apb.LoadVersionRequest(name=MODEL, path="y" * 300))
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "cannot name" in e.value.details()
+            # Names an HTTP client rewrites in a path (GET /models/.. is GET /): the model would be unreachable.
+            for name in (".", ".."):
+                with pytest.raises(grpc.RpcError) as e:
+                    admin.LoadVersion(apb.LoadVersionRequest(name=name, path="releases/v2"))
+                assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "rewrite" in e.value.details()
 
 
 def test_management_over_grpc_and_unload_rules(make_server, roots, versions):
@@ -309,7 +322,12 @@ def test_management_over_grpc_and_unload_rules(make_server, roots, versions):
         r = http.delete(f"/models/{MODEL}/versions/nope")
         assert r.status_code == 404 and "has no version 'nope'" in r.json()["error"]["message"]
         r = http.put(f"/models/{MODEL}/default", json={"version": versions["v1"], "share": 1.5})
-        assert r.status_code == 400
+        assert r.status_code == 400 and "share" in r.json()["error"]["message"]
+        body = json.dumps({"version": versions["v1"], "share": 0.5}).replace("0.5", "NaN")
+        r = http.put(f"/models/{MODEL}/default", content=body, headers={"content-type": "application/json"})
+        assert (
+            r.status_code == 400 and "share: Input should be a finite number" in r.json()["error"]["message"]
+        )
 
 
 def test_management_is_authorised(make_server, roots):

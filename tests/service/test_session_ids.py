@@ -62,9 +62,22 @@ def test_a_client_chosen_id_makes_create_idempotent_and_is_checked(http):
     assert again.status_code == 201 and again.json()["step"] == 1  # the session the first call made
     other = http.post("/sessions", json={**body, "seed": 9})
     assert other.status_code == 409 and other.json()["error"]["code"] == "already_exists"
-    for bad in ("", "a/b", "a b", "é", "z" * 129):
+    for bad in (
+        "",
+        "a/b",
+        "a b",
+        "é",
+        "z" * 129,
+        ".",
+        "..",
+    ):  # dot segments: clients rewrite /sessions/../act
         r = http.post("/sessions", json={**body, "session_id": bad})
         assert r.status_code == 400 and "session_id" in r.json()["error"]["message"], bad
+    for fine in ("...", ".a", "a.."):  # other dots are kept by HTTP clients: these sessions are reachable
+        assert http.post("/sessions", json={**body, "session_id": fine}).status_code == 201, fine
+        assert http.post(f"/sessions/{fine}/act", json={"observation": OBS, "step": 0}).status_code == 200, (
+            fine
+        )
     assert http.delete("/sessions/bot-7.ep_1~a").status_code == 204
     assert http.post("/sessions", json=body).json()["step"] == 0  # a closed id may be used again
 

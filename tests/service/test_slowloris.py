@@ -332,3 +332,31 @@ def test_past_the_cap_with_every_request_in_progress_the_new_connection_is_close
     busy.sendall(BODY[1:])
     assert read_answer_head(busy).startswith(b"HTTP/1.1 201")
     busy.close()
+
+
+@pytest.mark.parametrize(
+    "request_head, status, code",
+    [
+        (b"POST /sessions HTTP/1.1\r\nHost: t\r\nContent-Length: -1\r\n\r\n", 400, "invalid_argument"),
+        (b"POST /sessions HTTP/1.1\r\nHost: t\r\nContent-Length: abc\r\n\r\n", 400, "invalid_argument"),
+        (b"GET /healthz HTTP/1.1\r\nHost: t\r\nX-Big: " + b"a" * 70_000 + b"\r\n\r\n", 431, None),
+        (b"GET /healthz?" + b"q" * 70_000 + b" HTTP/1.1\r\nHost: t\r\n\r\n", 431, None),
+    ],
+    ids=["negative length", "non-numeric length", "huge header", "huge url"],
+)
+def test_requests_that_are_not_http_or_too_large_answer_in_the_error_envelope(
+    make_server, request_head, status, code
+):
+    """uvicorn answers unparsable requests in plain text and puts no bound on the head (httptools has none)."""
+    s = make_server()
+    sock = connect(s.server.rest_port, request_head)
+    out, when = read_until_closed(sock, 30)
+    sock.close()
+    assert when is not None and out.startswith(b"HTTP/1.1 %d " % status), out[:200]
+    head, _, body = out.partition(b"\r\n\r\n")
+    assert b"content-type: application/json" in head.lower() and b"x-served-by: " in head.lower()
+    error = json.loads(body)["error"]
+    assert error["code"] == (code or "request_header_fields_too_large"), error
+    assert ("65536 bytes" if status == 431 else "malformed HTTP request") in error["message"]
+    with httpx.Client(base_url=s.url) as http:  # the server goes on; a large head under the bound is fine
+        assert http.get("/healthz", headers={"x-big": "a" * 60_000}).status_code == 200
