@@ -61,13 +61,10 @@ def short_id(sid: str) -> str:
 
 MAX_ID_LENGTH = 128  # the longest session id accepted (the server issues 32 hex digits)
 MAX_PATH_LENGTH = 4096  # the longest checkpoint path a load accepts (Linux PATH_MAX)
-DOT_SEGMENTS = (
-    ".",
-    "..",
-)  # names an HTTP client rewrites in a path (RFC 3986 5.2.4): never a session or model
-SESSION_ID_PATTERN = (
-    rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}"  # a client-chosen id: URL-unreserved, one spelling in any path
-)
+# Names an HTTP client rewrites in a path (RFC 3986 5.2.4), so never a session's or a model's.
+DOT_SEGMENTS = (".", "..")
+# A client-chosen session id: URL-unreserved characters, one spelling in any path.
+SESSION_ID_PATTERN = rf"[A-Za-z0-9._~-]{{1,{MAX_ID_LENGTH}}}"
 _CLIENT_ID = re.compile(SESSION_ID_PATTERN)
 
 

@@ -109,7 +109,8 @@ def _unparsable_body(cause: BaseException) -> str:
             "request body is not valid JSON: recursion limit exceeded (arrays or objects nested too deeply)"
         )
     if isinstance(cause, ValueError) and "digits" in str(cause):
-        return f"request body is not valid JSON: number out of range (an integer of more than {sys.get_int_max_str_digits()} digits)"
+        limit = sys.get_int_max_str_digits()
+        return f"request body is not valid JSON: number out of range (an integer of more than {limit} digits)"
     return f"request body is not valid JSON: {type(cause).__name__}"
 
 
@@ -338,9 +339,9 @@ class FastAct:
             if raw:
                 content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
                 encoding = next((v for k, v in scope["headers"] if k == b"content-encoding"), None)
-                refusal = (
-                    None if encoding is None else media.encoding_refusal(encoding.decode("latin-1"))
-                ) or (media.refusal(None if content_type is None else content_type.decode("latin-1")))
+                refusal = None if encoding is None else media.encoding_refusal(encoding.decode("latin-1"))
+                if refusal is None:
+                    refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
                 if refusal is not None:
                     return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
