@@ -6,6 +6,19 @@ from pathlib import Path
 
 import typer
 
+SECTIONS = (
+    "engine",
+    "serving",
+    "store",
+    "records",
+    "cluster",
+    "soak",
+    "console",
+    "failover",
+    "training",
+    "alternatives",
+)
+
 
 def bench_command(
     checkpoint: Path = typer.Option(
@@ -13,8 +26,7 @@ def bench_command(
     ),
     sections: str = typer.Option(
         "engine,serving,training,alternatives",
-        help="Comma-separated: engine, serving, store, records, cluster, soak, console, failover, training, "
-        "alternatives.",
+        help=f"Comma-separated: {', '.join(SECTIONS)}.",
     ),
     seconds: float = typer.Option(8.0, help="Load duration per serving measurement point."),
     sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),
@@ -31,12 +43,23 @@ def bench_command(
     from gmt.bench.report import to_markdown
     from gmt.bench.run import run
 
-    result = run(
-        checkpoint,
-        tuple(x.strip() for x in sections.split(",") if x.strip()),
-        seconds,
-        tuple(int(x) for x in sessions.split(",")),
-    )
+    chosen = tuple(x.strip() for x in sections.split(",") if x.strip())
+    unknown = [x for x in chosen if x not in SECTIONS]
+    if unknown or not chosen:
+        raise typer.BadParameter(
+            f"{unknown or 'none'}: choose among {', '.join(SECTIONS)}", param_hint="--sections"
+        )
+    try:
+        counts = tuple(int(x) for x in sessions.split(","))
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 1:
+        raise typer.BadParameter("give positive integers, e.g. 1,16,64", param_hint="--sessions")
+    if not seconds > 0:
+        raise typer.BadParameter("must be positive", param_hint="--seconds")
+    if checkpoint is not None and not checkpoint.is_dir():
+        raise typer.BadParameter(f"{checkpoint} is not a checkpoint directory", param_hint="--checkpoint")
+    result = run(checkpoint, chosen, seconds, counts)
     text = json.dumps(result, indent=2)
     typer.echo(text)
     if out:

@@ -26,7 +26,11 @@ RUN_FLAGS = dataclass_flags(
 @with_flags(RUN_FLAGS)
 def run_command(
     server: str = typer.Option("http://localhost:8000", help="REST base URL."),
-    grpc: str = typer.Option(None, "--grpc", help="host:port of the gRPC server; when given, gRPC is used."),
+    grpc: str = typer.Option(
+        None,
+        "--grpc",
+        help="host:port of the gRPC server (port 50051 when left out); when given, gRPC is used.",
+    ),
     stream: bool = typer.Option(
         False, help="With --grpc: act and set_goal over the bidirectional Control stream."
     ),
@@ -57,6 +61,14 @@ def run_command(
 
     if flags["video"] and flags["out"] is None:
         raise typer.BadParameter("--video needs --out DIR for the MP4 files", param_hint="--video")
+    if stream and not grpc:
+        raise typer.BadParameter(
+            "--stream is the gRPC Control stream: give --grpc HOST:PORT too", param_hint="--stream"
+        )
+    if not timeout > 0:
+        raise typer.BadParameter(
+            f"must be a positive number of seconds, got {timeout}", param_hint="--timeout"
+        )
     try:
         sched = parse_schedule(schedule)
     except ValueError as e:

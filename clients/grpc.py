@@ -34,6 +34,8 @@ from gmt.common.spec import GoalInfo, ModelInfo
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc as pb_grpc
 
+DEFAULT_PORT = 50051  # gmt serve's --grpc-port default: the port of a target given as a bare host
+
 # gRPC reports a server it never reached as UNAVAILABLE, like a server that answers "unavailable"; these
 # phrases of gRPC core mark the former (the request was not sent, so retrying it is safe).
 _CONNECT_FAILURES = (
@@ -245,6 +247,8 @@ class GrpcClient(PolicyClient):
         stream: bool = False,
     ) -> None:
         self.target = target.removeprefix("grpc://")
+        if ":" not in self.target:  # a bare host: gmt serve's default port, not gRPC's TLS default of 443
+            self.target += f":{DEFAULT_PORT}"
         self.timeout_s, self.retries, self.backoff_s, self.stream = timeout_s, retries, backoff_s, stream
         self.metadata = (("authorization", f"Bearer {token}"),) if token else ()
         self._channel = grpc.insecure_channel(self.target)

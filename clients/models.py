@@ -13,6 +13,7 @@ import httpx
 import typer
 
 from gmt.client.errors import ServiceError
+from gmt.client.rest import rest_base_url
 
 DEFAULT_SERVER = "http://localhost:8000"
 
@@ -28,7 +29,7 @@ class AdminClient:
 
     def __init__(self, server: str, token: str | None = None, timeout_s: float = 120.0) -> None:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=server.rstrip("/"), headers=headers, timeout=timeout_s)
+        self.http = httpx.Client(base_url=rest_base_url(server), headers=headers, timeout=timeout_s)
 
     def __enter__(self) -> AdminClient:
         return self

@@ -134,6 +134,11 @@ def _goal_body(goal: int | str | None, target: float | None) -> dict:
     return {"target": value} if kind == "target" else {"goal": value}
 
 
+def rest_base_url(server: str) -> str:
+    """A server's REST base URL as the clients take it: `http://` is added to a bare `host:port`."""
+    return (server if "://" in server else "http://" + server).rstrip("/")
+
+
 class RestClient(PolicyClient):
     """The service over HTTP/JSON.
 
@@ -155,9 +160,7 @@ class RestClient(PolicyClient):
         token: str | None = None,
         transport: httpx.BaseTransport | None = None,
     ) -> None:
-        if "://" not in base_url:
-            base_url = "http://" + base_url
-        self.base_url = base_url.rstrip("/")
+        self.base_url = rest_base_url(base_url)
         self.retries, self.backoff_s = retries, backoff_s
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(

@@ -212,7 +212,9 @@ def resolve_model(client: PolicyClient, name: str | None, env_id: str | None) ->
     models = client.list_models()
     fits = [m for m in models if env_id is None or m.env_id == env_id] if len(models) > 1 else models
     if len(fits) != 1:
-        listing = ", ".join(f"{m.name} ({m.env_id})" for m in models) or "none"
+        if not models:
+            raise ValueError("the server serves no model yet (GET /readyz says when it has loaded one)")
+        listing = ", ".join(f"{m.name} ({m.env_id})" for m in models)
         raise ValueError(f"choose a model with --model; the server serves: {listing}")
     return fits[0]
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -196,11 +197,14 @@ class Recording:
         Raises:
             RecordingError: not a recording of this format.
         """
+        where = "" if isinstance(data, bytes) else f" {data}"
         try:
             with np.load(io.BytesIO(data) if isinstance(data, bytes) else data, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            raise RecordingError(f"not a recording .npz: {e}") from None
+        except (OSError, ValueError, zipfile.BadZipFile) as e:
+            # np.load reads anything that is not an .npz archive as a pickle, which it refuses (allow_pickle=False)
+            why = "not an .npz archive" if "pickle" in str(e) else str(e) or type(e).__name__
+            raise RecordingError(f"not a recording .npz{where}: {why}") from None
         raw = arrays.pop("meta", None)
         if raw is None:
             raise RecordingError("the .npz holds no `meta`: not a gmt recording")
@@ -235,7 +239,10 @@ def read_recording(path: str | Path) -> Recording:
     """
     p = Path(path)
     if p.suffix == ".json":
-        meta = json.loads(p.read_text())
+        try:
+            meta = json.loads(p.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise RecordingError(f"{p} is not a recording's JSON: {e}") from None
         rec = Recording.from_npz(p.with_suffix(".npz"))
         return Recording.of(meta, rec.arrays)
     return Recording.from_npz(p)

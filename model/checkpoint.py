@@ -234,6 +234,8 @@ def load_checkpoint(
     if d.is_file():
         _refuse_pickle(d)
         raise CheckpointError(f"{d} is a file; a checkpoint is a directory with {WEIGHTS} and {META}")
+    if not d.exists():
+        raise CheckpointError(f"checkpoint {d} does not exist")
     weights, meta_path = d / WEIGHTS, d / META
     for p in (weights, meta_path):
         if not p.is_file():

@@ -40,6 +40,9 @@ def train_command(
     from gmt.model.data.statistics import per_trajectory
     from gmt.model.train import train
 
+    _check_train_flags(flags, out)
+    if labels is not None and not labels.is_file():
+        raise typer.BadParameter(f"{labels} is not a file", param_hint="--labels")
     ds = load_dataset(dataset)
     served = step_labels(ds) if labels is None else None
     if (
@@ -100,6 +103,30 @@ def train_command(
     _trained(ckpt, out)
 
 
+def _check_train_flags(flags: dict[str, Any], out: Path) -> None:
+    """Every training and model flag, checked before the dataset loads (which can take minutes).
+
+    Raises:
+        typer.BadParameter: naming the first flag that cannot work.
+    """
+    import torch
+
+    from gmt.common.statistics import get_statistic
+
+    try:
+        TrainConfig(**pick(flags, TRAIN_FLAGS))
+        GMTConfig((1,), 1, False, 2, **pick(flags, MODEL_FLAGS))  # the spaces and goals: placeholders
+        get_statistic(flags["statistic"])
+    except (ValueError, KeyError) as e:
+        raise typer.BadParameter(str(e.args[0]) if e.args else str(e)) from None
+    if flags["k"] is not None and flags["k"] < 2:
+        raise typer.BadParameter(f"k must be >= 2 goals, got {flags['k']} (leave it out: silhouette picks k)")
+    if flags["device"] == "cuda" and not torch.cuda.is_available():
+        raise typer.BadParameter("--device cuda, but torch sees no CUDA GPU here (use auto or cpu)")
+    if out.exists() and not out.is_dir():
+        raise typer.BadParameter(f"{out} is a file, not a checkpoint directory", param_hint="--out")
+
+
 def _trained(ckpt, out: Path) -> None:
     if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
         return
@@ -107,21 +134,32 @@ def _trained(ckpt, out: Path) -> None:
     typer.echo(
         f"wrote {out} ({info['wall_time_s']} s, {info['steps_per_s']} steps/s, final loss {info['final']['loss']:.4f})"
     )
+    stale = [n for n in STALE_AFTER_TRAINING if (out / n).exists()]
+    if stale:  # written for the weights this run replaced
+        typer.echo(
+            f"note: {', '.join(stale)} in {out} describe the previous weights: run gmt eval {out} again, and "
+            "update PROVENANCE.md",
+            err=True,
+        )
+
+
+STALE_AFTER_TRAINING = ("eval.json", "eval.md", "eval.png", "PROVENANCE.md")
 
 
 @needs("eval", "gmt eval")
 def eval_command(
     checkpoint: Path = typer.Argument(..., help="Checkpoint directory."),
-    seeds: int = typer.Option(15, help="Seeds 0..N-1 per condition."),
+    seeds: int = typer.Option(15, min=1, help="Seeds 0..N-1 per condition."),
     first_seed: int = typer.Option(
         0,
+        min=0,
         help="Seeds first_seed..first_seed+N-1 instead (unseen seeds, e.g. to choose an inference setting).",
     ),
-    steps: int = typer.Option(1000, help="Episode length."),
+    steps: int = typer.Option(1000, min=1, help="Episode length."),
     json_out: Path = typer.Option(None, "--json", help="Write the JSON result here."),
     markdown_out: Path = typer.Option(None, "--markdown", help="Write the Markdown table here."),
     plot: Path = typer.Option(None, help="Write the figure (PNG) here."),
-    threads: int = typer.Option(2, help="torch threads."),
+    threads: int = typer.Option(2, min=1, help="torch threads."),
     action_mode: str = typer.Option(
         None,
         help="mean or sample (continuous), argmax/sample/expert (discrete); default: the model's default.",
@@ -145,6 +183,9 @@ def eval_command(
     from gmt.model.engine import PolicyEngine
     from gmt.model.evaluate import evaluate
 
+    for flag, path in (("--json", json_out), ("--markdown", markdown_out), ("--plot", plot)):
+        if path is not None and path.is_dir():  # found before the evaluation runs, not after
+            raise typer.BadParameter(f"{path} is a directory; name the file to write", param_hint=flag)
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
     dt = ckpt.config.conditioning == "return"
@@ -185,6 +226,7 @@ def eval_command(
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
     if markdown_out:
+        markdown_out.parent.mkdir(parents=True, exist_ok=True)
         markdown_out.write_text(table + "\n")
     if plot:
         plot_eval(result, plot)
@@ -203,7 +245,7 @@ def replay_command(
     action_mode: str = typer.Option(None, help="Override the recorded action mode."),
     seed: int = typer.Option(None, help="Override each recording's sampler seed."),
     window: int = typer.Option(25, min=1, help="Steps measured on each side of a goal change."),
-    threads: int = typer.Option(1, help="torch threads."),
+    threads: int = typer.Option(1, min=1, help="torch threads."),
 ) -> None:
     """Replay recorded sessions against a checkpoint: how far its actions are from the recorded ones.
 

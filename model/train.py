@@ -151,15 +151,15 @@ def _load_resume(d: Path, model: GMT, opt: torch.optim.Optimizer, gen: torch.Gen
 
 
 def _init_from(model: GMT, path: str) -> dict:
-    """Copy a checkpoint's weights into `model`; its configuration must be the same (ValueError names the
+    """Copy a checkpoint's weights into `model`; its configuration must be the same (CheckpointError names the
     fields that differ). Returns the checkpoint's path and fingerprint, for gmt.json."""
-    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.checkpoint import CheckpointError, load_checkpoint
 
     src = load_checkpoint(path)
     mine, theirs = model.cfg.to_dict(), src.model.cfg.to_dict()
     diff = {k: (theirs.get(k), v) for k, v in mine.items() if theirs.get(k) != v}
     if diff:
-        raise ValueError(
+        raise CheckpointError(
             f"init_from {path}: its model differs from this run's in "
             + ", ".join(f"{k} ({a!r} there, {b!r} here)" for k, (a, b) in diff.items())
         )

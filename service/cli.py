@@ -184,20 +184,37 @@ def version() -> None:
         typer.echo(f"extra {extra}: " + (f"missing {', '.join(gone)}" if gone else "installed"))
 
 
+# A path that is missing, of the wrong kind, taken or not readable: what the user typed, not a bug.
+PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError)
+
+
 def main() -> None:
     """Console-script entry point.
 
-    A checkpoint that cannot be loaded (missing files, bad metadata, a pickle) is the user's input, not a bug:
-    it ends the command with `error: ...` and status 1 instead of a traceback.
+    The user's input is not a bug: a checkpoint that cannot be loaded (missing files, bad metadata, a pickle), a
+    path that does not exist or is of the wrong kind, an environment id Gymnasium does not know end the command
+    with `error: ...` and status 1 instead of a traceback. Anything else is a bug and shows its traceback.
     """
     try:
         app()
     except Exception as e:
-        checkpoint = sys.modules.get("gmt.model.checkpoint")  # loaded only by commands that read checkpoints
-        if checkpoint is not None and isinstance(e, checkpoint.CheckpointError):
+        if not _users_error(e):
+            raise
+        if isinstance(e, OSError) and e.strerror and e.filename:
+            typer.echo(f"error: {e.filename}: {e.strerror}", err=True)
+        else:
             typer.echo(f"error: {e}", err=True)
-            raise SystemExit(1) from None
-        raise
+        raise SystemExit(1) from None
+
+
+def _users_error(e: Exception) -> bool:
+    # These modules are loaded only by the commands that can raise their errors.
+    checkpoint, gym_error = sys.modules.get("gmt.model.checkpoint"), sys.modules.get("gymnasium.error")
+    return (
+        isinstance(e, PATH_ERRORS)
+        or (checkpoint is not None and isinstance(e, checkpoint.CheckpointError))
+        or (gym_error is not None and isinstance(e, gym_error.Error))
+    )
 
 
 if __name__ == "__main__":

@@ -808,7 +808,8 @@ def down_command(
     timeout: float = typer.Option(15.0, help="Seconds each process gets to stop before SIGKILL."),
 ) -> None:
     """Stop exactly the processes whose pids `up` wrote to <run dir>/*.pid."""
-    down(run_dir, timeout_s=timeout)
+    if not down(run_dir, timeout_s=timeout):
+        typer.echo(f"nothing to stop: {run_dir} holds no pid file of `gmt cluster up`")
 
 
 @app.command("upgrade")

@@ -455,7 +455,7 @@ class Core:
         A relative path is taken from the server's working directory, else from each root.
 
         Raises:
-            InvalidArgument: not a non-empty string.
+            InvalidArgument: not a non-empty string, or nothing by that name under the roots or elsewhere.
             PermissionDenied: it is not under a checkpoint root (symbolic links resolved).
         """
         if not isinstance(path, str) or not path or "\0" in path:
@@ -467,18 +467,17 @@ class Core:
         roots = [r.resolve() for r in self.settings.checkpoints]
         p = Path(path)
         tries = [p] if p.is_absolute() else [Path.cwd() / p, *(r / p for r in roots)]
+        shown = ", ".join(str(r) for r in self.settings.checkpoints)
         try:
-            inside = [
-                t for t in (t.resolve() for t in tries) if any(t == r or t.is_relative_to(r) for r in roots)
-            ]
+            found = [t.resolve() for t in tries]
+            inside = [t for t in found if any(t == r or t.is_relative_to(r) for r in roots)]
             for t in inside:
                 if t.exists():
                     return t
+            if inside and not any(t.exists() for t in found):
+                raise InvalidArgument(f"no checkpoint {path!r} under the checkpoint roots ({shown})")
         except OSError as e:  # a name longer than the file system allows, a loop of links, ...
             raise InvalidArgument(f"path {path!r} cannot name a checkpoint directory: {e.strerror}") from None
-        if inside:
-            return inside[0]  # loading it says what is missing
-        shown = ", ".join(str(r) for r in self.settings.checkpoints)
         raise PermissionDenied(
             f"{path!r} is not under the checkpoint roots ({shown}): this server loads checkpoints from there only"
         )

@@ -196,6 +196,43 @@ def test_an_unloadable_checkpoint_is_a_one_line_error(tmp_path, files, named):
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
+# The user's mistakes (a path that is not there or of the wrong kind, an unknown environment, flags that cannot
+# work) end the command with a one-line error, before any long work, not a traceback.
+@pytest.mark.parametrize(
+    ("args", "status", "named"),
+    [
+        (["data", "describe", "gmt/nosuch/mixed-v0"], 1, "gmt data collect"),
+        (["data", "collect", "--env", "halfcheetah-v5", "--out-id", "gmt/x/y-v0"], 1, "Did you mean"),
+        (["eval", "{tmp}/nope"], 1, "does not exist"),
+        (["bench", "--sections", "bogus"], 2, "choose among"),  # was exit 0 with no figure
+        (["eval", "checkpoints/halfcheetah-gmt", "--seeds", "0"], 2, "--seeds"),
+        (["eval", "checkpoints/halfcheetah-gmt", "--threads", "0"], 2, "--threads"),
+        (["eval", "checkpoints/halfcheetah-gmt", "--json", "{tmp}"], 2, "is a directory"),
+        (["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o", "--steps", "0"], 2, "steps"),
+        (["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o", "--n-head", "3"], 2, "n_head=3"),
+        (["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o", "--k", "1"], 2, "k must be >= 2"),
+        (
+            ["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o", "--statistic", "x"],
+            2,
+            "unknown statistic",
+        ),
+        (
+            ["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o", "--labels", "{tmp}/l.json"],
+            2,
+            "not a file",
+        ),
+        (["train", "--dataset", "gmt/nosuch/x-v0", "--out", "{tmp}/o"], 1, "gmt data collect"),
+    ],
+)
+def test_a_users_mistake_is_a_short_error_without_a_traceback(tmp_path, args, status, named):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    env = {**__import__("os").environ, "GMT_DATA_DIR": str(tmp_path / "data"), "COLUMNS": "200"}
+    r = subprocess.run([_gmt(), *argv], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert r.returncode == status, (r.returncode, r.stderr[-2000:])
+    assert named in r.stderr and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert not (tmp_path / "o").exists()  # nothing was written
+
+
 def test_planning_from_rest_a_level_without_a_plan_is_refused_before_collecting(tmp_path):
     r = runner.invoke(
         app,

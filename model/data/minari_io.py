@@ -294,7 +294,7 @@ def write_dataset(
     target = root / dataset_id
     if target.exists():
         if not overwrite:
-            raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
+            raise FileExistsError(f"{target} exists; replace it with --overwrite (overwrite=True in Python)")
         shutil.rmtree(target)
     buffers = []
     for i, ep in enumerate(episodes):

@@ -90,6 +90,26 @@ def test_bad_schedule_and_video_without_out_are_usage_errors():
     assert r.exit_code == 2 and "GOAL@STEP" in r.output
     r = runner.invoke(app, ["run", "--video"])
     assert r.exit_code == 2 and "--out" in r.output
+    r = runner.invoke(app, ["run", "--stream"])  # the Control stream is gRPC's: it was ignored over REST
+    assert r.exit_code == 2 and "--grpc" in r.output
+    r = runner.invoke(app, ["run", "--timeout", "0"])  # was "could not connect" to a running server
+    assert r.exit_code == 2 and "--timeout" in r.output
+
+
+def test_addresses_without_scheme_or_port_mean_gmt_serves_defaults():
+    from gmt.client.grpc import DEFAULT_PORT, GrpcClient
+    from gmt.client.models import AdminClient
+    from gmt.client.rest import rest_base_url
+    from gmt.service.settings import Settings
+
+    assert DEFAULT_PORT == Settings.model_fields["grpc_port"].default
+    with GrpcClient("localhost") as c:  # was gRPC's TLS default, 443
+        assert c.target == "localhost:50051"
+    with GrpcClient("grpc://127.0.0.1:7") as c:
+        assert c.target == "127.0.0.1:7"
+    assert rest_base_url("localhost:8000/") == "http://localhost:8000"
+    with AdminClient("localhost:8000") as c:  # `gmt models -s localhost:8000` said "unsupported protocol"
+        assert str(c.http.base_url) == "http://localhost:8000"
 
 
 def test_the_documented_gmt_run_examples_write_to_distinct_folders():

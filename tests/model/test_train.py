@@ -107,7 +107,7 @@ def test_init_from_starts_at_a_checkpoints_weights_and_refuses_another_shape(tmp
     meta = json.loads((tmp_path / "tuned" / META).read_text())
     assert meta["init_from"]["fingerprint"] == load_checkpoint(tmp_path / "first").fingerprint
     assert meta["training"]["init_from"] == str(tmp_path / "first")
-    with pytest.raises(ValueError, match=r"n_embd \(32 there, 16 here\)"):
+    with pytest.raises(CheckpointError, match=r"n_embd \(32 there, 16 here\)"):
         train(
             ds,
             ds.labels,
@@ -180,6 +180,8 @@ def test_loading_refuses_pickle(tmp_path):
 def test_missing_files_give_clear_errors(tmp_path):
     with pytest.raises(CheckpointError, match=f"has no {WEIGHTS}"):
         load_checkpoint(tmp_path)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "nope")
 
 
 def test_window_model_trains_on_longer_sequences_and_records_its_span(tmp_path):

@@ -269,6 +269,8 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
         assert r.status_code == 400 and "cannot name a checkpoint directory" in r.json()["error"]["message"]
         r = http.post(f"/models/{MODEL}/versions", json={"path": "y/" * 3000})
         assert r.status_code == 400 and "at most 4096" in r.json()["error"]["message"]
+        r = http.post(f"/models/{MODEL}/versions", json={"path": "releases/nope"})  # nowhere at all
+        assert r.status_code == 400 and "no checkpoint 'releases/nope' under" in r.json()["error"]["message"]
         assert http.get("/models").json() == {
             "models": [
                 {**m, "versions": [{**v, "sessions": 1} for v in m["versions"]]} for m in before["models"]

@@ -18,7 +18,7 @@ from service_harness import RunningServer, make_settings
 
 from gmt.client.rest import RestClient
 from gmt.client.runner import RunConfig, run
-from gmt.common.recording import find_recordings, read_recording
+from gmt.common.recording import RecordingError, find_recordings, read_recording
 from gmt.model.fixtures import tiny_checkpoint
 
 MODEL = "tiny-window"
@@ -195,3 +195,18 @@ def test_import_sessions_includes_offline_data_whose_goals_are_the_served_models
     _offline(tmp_path, "test/cheetah/faster-v0", [0.0, 0.0005, 1.5, 1.5005, 3.0, 3.0005])
     with pytest.raises(ValueError, match="would not mean the same goals"):
         import_sessions([rec_dir], "test/cheetah/both-v1", tmp_path, include="test/cheetah/faster-v0")
+
+
+@pytest.mark.parametrize(
+    "name, content, words",
+    [
+        ("a.npz", b"just text\n", "not an .npz archive"),  # np.load's own words invite allow_pickle=True
+        ("b.npz", b"PK\x03\x04truncated", "not a recording .npz"),  # was zipfile.BadZipFile, a traceback
+        ("c.json", b"{not json", "is not a recording's JSON"),
+    ],
+)
+def test_a_file_that_is_not_a_recording_is_named_and_refused(tmp_path, name, content, words):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(RecordingError, match=words) as e:
+        read_recording(tmp_path / name)
+    assert name in str(e.value) and "pickle" not in str(e.value)

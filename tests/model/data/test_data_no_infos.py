@@ -94,7 +94,11 @@ def test_gmt_train_relabels_a_dataset_without_infos_by_the_observation_statistic
     args = ["train", "--dataset", str(tmp_path / "t/halfcheetah/bare-v0"), "--out", str(out), "--k", "2"]
     args += ["--steps", "3", "--batch-size", "4", "--context-length", "4", "--n-layer", "1", "--n-embd", "16"]
     args += ["--threads", "1", "--calibration-batches", "1", "--log-every", "1"]
-    subprocess.run([str(gmt), *args], check=True, capture_output=True, text=True)
+    first = subprocess.run([str(gmt), *args], check=True, capture_output=True, text=True)
+    assert "describe the previous weights" not in first.stderr
+    (out / "eval.json").write_text("{}")  # an evaluation of these weights; training again makes it stale
+    again = subprocess.run([str(gmt), *args, "--no-resume"], check=True, capture_output=True, text=True)
+    assert "note: eval.json in" in again.stderr and "describe the previous weights" in again.stderr
     relabel = json.loads((out / "gmt.json").read_text())["relabel"]
     assert relabel["statistic"] == "mean_x_velocity" and relabel["k"] == 2
     means = [float(np.mean(ep.observations[1:, 8].tolist() + [ep.final_observation[8]])) for ep in bare]
