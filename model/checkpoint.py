@@ -264,6 +264,8 @@ def load_checkpoint(
         raise CheckpointError(f"{meta_path}: unreadable metadata: missing field {e}") from None
     except (TypeError, ValueError, AttributeError) as e:
         raise CheckpointError(f"{meta_path}: unreadable metadata: {e}") from None
+    if len(goals) != cfg.n_goals:
+        raise CheckpointError(f"{meta_path}: {len(goals)} goals listed for a model of {cfg.n_goals}")
     model = GMT(cfg)
     try:
         state = load_tensors(data)

@@ -22,7 +22,7 @@ import torch
 
 from gmt.model import native as native_kernel
 from gmt.model import sampling
-from gmt.model.checkpoint import Checkpoint
+from gmt.model.checkpoint import Checkpoint, CheckpointError
 from gmt.model.context import Context, StoredContext
 from gmt.model.pool import SessionPool
 from gmt.model.predict import Predictor
@@ -144,8 +144,9 @@ class PolicyEngine:
         default = checkpoint.default_action_mode
         if default is not None:  # the checkpoint's own default goes first
             if default not in self.action_modes:
-                raise ValueError(
-                    f"checkpoint default_action_mode {default!r} is not one of {self.action_modes}"
+                raise CheckpointError(
+                    f"checkpoint {checkpoint.name}: default_action_mode {default!r} is not one of "
+                    f"{self.action_modes}"
                 )
             self.action_modes = (default, *(m for m in self.action_modes if m != default))
         self._lock = threading.RLock()

@@ -215,6 +215,12 @@ def _corrupt(root, name: str, how: str) -> str:
     elif how == "fields":
         del meta["env"]
         (d / "gmt.json").write_text(json.dumps(meta))
+    elif how == "goals":
+        meta["goals"] = []
+        (d / "gmt.json").write_text(json.dumps(meta))
+    elif how == "mode":  # a discrete mode for continuous actions (was a 500: the engine's ValueError)
+        meta["default_action_mode"] = "argmax"
+        (d / "gmt.json").write_text(json.dumps(meta))
     return f"bad/{name}"
 
 
@@ -228,6 +234,8 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
         ("shapes", 400, "wrong tensor shapes"),
         ("metadata", 400, "not valid JSON"),
         ("fields", 400, "missing field 'env'"),
+        ("goals", 400, "0 goals listed for a model of 3"),
+        ("mode", 400, "default_action_mode 'argmax' is not one of"),
     ]
     with httpx.Client(base_url=server.url, timeout=30) as http:
         before = http.get("/models").json()
