@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from gmt.model.checkpoint import load_checkpoint
+from gmt.model.checkpoint import CheckpointError, load_checkpoint
 from gmt.model.engine import InvalidObservation, PolicyEngine, StepFailed
 from gmt.model.fixtures import tiny_checkpoint
 from gmt.model.sampling import SAMPLE_STD_CAP, normals
@@ -249,7 +249,7 @@ def test_a_checkpoint_names_its_default_action_mode(tmp_path):
     assert engine.action_modes == ("sample", "expert", "argmax") and engine.default_action_mode == "sample"
     assert engine.new_context(0).action_mode == "sample"
     ckpt.default_action_mode = "mean"  # not a discrete mode
-    with pytest.raises(ValueError, match="default_action_mode 'mean'"):
+    with pytest.raises(CheckpointError, match="default_action_mode 'mean'"):
         PolicyEngine(ckpt)
 
 
