@@ -29,7 +29,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from gmt.client.errors import ConnectionFailed, ServiceError
+from gmt.client.errors import ConnectionFailed, NotFound, ServiceError
 from gmt.common.spec import GoalInfo as GoalInfo  # part of the client interface, as ModelInfo
 from gmt.common.spec import ModelInfo
 
@@ -184,7 +184,10 @@ def goal_selector(goal: int | str | None = None, target: float | None = None) ->
 def as_observation(obs: Any) -> np.ndarray:
     """The observation as a NumPy array; floats become float32 (what the model and gRPC use), images stay."""
     x = np.asarray(obs)
-    return x.astype(np.float32) if np.issubdtype(x.dtype, np.floating) else x
+    if not np.issubdtype(x.dtype, np.floating):
+        return x
+    with np.errstate(over="ignore"):  # beyond float32: infinite, which the server refuses by name
+        return x.astype(np.float32)
 
 
 def _reason(e: BaseException) -> str:
@@ -301,6 +304,8 @@ class Session:
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             self.close()
+        except NotFound:
+            pass  # already gone (expired, or closed elsewhere): what closing was for
         except Exception:
             if exc_type is None:
                 raise  # closing failed on its own: say so; otherwise keep the original error

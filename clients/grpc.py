@@ -193,11 +193,12 @@ def goal_proto(goal: int | str | None, target: float | None) -> pb.GoalSelector 
 def act_request(
     session_id: str, observation: Any, step: int | None = None, report: Mapping[str, Any] | None = None
 ) -> pb.ActRequest:
-    """Float observations as float32 values; other dtypes (images) as a raw little-endian tensor; `step` is the
+    """Vector float observations as float32 values; others (images, or a shape the server should check) as a
+    raw little-endian tensor with its shape; `step` is the
     step the act is for (None: not checked); `report` the outcome of the previous action (`report_fields`)."""
     x = as_observation(observation)
-    if x.dtype == np.float32:
-        req = pb.ActRequest(session_id=session_id, values=pb.FloatVector(values=x.ravel()))
+    if x.dtype == np.float32 and x.ndim == 1:
+        req = pb.ActRequest(session_id=session_id, values=pb.FloatVector(values=x))
     else:
         x = np.ascontiguousarray(x, dtype=x.dtype.newbyteorder("<"))
         tensor = pb.Tensor(data=x.tobytes(), shape=list(x.shape), dtype=x.dtype.name)

@@ -26,7 +26,14 @@ from gmt.client.base import (
     report_fields,
     with_retries,
 )
-from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
+from gmt.client.errors import (
+    DeadlineExceeded,
+    InvalidArgument,
+    ProtocolError,
+    ServiceError,
+    Unavailable,
+    error_for,
+)
 from gmt.common.spec import GoalInfo, ModelInfo
 
 
@@ -176,6 +183,7 @@ class RestClient(PolicyClient):
         safe: bool = False,
         gone_ok_on_retry: bool = False,
         headers: dict[str, str] | None = None,
+        raw: bool = False,
     ) -> Any:
         """Send one request and decode its answer.
 
@@ -183,6 +191,11 @@ class RestClient(PolicyClient):
             safe: Applying the request twice is the same as once (reads, reset, close, acts with a step):
                 it may be repeated after a failure that leaves unknown whether it was applied.
             gone_ok_on_retry: A 404 after an attempt that may have been applied is success (it deleted it).
+            raw: Return a successful answer's bytes instead of decoding JSON.
+
+        Raises:
+            InvalidArgument: the body holds NaN or an infinity, which JSON cannot carry (nothing is sent).
+            ServiceError: the server's answer, or the failure to get one (a subclass per code).
         """
         maybe_applied = False  # an earlier attempt may have been applied
 
@@ -211,11 +224,25 @@ class RestClient(PolicyClient):
             r = e.response
         except httpx.TimeoutException as e:
             raise DeadlineExceeded(f"{method} {self.base_url}{path} timed out: {e!r}") from e
-        except httpx.TransportError as e:
-            raise ServiceError(f"{method} {self.base_url}{path} failed: {e!r}", code="transport_error") from e
+        except httpx.TransportError as e:  # sent, then the connection broke: as gRPC reports it
+            raise Unavailable(
+                f"{method} {self.base_url}{path}: the connection broke before the answer ({e!r}); the request may "
+                "have been applied",
+                code="unavailable",
+            ) from e
+        except ValueError as e:  # the JSON encoder's: the body could not be written
+            if "JSON compliant" not in str(e):
+                raise
+            raise InvalidArgument(
+                f"{method} {path}: the body holds NaN or an infinity, which JSON cannot carry (the server refuses "
+                "non-finite values too)",
+                code="invalid_argument",
+            ) from None
         if r.status_code == 404 and gone_ok_on_retry and maybe_applied:
             return None
         if r.is_success:
+            if raw:
+                return r.content
             if r.status_code == 204 or not r.content:
                 return None
             try:
@@ -356,10 +383,8 @@ class RestClient(PolicyClient):
         """The session's recording so far, as a `gmt.common.recording.Recording` (fetched as npz)."""
         from gmt.common.recording import Recording
 
-        r = self._http.get(f"/sessions/{session_id}/recording", params={"format": "npz"})
-        if not r.is_success:
-            raise self._error(r)
-        return Recording.from_npz(r.content)
+        data = self._request("GET", f"/sessions/{session_id}/recording?format=npz", safe=True, raw=True)
+        return Recording.from_npz(data)
 
     def close_session(self, session_id: str) -> None:
         self._forget(session_id)

@@ -118,6 +118,30 @@ def test_bad_observation_and_goal_are_invalid_arguments(client):
         assert s.act(OBS).step == 0  # the bad observation left the session as it was
 
 
+def test_non_finite_values_and_wrong_shapes_are_invalid_arguments_on_every_transport(client):
+    """The same mistake raises the same error whichever transport carries it: REST could not write NaN as JSON
+    (a bare ValueError) and gRPC flattened a [1, 17] observation and stepped."""
+    with client.create_session("tiny-gmt", 0) as s:
+        for bad in (np.full(17, np.nan), np.full(17, np.inf), np.full(17, 1e39)):  # 1e39 overflows float32
+            with pytest.raises(InvalidArgument):
+                s.act(bad)
+        with pytest.raises(InvalidArgument, match=r"\[1, 17\]"):
+            s.act(OBS[None, :])
+        with pytest.raises(InvalidArgument):
+            s.set_goal(target=float("nan"))
+        assert s.act(OBS).step == 0  # nothing reached the session
+
+
+def test_leaving_a_session_that_expired_meanwhile_is_quiet(client):
+    """`with` closes the session; one the server already dropped is closed, not an error."""
+    s = client.create_session("tiny-gmt", 0)
+    with s:
+        client.close_session(s.id)  # gone behind this handle's back (as an idle timeout would)
+    assert s.closed
+    with pytest.raises(NotFound):
+        client.close_session(s.id)  # closing it by hand still says it is gone
+
+
 def test_unknown_model_is_not_found(client):
     with pytest.raises(NotFound, match="nope"):
         client.get_model("nope")
@@ -197,10 +221,11 @@ def test_rest_resends_after_a_broken_connection_only_what_cannot_apply_twice(liv
     broken = CountingTransport(fail=1, error=httpx.ReadError)
     with RestClient(live_server.rest_url, retries=3, transport=broken) as c:
         assert c.expected_step(sid) is None
-        with pytest.raises(ServiceError) as e:
+        with pytest.raises(Unavailable) as e:  # as gRPC reports a broken stream (was an undocumented code)
             c.act(sid, OBS)
     assert broken.calls == 1 and no_sleep == [0.2]
-    assert e.value.code == "transport_error" and "ReadError" in e.value.message
+    assert e.value.code == "unavailable" and "ReadError" in e.value.message
+    assert "may have been applied" in e.value.message
 
 
 class LosesAnswers(httpx.HTTPTransport):

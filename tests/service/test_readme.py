@@ -112,6 +112,21 @@ def test_quickstart_python(cheetah_server, capsys):
     assert cheetah_server.run(cheetah_server.core.store.count()) == 0  # the session closed on exit
 
 
+def test_quickstart_python_prints_what_the_readme_shows_with_the_shipped_model(capsys):
+    """The README's printed velocities are the shipped checkpoint's (they went stale once when it was retrained)."""
+    pytest.importorskip("mujoco")
+    shipped = Path(__file__).resolve().parents[2] / "checkpoints" / "halfcheetah-gmt"
+    server = RunningServer(make_settings(checkpoints=[shipped])).start()
+    try:
+        (code,) = blocks("python", quickstart())
+        exec(compile(localize(code, server), "README.md", "exec"), {})
+    finally:
+        server.stop()
+    printed = capsys.readouterr().out.strip()
+    shown = re.search(r"```\n(step 99 .*?)```", quickstart(), flags=re.S).group(1).strip()
+    assert printed == shown
+
+
 def test_the_pasted_observation_is_the_example_one():
     pytest.importorskip("mujoco")
     from gmt.service.examples import _first_observation
