@@ -13,7 +13,8 @@ class ServiceError(Exception):
     Attributes:
         code: Snake_case error code, e.g. "not_found" (the REST body's code, or the gRPC status name lowercased).
         message: The server's message.
-        status: HTTP status (REST) or gRPC status name, when there was an answer.
+        status: HTTP status (REST), gRPC status name, or "control_stream" for an error the `Control` stream
+            answered in-band (its `code` is the server's), when there was an answer.
     """
 
     code = "unknown"
