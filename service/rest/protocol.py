@@ -37,6 +37,9 @@ class _HeadTooLarge(Exception):
     """Raised in a parser callback: httptools stops and uvicorn calls `send_400_response`."""
 
 
+_on_url, _on_header = HttpToolsProtocol.on_url, HttpToolsProtocol.on_header
+
+
 class ConnectionGuard:
     """What the connections of one REST server share: the cap, the deadlines, the connections that may be closed
     to make room (oldest first).
@@ -151,19 +154,20 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         self._head_bytes = 0
         self.guard.update(self)
 
+    # Every header of every request passes here: counted inline, then uvicorn's own callback (no super() lookup).
     def on_url(self, url: bytes) -> None:
-        self._count_head(len(url))
-        super().on_url(url)
-
-    def on_header(self, name: bytes, value: bytes) -> None:
-        self._count_head(len(name) + len(value) + 4)  # ": " and CRLF
-        super().on_header(name, value)
-
-    def _count_head(self, n: int) -> None:
-        self._head_bytes += n
+        self._head_bytes += len(url)
         if self._head_bytes > MAX_HEAD_BYTES:
             self._head_too_large = True
             raise _HeadTooLarge
+        _on_url(self, url)
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self._head_bytes += len(name) + len(value) + 4  # ": " and CRLF
+        if self._head_bytes > MAX_HEAD_BYTES:
+            self._head_too_large = True
+            raise _HeadTooLarge
+        _on_header(self, name, value)
 
     def send_400_response(self, msg: str) -> None:
         """uvicorn's answer to bytes its parser refused (plain text there), in the error envelope."""
