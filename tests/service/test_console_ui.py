@@ -142,3 +142,34 @@ def test_a_wrong_token_is_refused_and_the_form_stays(chromium, served):
     _wait(d, lambda d: "invalid bearer token" in d.find_element(By.ID, "message").text, "no message")
     assert d.find_element(By.ID, "token-form").is_displayed()
     assert d.find_elements(By.CSS_SELECTOR, "#sessions tbody tr") == []
+
+
+def test_the_listing_updates_rows_in_place_and_a_gone_session_shows_no_controls(chromium, served):
+    """A link the operator has focused (or is clicking) survives the every-second poll (rows were rebuilt, which
+    dropped focus and half-made clicks); a session page never shows another session's goal buttons."""
+    server, api = served
+    sid = api.post("/sessions", json={"model": "tiny-gmt", "goal": "low"}).json()["session_id"]
+    d = chromium
+    d.get(f"{server.url}/ui")
+    form = _wait(d, _shown("token-form"), "no token form")
+    d.find_element(By.ID, "token").send_keys(TOKEN)
+    form.submit()
+    row = f'#sessions tr[data-session="{sid}"]'
+    _wait(d, lambda d: _text(d, f"{row} td.step") == "0", "the session is not listed")
+    link = d.find_element(By.CSS_SELECTOR, f"{row} a")
+    d.execute_script("arguments[0].focus()", link)
+    _act(api, sid, 4)
+    _wait(d, lambda d: _text(d, f"{row} td.step") == "4", "the listed step did not advance")
+    assert link.is_displayed()  # the same element: a rebuilt row raises StaleElementReferenceException
+    assert d.switch_to.active_element == link
+
+    d.get(f"{server.url}/ui#/session/{sid}")  # a session's page, then one that does not exist
+    _wait(d, lambda d: d.find_elements(By.CSS_SELECTOR, "#goal-buttons button"), "no goal buttons")
+    d.execute_script("location.hash = '#/session/nope'")
+    _wait(
+        d, lambda d: "not_found" in d.find_element(By.ID, "message").text, "the missing session is not said"
+    )
+    assert d.find_element(By.ID, "s-id").text == "nope"
+    assert not d.find_element(By.ID, "controls").is_displayed()
+    assert d.find_elements(By.CSS_SELECTOR, "#goal-buttons button") == []
+    api.delete(f"/sessions/{sid}")

@@ -6,12 +6,13 @@
 
 const TOKEN_KEY = "gmt-console-token";
 const POLL_MS = 1000; // the sessions listing
+const TIMEOUT_MS = 5000; // a call without an answer by then: the server is said not to respond
 const PAGE = 50; // sessions per page
 const HISTORY = 400; // steps the charts keep
 const COLORS = ["#0969da", "#cf222e", "#1a7f37", "#9a6700", "#8250df", "#bf3989", "#0550ae", "#6e7781"];
 
 const $ = (id) => document.getElementById(id);
-const ui = { offset: 0, poll: null, view: null, models: new Map() };
+const ui = { offset: 0, poll: null, view: null, models: new Map(), modelsShown: false, polling: false };
 
 // ----- calls ----------------------------------------------------------------------------------------------------
 function authHeaders(extra = {}) {
@@ -22,7 +23,14 @@ function authHeaders(extra = {}) {
 async function api(method, path, body) {
   const init = { method, headers: authHeaders(body === undefined ? {} : { "Content-Type": "application/json" }) };
   if (body !== undefined) init.body = JSON.stringify(body);
-  const r = await fetch(path, init);
+  init.signal = AbortSignal.timeout(TIMEOUT_MS);
+  let r;
+  try {
+    r = await fetch(path, init);
+  } catch (e) {
+    if (e.name === "TimeoutError") throw new Error(`the server is not responding (no answer in ${TIMEOUT_MS / 1000} s)`);
+    throw new Error(`the server cannot be reached (${e.message}); retrying`);
+  }
   const text = await r.text();
   const doc = text ? JSON.parse(text) : null;
   if (r.status === 401) askToken();
@@ -83,6 +91,13 @@ $("token-form").addEventListener("submit", (e) => {
 $("forget-token").addEventListener("click", () => {
   sessionStorage.removeItem(TOKEN_KEY);
   $("forget-token").hidden = true;
+  clearInterval(ui.poll); // nothing more is asked without a token
+  leaveSession();
+  ui.models.clear();
+  ui.modelsShown = false;
+  $("models").replaceChildren();
+  $("sessions").tBodies[0].replaceChildren();
+  $("session-count").textContent = "";
   askToken();
 });
 
@@ -134,32 +149,71 @@ async function renderModels() {
 // ----- sessions listing -----------------------------------------------------------------------------------------
 const fmt = (v, digits, unit = "") => (v === null || v === undefined ? "–" : `${v.toFixed(digits)}${unit}`);
 
+function sessionRow(s) {
+  const row = document.createElement("tr");
+  row.dataset.session = s.session_id;
+  const link = document.createElement("a");
+  link.href = `#/session/${encodeURIComponent(s.session_id)}`;
+  link.textContent = s.session_id;
+  row.insertCell().append(link);
+  for (const cls of [null, "goal", "num step", "num", "num", null, "num"]) cell(row, "", cls);
+  return row;
+}
+
+// Rows are updated in place, keyed by session id: a focused link or a click in progress survives each poll.
 async function renderSessions() {
-  const page = await api("GET", `/sessions?offset=${ui.offset}&limit=${PAGE}`);
+  let page = await api("GET", `/sessions?offset=${ui.offset}&limit=${PAGE}`);
+  if (!page.sessions.length && page.total && ui.offset) {
+    ui.offset = Math.floor((page.total - 1) / PAGE) * PAGE; // past the end after sessions closed: the last page
+    page = await api("GET", `/sessions?offset=${ui.offset}&limit=${PAGE}`);
+  }
   $("replica").textContent = `replica ${page.replica}`;
   const shown = page.sessions.length;
   $("session-count").textContent = shown
     ? `${page.offset + 1}–${page.offset + shown} of ${page.total}`
     : `none of ${page.total}`;
   const body = $("sessions").tBodies[0];
-  body.replaceChildren();
-  for (const s of page.sessions) {
-    const row = body.insertRow();
-    row.dataset.session = s.session_id;
-    const link = document.createElement("a");
-    link.href = `#/session/${encodeURIComponent(s.session_id)}`;
-    link.textContent = s.session_id;
-    row.insertCell().append(link);
-    cell(row, s.model);
-    cell(row, `${s.goal} ${s.goal_name}`, "goal").dataset.goal = s.goal;
-    cell(row, s.step, "num step");
-    cell(row, fmt(s.acts_per_s, 1), "num");
-    cell(row, fmt(s.last_latency_ms, 2, " ms"), "num");
-    cell(row, s.served_by || "?");
-    cell(row, fmt(s.idle_s, 0, " s"), "num");
-  }
+  const rows = new Map([...body.rows].map((r) => [r.dataset.session, r]));
+  const listed = new Set(page.sessions.map((s) => s.session_id));
+  for (const [id, row] of rows) if (!listed.has(id)) row.remove();
+  page.sessions.forEach((s, i) => {
+    const row = rows.get(s.session_id) ?? sessionRow(s);
+    const texts = [
+      s.model,
+      `${s.goal} ${s.goal_name}`,
+      String(s.step),
+      fmt(s.acts_per_s, 1),
+      fmt(s.last_latency_ms, 2, " ms"),
+      s.served_by || "?",
+      fmt(s.idle_s, 0, " s"),
+    ];
+    texts.forEach((t, j) => {
+      const td = row.cells[j + 1];
+      if (td.textContent !== t) td.textContent = t;
+    });
+    row.cells[2].dataset.goal = s.goal;
+    if (body.rows[i] !== row) body.insertBefore(row, body.rows[i] ?? null); // a new row, or a new order
+  });
   $("newer").disabled = ui.offset === 0;
   $("older").disabled = page.offset + shown >= page.total;
+}
+
+// The home page's refresh: the models once, then the listing; an error is shown and retried at the next poll.
+async function refreshHome() {
+  if (ui.polling) return; // the previous refresh has not answered yet
+  ui.polling = true;
+  try {
+    if (!ui.modelsShown) {
+      await renderModels();
+      ui.modelsShown = true;
+    }
+    await renderSessions();
+    show("");
+  } catch (e) {
+    show(e.message);
+  } finally {
+    ui.polling = false;
+  }
 }
 
 $("newer").addEventListener("click", () => {
@@ -243,7 +297,10 @@ function setState(v, s) {
 }
 
 function onEvent(v, kind, d) {
-  if (kind === "session") setState(v, d);
+  if (kind === "session") {
+    show(""); // the stream is (re)connected: an earlier error no longer holds
+    setState(v, d);
+  }
   else if (kind === "act") {
     const action = Array.isArray(d.action) ? d.action : [d.action];
     v.actions.push([d.step, action]);
@@ -293,7 +350,10 @@ async function follow(v) {
     } catch (e) {
       if (v.stream.signal.aborted) return;
       show(`event stream: ${e.message}`);
-      if (e.message.startsWith("not_found")) return;
+      if (e.message.startsWith("not_found")) {
+        $("controls").hidden = true; // nothing left to steer
+        return;
+      }
     }
     await new Promise((resolve) => setTimeout(resolve, 2000)); // reconnect after a broken stream
   }
@@ -303,9 +363,12 @@ async function openSession(id) {
   const v = newView(id);
   ui.view = v;
   $("s-id").textContent = id;
-  $("controls").hidden = false;
-  $("s-state").textContent = "";
+  $("controls").hidden = true; // shown once the session is found: never another session's buttons
+  $("goal-buttons").replaceChildren();
+  for (const f of ["s-model", "s-goal", "s-step", "s-state"]) $(f).textContent = "";
+  for (const c of ["chart-actions", "chart-goal", "chart-reward"]) drawChart($(c), []);
   const s = await api("GET", `/sessions/${encodeURIComponent(id)}`);
+  if (ui.view !== v) return; // the page moved on meanwhile
   v.spec = await model(s.model);
   $("s-model").textContent = s.model;
   $("s-statistic").textContent = v.spec.statistic;
@@ -326,6 +389,8 @@ async function openSession(id) {
   Object.assign(slider, { min: lo, max: hi, step: (hi - lo) / 100 || 0.01, value: current ? current.mean : lo });
   $("target-value").textContent = Number(slider.value).toFixed(2);
   setState(v, s);
+  $("controls").hidden = false;
+  $("s-state").textContent = "waiting for the next act";
   follow(v);
   drawSession(v);
 }
@@ -368,9 +433,8 @@ async function route() {
   try {
     if (m) await openSession(decodeURIComponent(m[1]));
     else {
-      await renderModels();
-      await renderSessions();
-      ui.poll = setInterval(() => renderSessions().then(() => show(""), (e) => show(e.message)), POLL_MS);
+      ui.poll = setInterval(refreshHome, POLL_MS); // first: a failed refresh is retried at the next poll
+      await refreshHome();
     }
     $("forget-token").hidden = !sessionStorage.getItem(TOKEN_KEY);
   } catch (e) {
