@@ -75,6 +75,7 @@ function show(message) {
 function askToken() {
   $("token-form").hidden = false;
   $("forget-token").hidden = true;
+  $("token").focus();
 }
 
 $("token-form").addEventListener("submit", (e) => {
@@ -293,7 +294,11 @@ function setState(v, s) {
   $("s-goal").textContent = `${s.goal} ${s.goal_name}`;
   $("s-goal").dataset.goal = s.goal;
   $("s-step").textContent = s.step;
-  for (const b of $("goal-buttons").children) b.classList.toggle("current", Number(b.dataset.goalId) === s.goal);
+  for (const b of $("goal-buttons").children) {
+    const current = Number(b.dataset.goalId) === s.goal;
+    b.classList.toggle("current", current);
+    b.setAttribute("aria-pressed", String(current)); // the goal pursued, for screen readers too
+  }
 }
 
 function onEvent(v, kind, d) {
