@@ -68,18 +68,21 @@ def _goal(api: httpx.Client, sid: str) -> str:
     return api.get(f"/sessions/{sid}").json()["goal_name"]
 
 
+def _sign_in(driver, server) -> None:
+    """Open /ui; auth is on, so the page asks for the token, keeps it in sessionStorage and sends it on every call."""
+    driver.get(f"{server.url}/ui")
+    form = _wait(driver, _shown("token-form"), "no token form")
+    driver.find_element(By.ID, "token").send_keys(TOKEN)
+    form.submit()
+
+
 def test_console_follows_a_session_and_steers_it(chromium, served, tmp_path):
     server, api = served
     sid = api.post("/sessions", json={"model": "tiny-gmt", "goal": "low"}).json()["session_id"]
     other = api.post("/sessions", json={"model": "tiny-cartpole", "goal": 0}).json()["session_id"]
     _act(api, sid, 3)
     d = chromium
-    d.get(f"{server.url}/ui")
-
-    # Auth is on: the page asks for the token, keeps it in sessionStorage and sends it on every call.
-    form = _wait(d, _shown("token-form"), "no token form")
-    d.find_element(By.ID, "token").send_keys(TOKEN)
-    form.submit()
+    _sign_in(d, server)
     row = f'#sessions tr[data-session="{sid}"]'
     _wait(d, lambda d: _text(d, f"{row} td.step") == "3", "the session is not listed at step 3")
     assert _text(d, f'#sessions tr[data-session="{other}"] td.step') == "0"
@@ -150,10 +153,7 @@ def test_the_listing_updates_rows_in_place_and_a_gone_session_shows_no_controls(
     server, api = served
     sid = api.post("/sessions", json={"model": "tiny-gmt", "goal": "low"}).json()["session_id"]
     d = chromium
-    d.get(f"{server.url}/ui")
-    form = _wait(d, _shown("token-form"), "no token form")
-    d.find_element(By.ID, "token").send_keys(TOKEN)
-    form.submit()
+    _sign_in(d, server)
     row = f'#sessions tr[data-session="{sid}"]'
     _wait(d, lambda d: _text(d, f"{row} td.step") == "0", "the session is not listed")
     link = d.find_element(By.CSS_SELECTOR, f"{row} a")
