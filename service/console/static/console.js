@@ -29,7 +29,7 @@ async function api(method, path, body) {
     r = await fetch(path, init);
   } catch (e) {
     if (e.name === "TimeoutError") throw new Error(`the server is not responding (no answer in ${TIMEOUT_MS / 1000} s)`);
-    throw new Error(`the server cannot be reached (${e.message}); retrying`);
+    throw new Error(`the server cannot be reached (${e.message})`);
   }
   const text = await r.text();
   const doc = text ? JSON.parse(text) : null;
