@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import json as jsonlib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -198,9 +199,22 @@ class RestClient(PolicyClient):
             ServiceError: the server's answer, or the failure to get one (a subclass per code).
         """
         maybe_applied = False  # an earlier attempt may have been applied
+        content = None
+        if json is not None:  # encoded once for every attempt, as httpx's json= would each time
+            try:
+                content = jsonlib.dumps(
+                    json, ensure_ascii=False, separators=(",", ":"), allow_nan=False
+                ).encode()
+            except ValueError:  # only NaN and infinities fail here: JSON has no spelling for them
+                raise InvalidArgument(
+                    f"{method} {path}: the body holds NaN or an infinity, which JSON cannot carry (the server "
+                    "refuses non-finite values too)",
+                    code="invalid_argument",
+                ) from None
+            headers = {**(headers or {}), "Content-Type": "application/json"}
 
         def send() -> httpx.Response:
-            r = self._http.request(method, path, json=json, headers=headers)
+            r = self._http.request(method, path, content=content, headers=headers)
             if _worth_retrying(r, safe):
                 raise _RetryableAnswer(r)
             return r
@@ -230,14 +244,6 @@ class RestClient(PolicyClient):
                 "have been applied",
                 code="unavailable",
             ) from e
-        except ValueError as e:  # the JSON encoder's: the body could not be written
-            if "JSON compliant" not in str(e):
-                raise
-            raise InvalidArgument(
-                f"{method} {path}: the body holds NaN or an infinity, which JSON cannot carry (the server refuses "
-                "non-finite values too)",
-                code="invalid_argument",
-            ) from None
         if r.status_code == 404 and gone_ok_on_retry and maybe_applied:
             return None
         if r.is_success:

@@ -245,8 +245,8 @@ class ServedBy:
 
 
 class PlainBodies:
-    """A compressed request body (a Content-Encoding other than identity) answers 415 before any route reads it:
-    FastAPI's routes would try to parse the compressed bytes as JSON. `FastAct` applies the same rule itself."""
+    """A compressed request body (a Content-Encoding other than identity) answers 415 before any route reads it,
+    `FastAct`'s included: the routes would parse the compressed bytes as JSON."""
 
     _SESSION = re.compile(r"^/sessions/([^/]+)")
 
@@ -338,10 +338,7 @@ class FastAct:
                 return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
             if raw:
                 content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
-                encoding = next((v for k, v in scope["headers"] if k == b"content-encoding"), None)
-                refusal = None if encoding is None else media.encoding_refusal(encoding.decode("latin-1"))
-                if refusal is None:
-                    refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
+                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
                 if refusal is not None:
                     return refusal.http_status, _error_body(refusal.code, refusal.message), session
             try:
@@ -388,7 +385,7 @@ class _App(FastAPI):
     settings: Settings | None = None
 
     def build_middleware_stack(self) -> ASGIApp:
-        inner = FastAct(PlainBodies(super().build_middleware_stack()), self.settings)
+        inner = PlainBodies(FastAct(super().build_middleware_stack(), self.settings))
         return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings)), self.replica_id)
 
     def openapi(self) -> dict:

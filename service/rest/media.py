@@ -7,7 +7,7 @@ a missing header would help no curl user, while a web page can make a browser se
 and without a CORS preflight, to a server on localhost (FastAPI refuses to parse such bodies for that reason). A
 request without a body is not concerned. `FastAct` applies the rule to `POST /sessions/{id}/act`, `require_json`
 (a dependency of every API route) to the others; `openapi` documents the 415. A compressed body (a Content-Encoding
-other than identity) answers 415 too (`encoding_refusal`, applied by `app.PlainBodies` and `FastAct`).
+other than identity) answers 415 too (`encoding_refusal`, applied to every route by `app.PlainBodies`).
 """
 
 from __future__ import annotations
