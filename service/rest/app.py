@@ -208,6 +208,7 @@ class AuthFirst:
                 headers.get("authorization"),
                 client[0] if client else None,
                 any(h in headers for h in admin.PROXY_HEADERS),
+                web=headers,
             )
         except ServiceError as e:
             extra = {"WWW-Authenticate": "Bearer"} if e.http_status == 401 else {}

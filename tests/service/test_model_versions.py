@@ -384,6 +384,52 @@ def test_management_is_authorised(make_server, roots):
         assert e.value.code() == grpc.StatusCode.NOT_FOUND  # authorised: the version does not exist
 
 
+def test_tokenless_management_refuses_web_pages(make_server, roots, versions):
+    """DNS rebinding: a page of another site, its name rebound to 127.0.0.1, sends its own Host; a cross-origin
+    page sends its Origin / Referer. Without a token both are refused (403 naming the header); a loopback Host
+    without an Origin still manages, and a token makes the headers irrelevant."""
+    body = {"path": "releases/v2"}
+    server = make_server(checkpoints=[roots])
+    port = server.url.rsplit(":", 1)[1]
+    promote = {"version": versions["v1"]}
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        refused = [
+            ({"Host": f"attacker.example:{port}"}, "Host 'attacker.example:"),
+            (
+                {"Host": f"attacker.example:{port}", "Origin": f"http://attacker.example:{port}"},
+                "DNS rebinding",
+            ),
+            ({"Origin": "http://attacker.example"}, "Origin 'http://attacker.example'"),
+            ({"Origin": "null"}, "Origin 'null'"),
+            ({"Referer": "http://attacker.example/page"}, "Referer"),
+            ({"Origin": "http://localhost:1"}, "another origin"),  # another port: another origin
+        ]
+        for headers, named in refused:
+            for r in (
+                http.post(f"/models/{MODEL}/versions", json=body, headers=headers),
+                http.put(f"/models/{MODEL}/default", json=promote, headers=headers),
+                http.delete(f"/models/{MODEL}/versions/{versions['v2']}", headers=headers),
+            ):
+                assert r.status_code == 403, (headers, r.text)
+                assert (
+                    r.json()["error"]["code"] == "permission_denied" and named in r.json()["error"]["message"]
+                )
+        assert [v["version"] for v in versions_of(http)["versions"]] == [versions["v1"]]  # nothing loaded
+        for host in (f"localhost:{port}", f"127.0.0.1:{port}", "localhost", f"[::1]:{port}"):
+            r = http.put(f"/models/{MODEL}/default", json=promote, headers={"Host": host})
+            assert r.status_code == 200, (host, r.text)
+        same_origin = {"Origin": server.url, "Referer": f"{server.url}/docs"}
+        assert http.post(f"/models/{MODEL}/versions", json=body, headers=same_origin).status_code == 201
+    with_token = make_server(checkpoints=[roots], admin_token="root")
+    with httpx.Client(base_url=with_token.url, timeout=30) as http:
+        foreign = {
+            "Host": "attacker.example",
+            "Origin": "http://attacker.example",
+            "Authorization": "Bearer root",
+        }
+        assert http.put(f"/models/{MODEL}/default", json=promote, headers=foreign).status_code == 200
+
+
 def test_acts_are_answered_while_a_version_loads(make_server, roots, monkeypatch):
     """The load runs in a thread: held inside it, the server still answers acts."""
     server = make_server(checkpoints=[roots])
