@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import re
@@ -22,6 +23,7 @@ from gmt.common.recording import Recording
 from gmt.model.checkpoint import VERSION_PATTERN, CheckpointError, Goal
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed, check_blend_steps
+from gmt.service import keys
 from gmt.service.batcher import MicroBatcher
 from gmt.service.console.activity import SessionRow
 from gmt.service.console.events import EventHub
@@ -245,6 +247,7 @@ class Core:
         self.store = store
         self.clock = clock
         self.metrics = Metrics()
+        self.keyring = keys.Keyring.of(settings)  # the adapters identify callers by it (`gmt.service.keys`)
         self.started = False
         self.closing = False
         self._closed = False
@@ -709,6 +712,15 @@ class Core:
             raise FailedPrecondition(f"session {s.id!r} cannot be continued by this server: {e}") from None
         return s.ctx
 
+    def _caller(self) -> keys.Caller:
+        return keys.current(bool(self.keyring))
+
+    def _owned(self, s: Session) -> Session:
+        """`s`, when the caller may see it; else NotFound, as for an unknown id (`gmt.service.keys`)."""
+        if not keys.visible(s.owner, self._caller()):
+            raise self.store.unknown(s.id)
+        return s
+
     def _check_serving(self) -> None:
         if self.closing or not self.started:
             raise Unavailable("server is shutting down" if self.closing else "server is starting")
@@ -824,7 +836,9 @@ class Core:
                     pass
             now = self.clock()
             ctx = m.engine.new_context(g, mode, seed, key=sid)
-            s = Session(sid, m.name, ctx, now, now, request, m.version, m.fingerprint)
+            s = Session(
+                sid, m.name, ctx, now, now, request, m.version, m.fingerprint, owner=self._caller().name
+            )
             if records:
                 cfg = m.checkpoint.config
                 s.ledger.layout = Layout.of_model(
@@ -846,7 +860,7 @@ class Core:
                 # another replica: keep no slot here until this replica is asked to act for it.
                 s.ctx = s.ctx.to_stored()
                 m.engine.forget(sid)
-        self.metrics.sessions_created.labels(m.name, m.version).inc()
+        self.metrics.created(m.name, m.version, s.owner)
         self.metrics.live_sessions.set(await self.store.count())
         log.info("session created", extra={"session": short_id(s.id), "model": m.key, "goal": g})
         return self._view_session(s)
@@ -854,9 +868,10 @@ class Core:
     async def _existing(self, sid: str, request: str) -> Session:
         """The live session `sid` when it was created by the same request (a retried create), else AlreadyExists."""
         s = await self.store.get(sid, hold=False)
-        if s.request != request:
+        if s.request != request or not keys.visible(s.owner, self._caller()):
             raise AlreadyExists(
-                f"session id {sid!r} is taken by a live session created with other parameters; "
+                f"session id {sid!r} is taken by a live session created with other parameters (or by another "
+                "key); "
                 "choose another id, or repeat the first request exactly to get that session"
             )
         return s
@@ -865,7 +880,7 @@ class Core:
         """Inspect a session (does not count as use for the idle timeout). Raises NotFound / SessionExpired."""
         check_session_id(sid)
         async with self._lock(sid):
-            return self._view_session(await self.store.get(sid, hold=False))
+            return self._view_session(self._owned(await self.store.get(sid, hold=False)))
 
     async def list_sessions(self, offset: int = 0, limit: int = 100) -> tuple[int, list[SessionRow]]:
         """The store's live sessions, newest first: (how many there are, the page from `offset`).
@@ -879,7 +894,9 @@ class Core:
             raise InvalidArgument(f"offset must be an integer in 0..{MAX_LIST_OFFSET}, got {offset!r}")
         if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST_SESSIONS:
             raise InvalidArgument(f"limit must be an integer in 1..{MAX_LIST_SESSIONS}, got {limit!r}")
-        total, briefs = await self.store.list_page(offset, limit)
+        caller = self._caller()
+        shown = None if caller.sees_all else functools.partial(keys.visible, caller=caller)
+        total, briefs = await self.store.list_page(offset, limit, shown)
         now, here = self.clock(), self.settings.replica_id
         rows, goal_names = [], {}
         for b in briefs:
@@ -976,7 +993,7 @@ class Core:
 
     async def _prepare(self, sid: str, observation: object, step: int | None, report: Report | None = None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
-        s = await self.store.get(sid)
+        s = self._owned(await self.store.get(sid))
         m = await self._model_of(s)
         x = self.validate_observation(m, observation)
         ctx = self._live(m, s)
@@ -1164,7 +1181,7 @@ class Core:
         self, sid: str, goal: GoalRef, target: float | None, blend_steps: int, by: str
     ) -> SessionView:
         async with self._lock(sid):
-            s = await self.store.get(sid)
+            s = self._owned(await self.store.get(sid))
             m = await self._model_of(s)
             g = self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
@@ -1197,7 +1214,7 @@ class Core:
 
     async def _reset(self, sid: str, goal: GoalRef, target: float | None) -> SessionView:
         async with self._lock(sid):
-            s = await self.store.get(sid)
+            s = self._owned(await self.store.get(sid))
             m = await self._model_of(s)
             g = None if goal is None and target is None else self.resolve_goal(m, goal, target)
             ctx = self._live(m, s)
@@ -1231,7 +1248,7 @@ class Core:
     async def _close(self, sid: str) -> None:
         async with self._lock(sid):
             point_of_no_return()
-            s = await self.store.get(sid, hold=False)
+            s = self._owned(await self.store.get(sid, hold=False))
             if not s.ledger.recording:
                 await self.store.delete(sid)
             else:
@@ -1334,6 +1351,7 @@ class Core:
         check_session_id(sid)
         async with self._lock(sid):
             s, timeline, _ = await self.store.entries(sid, records=False)
+            self._owned(s)
         m = self.registry.find(s.model, s.model_version)
         return TimelineView(
             session_id=s.id,
@@ -1355,6 +1373,7 @@ class Core:
         check_session_id(sid)
         async with self._lock(sid):
             s, timeline, records = await self.store.entries(sid, records=True)
+            self._owned(s)
         if not s.ledger.recording:
             raise NotFound(
                 f"session {sid!r} has no recording: it was created without record (POST /sessions with "

@@ -14,6 +14,8 @@ from prometheus_client import (
     generate_latest,
 )
 
+from gmt.service import keys
+
 LATENCY_BUCKETS = (
     0.0005,
     0.001,
@@ -90,6 +92,20 @@ class Metrics:
             ["model", "version"],
             registry=r,
         )
+        self.key_requests = Counter(
+            "gmt_key_requests",
+            "Requests (and Control stream commands) answered, by the key that made them (--auth-tokens, "
+            "--auth-token: default, --admin-token: admin), transport and outcome code; none on a server without "
+            "keys.",
+            ["key", "transport", "code"],
+            registry=r,
+        )
+        self.key_sessions_created = Counter(
+            "gmt_key_sessions_created",
+            "Sessions created, by the key that created them (their owner); none on a server without keys.",
+            ["key"],
+            registry=r,
+        )
         self.sessions_expired = Counter(
             "gmt_sessions_expired", "Sessions removed by the idle timeout.", registry=r
         )
@@ -109,8 +125,17 @@ class Metrics:
         self._child(self.connections_closed, transport, reason).inc()
 
     def observe_request(self, transport: str, method: str, code: str, seconds: float) -> None:
-        """Record one answered request."""
+        """Record one answered request (and its key's count, when an adapter identified its caller)."""
         self._child(self.request_latency, transport, method, code).observe(seconds)
+        caller = keys.identified()
+        if caller is not None:
+            self._child(self.key_requests, caller.name, transport, code).inc()
+
+    def created(self, model: str, version: str, owner: str) -> None:
+        """Count one session created (by its owner's key too, when it has one)."""
+        self._child(self.sessions_created, model, version).inc()
+        if owner:
+            self._child(self.key_sessions_created, owner).inc()
 
     def observe_batch(self, model: str, version: str, size: int, seconds: float) -> None:
         """Record one forward pass."""

@@ -28,6 +28,7 @@ import asyncio
 import contextlib
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import orjson
@@ -236,6 +237,9 @@ class RedisSessionStore(SessionStore):
                 f"session {sid!r} not found in the session store, which was reset (lost its data) since this "
                 "server last saw it; create a new session"
             )
+        return self.unknown(sid)
+
+    def unknown(self, sid: str) -> NotFound:
         return NotFound(not_found_message(sid) + "; or the session store lost its data")
 
     # ----- sessions ---------------------------------------------------------------------------------------------
@@ -654,13 +658,20 @@ class RedisSessionStore(SessionStore):
     def local_count(self, key: str) -> int:
         return self._seen_per_model[key]  # every held session was seen
 
-    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+    async def list_page(
+        self, offset: int, limit: int, visible: Callable[[str], bool] | None = None
+    ) -> tuple[int, list[SessionBrief]]:
         """What `live` holds, most recently used first (as of the replicas' last sweeps): two round trips, and
-        only each session's `meta` and `st` are read (a session this replica holds is described from its copy)."""
-        async with self.redis.pipeline(transaction=False) as p:
-            p.zcard(self._live).zrevrange(self._live, offset, offset + limit - 1)
-            total, raw_ids = await self._call(p.execute())
-        ids = [raw.decode() for raw in raw_ids]
+        only each session's `meta` and `st` are read (a session this replica holds is described from its copy).
+        With `visible`, every live session's `meta` is read first, for its owner (one round trip more)."""
+        if visible is None:
+            async with self.redis.pipeline(transaction=False) as p:
+                p.zcard(self._live).zrevrange(self._live, offset, offset + limit - 1)
+                total, raw_ids = await self._call(p.execute())
+            ids = [raw.decode() for raw in raw_ids]
+        else:
+            ids = await self._visible_ids(visible)
+            total, ids = len(ids), ids[offset : offset + limit]
         async with self.redis.pipeline(transaction=False) as p:
             for sid in ids:
                 p.hmget(self._key(sid), "meta", "st")
@@ -688,6 +699,23 @@ class RedisSessionStore(SessionStore):
             except (TypeError, KeyError, ValueError, orjson.JSONDecodeError):
                 continue  # gone since the index was read (or unreadable): not listed
         return int(total), out
+
+    async def _visible_ids(self, visible: Callable[[str], bool]) -> list[str]:
+        """The ids in `live`, most recently used first, of the sessions whose owner is `visible`."""
+        ids = [raw.decode() for raw in await self._call(self.redis.zrevrange(self._live, 0, -1))]
+        async with self.redis.pipeline(transaction=False) as p:
+            for sid in ids:
+                p.hget(self._key(sid), "meta")
+            metas = await self._call(p.execute()) if ids else []
+        out = []
+        for sid, meta in zip(ids, metas, strict=True):
+            try:
+                owner = orjson.loads(meta).get("owner", "") if meta is not None else None
+            except (AttributeError, orjson.JSONDecodeError):
+                owner = None
+            if owner is not None and visible(str(owner)):
+                out.append(sid)
+        return out
 
     async def close(self) -> None:
         if self._fast is not None:

@@ -189,7 +189,8 @@ class Server:
                 "replica_id": s.replica_id,
                 "models": sorted(self.core.registry.models),
                 "ready": self.core.ready,
-                "auth": s.token is not None,
+                "auth": bool(s.keys),
+                "keys": sorted(s.keys),  # their names: a token is never logged
                 "session_store": "redis" if s.redis_url else "memory",
                 "descriptors": caps.descriptors,
                 "rest_max_connections": caps.rest,

@@ -2,8 +2,9 @@
 
 Fields (format 3):
 - `meta`: JSON written once at creation: id, model, the model version and its checkpoint fingerprint (absent in
-  sessions stored before versions were: the model's default version), created_at, the creating request, and the
-  layout of a step record (`H` held steps, the state's and the action's dtype and shape);
+  sessions stored before versions were: the model's default version), created_at, the creating request, the
+  owner (the creating key's name, `gmt.service.keys`; absent when it has none, as in sessions stored before keys
+  were: anyone's), and the layout of a step record (`H` held steps, the state's and the action's dtype and shape);
 - `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
   matches a copy of its predecessor);
 - `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
@@ -110,6 +111,8 @@ def create_fields(session: Session) -> dict[str, bytes]:
         "request": session.request,
         "layout": ctx.layout(),
     }
+    if session.owner:
+        meta["owner"] = session.owner
     if (record := session.ledger.meta()) is not None:
         meta["record"] = record
     out = {
@@ -181,6 +184,7 @@ def decode(fields: dict[bytes | str, bytes]) -> Session:
             request=str(meta.get("request", "")),
             model_version=str(meta.get("model_version", "")),
             fingerprint=str(meta.get("fingerprint", "")),
+            owner=str(meta.get("owner", "")),
             activity=Activity.load(st.get("activity")),
             ledger=Ledger.restore(meta.get("record"), st.get("lg", {}), f.get("tl")),
         )

@@ -51,6 +51,7 @@ class Session:
         ledger: Its goal timeline and recording (`gmt.service.records`).
         relabelled_from: The first step whose stored record a goal change relabelled since the session was
             last written (None: none); a store that writes only new steps writes these again.
+        owner: The name of the key that created it ('' for none: anyone's), `gmt.service.keys`.
     """
 
     id: str
@@ -64,6 +65,7 @@ class Session:
     activity: Activity = field(default_factory=Activity)
     ledger: Ledger = field(default_factory=Ledger)
     relabelled_from: int | None = None
+    owner: str = ""
 
     def written(self) -> None:
         """The store now holds every change made so far: forget what was pending (records, relabelled steps)."""
@@ -190,6 +192,10 @@ class SessionStore(abc.ABC):
             Aborted: it changed since `read`.
         """
 
+    def unknown(self, sid: str) -> NotFound:
+        """The error for an id this store never held (also what another key gets for a session: `gmt.service.keys`)."""
+        return NotFound(not_found_message(sid))
+
     @abc.abstractmethod
     async def count(self) -> int:
         """Number of live (not expired) sessions."""
@@ -206,8 +212,13 @@ class SessionStore(abc.ABC):
     async def close(self) -> None:  # noqa: B027 - optional hook
         """Release connections."""
 
-    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
+    async def list_page(
+        self, offset: int, limit: int, visible: Callable[[str], bool] | None = None
+    ) -> tuple[int, list[SessionBrief]]:
         """(live sessions held, up to `limit` of them from `offset`), newest first.
+
+        Args:
+            visible: Whether a session of this owner is listed (None: every session); the count is of those.
 
         Raises:
             FailedPrecondition: this store cannot list its sessions.
@@ -248,7 +259,7 @@ class MemorySessionStore(SessionStore):
         if s is None:
             if sid in self._expired:
                 raise SessionExpired(expired_message(sid, self.idle_timeout_s))
-            raise NotFound(not_found_message(sid))
+            raise self.unknown(sid)
         if self.is_idle(s):
             self._remove(s, expired=True)
             raise SessionExpired(expired_message(sid, self.idle_timeout_s))
@@ -298,6 +309,11 @@ class MemorySessionStore(SessionStore):
     def local_count(self, key: str) -> int:
         return self._per_model[key]
 
-    async def list_page(self, offset: int, limit: int) -> tuple[int, list[SessionBrief]]:
-        page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)
-        return len(self._sessions), [brief(s) for s in page]
+    async def list_page(
+        self, offset: int, limit: int, visible: Callable[[str], bool] | None = None
+    ) -> tuple[int, list[SessionBrief]]:
+        if visible is None:
+            page = itertools.islice(reversed(self._sessions.values()), offset, offset + limit)
+            return len(self._sessions), [brief(s) for s in page]
+        shown = [s for s in reversed(self._sessions.values()) if visible(s.owner)]
+        return len(shown), [brief(s) for s in shown[offset : offset + limit]]

@@ -8,7 +8,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic import Field, PrivateAttr, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from gmt.service.records import MAX_RECORD_STEPS
@@ -31,7 +31,10 @@ class Settings(BaseSettings):
         max_batch: Most requests in one forward pass.
         inference_threads: Worker threads running forward passes (and torch intra-op threads).
         max_request_bytes: Largest REST body / gRPC message accepted.
-        auth_token: Bearer token required on every call except health checks (None = no auth).
+        auth_token: Bearer token required on every call except health checks (None = no auth); with
+            auth_tokens, one more key, named `default`.
+        auth_tokens: A file of named keys, one `name:token` a line (`gmt.service.keys`): each is a bearer token
+            of its own, and a session is seen only by the key that created it (and the admin token).
         admin_token: Bearer token of the model management calls (load, promote, drain, unload a version); None:
             the auth token, and with no token at all only a client on this machine, not through a proxy
             (`gmt.service.admin`).
@@ -94,6 +97,7 @@ class Settings(BaseSettings):
     inference_threads: int = Field(1, ge=1)
     max_request_bytes: int = Field(1 << 20, ge=1024)
     auth_token: SecretStr | None = None
+    auth_tokens: Path | None = None
     admin_token: SecretStr | None = None
     redis_url: str | None = None
     store_min_replicas: int = Field(0, ge=0)
@@ -126,7 +130,9 @@ class Settings(BaseSettings):
             return [p.strip() for p in v.split(",") if p.strip()]
         return v
 
-    @field_validator("auth_token", "admin_token", "redis_url", "record_dir", mode="before")
+    _keys: dict[str, str] = PrivateAttr(default_factory=dict)
+
+    @field_validator("auth_token", "auth_tokens", "admin_token", "redis_url", "record_dir", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
@@ -139,6 +145,14 @@ class Settings(BaseSettings):
 
             parse_redis_url(v)  # a ValueError naming the problem
         return v
+
+    @model_validator(mode="after")
+    def _read_keys(self) -> Settings:
+        from gmt.service import keys
+
+        file_keys = {} if self.auth_tokens is None else keys.read_key_file(self.auth_tokens)
+        self._keys = keys.merge(file_keys, self.token)
+        return self
 
     @model_validator(mode="after")
     def _share_needs_a_directory(self) -> Settings:
@@ -174,6 +188,11 @@ class Settings(BaseSettings):
     def token(self) -> str | None:
         """The bearer token in clear, or None when auth is off."""
         return self.auth_token.get_secret_value() if self.auth_token else None
+
+    @property
+    def keys(self) -> dict[str, str]:
+        """The named keys in clear, name -> token (`auth_tokens` and `auth_token`); empty when auth is off."""
+        return dict(self._keys)
 
     @property
     def management_token(self) -> str | None:

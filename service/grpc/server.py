@@ -4,13 +4,12 @@ auth."""
 from __future__ import annotations
 
 import inspect
-import secrets
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from gmt.service import admin
+from gmt.service import admin, keys
 from gmt.service.core import Core
 from gmt.service.errors import Unauthenticated
 from gmt.service.grpc.admin_servicer import ModelAdminServicer
@@ -184,46 +183,59 @@ async def _responses(out):
 
 
 class BearerAuth(grpc.aio.ServerInterceptor):
-    """Requires `authorization: Bearer <token>` metadata on every call except health, reflection and ModelAdmin's
-    (which `gmt.service.admin` authorises per call)."""
+    """Requires `authorization: Bearer <token>` metadata of one of the keys (`gmt.service.keys`) on every call
+    except health, reflection and ModelAdmin's (which `gmt.service.admin` authorises per call), and runs the call
+    as the key's caller."""
 
-    def __init__(self, token: str) -> None:
-        self._token = token.encode()
+    HOW = "metadata 'authorization: Bearer <token>'"
 
-    def _ok(self, details: grpc.HandlerCallDetails) -> bool:
-        if details.method.startswith((*OPEN_PREFIXES, admin.GRPC_SERVICE)):
-            return True
-        for key, value in details.invocation_metadata or ():
-            if key == "authorization":
-                v = value.decode() if isinstance(value, bytes) else value
-                scheme, _, cred = v.partition(" ")
-                return scheme.lower() == "bearer" and secrets.compare_digest(
-                    cred.strip().encode(), self._token
-                )
-        return False
+    def __init__(self, keyring: keys.Keyring) -> None:
+        self._keyring = keyring
 
     async def intercept_service(self, continuation, handler_call_details):
         handler = await continuation(handler_call_details)
-        if handler is None or self._ok(handler_call_details):
+        if handler is None or handler_call_details.method.startswith((*OPEN_PREFIXES, admin.GRPC_SERVICE)):
             return handler
-        has_auth = any(k == "authorization" for k, _ in handler_call_details.invocation_metadata or ())
-        err = Unauthenticated(
-            "invalid bearer token"
-            if has_auth
-            else "missing bearer token: send metadata 'authorization: Bearer <token>'"
+        auth = next(
+            (v for k, v in handler_call_details.invocation_metadata or () if k == "authorization"), None
         )
-
-        async def deny(request_or_iterator, context):
-            await context.abort(grpc.StatusCode[err.grpc_code], err.message)
-
+        try:
+            behavior = _as_caller(self._keyring.identify(auth, self.HOW), handler)
+        except Unauthenticated as e:
+            behavior = _deny(e)
         kind = (handler.request_streaming, handler.response_streaming)
-        make = {
-            (False, False): grpc.unary_unary_rpc_method_handler,
-            (False, True): grpc.unary_stream_rpc_method_handler,
-            (True, False): grpc.stream_unary_rpc_method_handler,
-            (True, True): grpc.stream_stream_rpc_method_handler,
-        }[kind]
-        return make(deny, handler.request_deserializer, handler.response_serializer)
+        return _MAKE_HANDLER[kind](behavior, handler.request_deserializer, handler.response_serializer)
+
+
+def _deny(err: Unauthenticated):
+    """A behaviour that refuses the call with `err`."""
+
+    async def deny(request_or_iterator, context):
+        await context.abort(grpc.StatusCode[err.grpc_code], err.message)
+
+    return deny
+
+
+def _as_caller(caller: keys.Caller, handler):
+    """The handler's behaviour run as `caller` (PolicyService's are coroutines: Control writes its answers with
+    `context.write`)."""
+    behavior = handler.unary_unary or handler.unary_stream or handler.stream_unary or handler.stream_stream
+
+    if inspect.isasyncgenfunction(behavior):
+
+        async def streamed(request_or_iterator, context):
+            with keys.acting_as(caller):
+                async for message in behavior(request_or_iterator, context):
+                    yield message
+
+        return streamed
+
+    async def called(request_or_iterator, context):
+        with keys.acting_as(caller):
+            out = behavior(request_or_iterator, context)
+            return await out if inspect.isawaitable(out) else out
+
+    return called
 
 
 def server_options(settings: Settings, max_connections: int) -> list[tuple[str, int]]:
@@ -261,7 +273,7 @@ class GrpcServer:
         # ServedBy first: it wraps whatever the others answer, a refused call included; auth before decoding.
         interceptors = [
             ServedBy(s.replica_id),
-            *([BearerAuth(s.token)] if s.token else []),
+            *([BearerAuth(core.keyring)] if core.keyring else []),
             RefuseUndecodable(),
         ]
         self.server = grpc.aio.server(

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
-import secrets
 import sys
 import time
 from contextlib import asynccontextmanager
@@ -18,7 +17,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from gmt.service import admin, examples
+from gmt.service import admin, examples, keys
 from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
@@ -169,35 +168,36 @@ class BodyLimit:
 
 
 class AuthFirst:
-    """Refuses a request that may not be answered before anything reads its body.
+    """Refuses a request that may not be answered before anything reads its body, and runs the others as their
+    caller (`gmt.service.keys`: the key whose bearer token they carry).
 
     Model management paths follow `gmt.service.admin` (the admin token, else the bearer token, else loopback
     only). With auth on, health checks, the API docs (their pages and assets) and the console's page and assets
     (no data: the page sends the token on every call it makes) stay open; every other path (unknown ones
-    included) needs the token.
+    included) needs one of the keys (or the admin token, which sees every session).
     """
 
     OPEN = frozenset({"/healthz", "/readyz", "/openapi.json"}) | docs.PATHS | console.PATHS
+    HOW = "'Authorization: Bearer <token>'"
 
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
         self.settings = settings
-        self.token = None if settings.token is None else settings.token.encode()
+        self.keyring = keys.Keyring.of(settings)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "http" and admin.is_management_path(scope.get("path", "")):
             return await self._management(scope, receive, send)
-        if self.token is None or scope["type"] != "http" or scope.get("path") in self.OPEN:
+        if not self.keyring or scope["type"] != "http" or scope.get("path") in self.OPEN:
             return await self.app(scope, receive, send)
         auth = next((v for k, v in scope["headers"] if k == b"authorization"), None)
-        if auth is None or auth[:7].lower() != b"bearer ":  # the scheme is case-insensitive (RFC 9110)
-            e = Unauthenticated("missing bearer token: send 'Authorization: Bearer <token>'")
-        elif not secrets.compare_digest(auth[7:].strip(), self.token):
-            e = Unauthenticated("invalid bearer token")
-        else:
-            return await self.app(scope, receive, send)
-        headers = {"WWW-Authenticate": "Bearer", **session_header(_path_session(scope.get("path", "")))}
-        await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
+        try:
+            caller = self.keyring.identify(auth, self.HOW)
+        except Unauthenticated as e:
+            headers = {"WWW-Authenticate": "Bearer", **session_header(_path_session(scope.get("path", "")))}
+            return await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
+        with keys.acting_as(caller):
+            await self.app(scope, receive, send)
 
     async def _management(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}

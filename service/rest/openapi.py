@@ -66,7 +66,7 @@ def build(app: FastAPI, core: Core | None) -> dict:
     if models:
         _exact_bodies(doc, schemas, models)
         _act_examples(doc, models, getattr(app.state, "examples", {}))
-    if settings.token is not None:
+    if settings.keys:
         _bearer_auth(doc)
     return doc
 
