@@ -5,12 +5,14 @@ all; metrics carry the key's name; the owner survives the Redis store."""
 
 from __future__ import annotations
 
+import json
+
 import grpc
 import httpx
 import numpy as np
 import pytest
 from pydantic import ValidationError
-from service_harness import OBS_DIM
+from service_harness import OBS_DIM, ServeProcess
 
 from gmt.model.context import Context
 from gmt.service import keys, session_codec
@@ -150,6 +152,20 @@ def test_each_key_sees_and_acts_on_only_its_own_sessions(make_server, key_file, 
         res = http.post("/act", json=items, headers=bearer("root-token")).json()["results"]
         assert all("action" in x for x in res)
 
+        # The owner's own calls, Control and ActBatch included, run as its key.
+        answers = list(
+            stub.Control(
+                iter([pb.ControlRequest(act=pb.ActRequest(session_id=b, values=pb.FloatVector(values=OBS)))]),
+                metadata=md("bob-token-2"),
+            )
+        )
+        assert answers[0].WhichOneof("result") == "act", answers[0]
+        own = stub.ActBatch(
+            pb.ActBatchRequest(requests=[pb.ActRequest(session_id=b, values=pb.FloatVector(values=OBS))]),
+            metadata=md("bob-token-2"),
+        )
+        assert own.results[0].WhichOneof("outcome") == "action", own
+
         # The event feed: the owner's opens (its first event is the session), the other key's is a 404 above.
         with http.stream("GET", f"/sessions/{a}/events", headers=bearer("alice-token-1")) as feed:
             assert feed.status_code == 200
@@ -188,6 +204,21 @@ def test_the_owner_survives_the_redis_store(make_server, key_file, redis_clean):
         assert r.status_code == 200, r.text
         assert listed(h2, "bob-token-2") == (0, set())
         assert listed(h2, "alice-token-1") == (1, {sid})
+
+
+def test_gmt_serve_logs_the_key_names_and_never_a_token(ckpt_root, key_file):
+    p = ServeProcess(
+        "--checkpoints", str(ckpt_root), "--auth-tokens", str(key_file), "--admin-token", "root-token"
+    )
+    try:
+        serving = p.wait_serving()
+        assert serving["auth"] is True and serving["keys"] == ["alice", "bob"]
+        with httpx.Client(base_url=p.url, timeout=30) as http:
+            assert http.get("/sessions").status_code == 401
+            assert listed(http, "bob-token-2") == (0, set())
+    finally:
+        p.kill()
+    assert not any(t in json.dumps(p.lines) for t in ("alice-token-1", "bob-token-2", "root-token"))
 
 
 def test_a_stored_session_without_owner_is_read_as_anyones(engine):
