@@ -15,8 +15,9 @@ admin_api = APIRouter(tags=["model management"], dependencies=[Depends(require_j
 _ADMIN_ERRORS = {
     403: {
         "model": S.ErrorOut,
-        "description": "Permission denied: a management call without a token from another machine or through a "
-        "proxy (no --admin-token / --auth-token), or a path outside the checkpoint roots",
+        "description": "Permission denied: a management call without a token from another machine, through a "
+        "proxy, or with a Host that is not a loopback name or an Origin / Referer of another origin (no "
+        "--admin-token / --auth-token), or a path outside the checkpoint roots",
     }
 }
 
