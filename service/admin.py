@@ -109,9 +109,9 @@ def _same_machine_page(headers: dict[str, str]) -> None:
 def is_loopback_name(host: str) -> bool:
     """Whether a `Host` header value (`name[:port]`, `[v6][:port]`) names this machine: `localhost`, a name under
     `.localhost` (RFC 6761) or a loopback address."""
-    parts = urllib.parse.urlsplit(f"//{host}")
     try:
-        name, _ = parts.hostname, parts.port  # `port` raises ValueError on a bad one
+        parts = urllib.parse.urlsplit(f"//{host}")  # ValueError on a broken IPv6 literal
+        name, _ = parts.hostname, parts.port  # ... and on a bad port
     except ValueError:
         return False
     if not name:
