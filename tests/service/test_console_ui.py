@@ -68,11 +68,11 @@ def _goal(api: httpx.Client, sid: str) -> str:
     return api.get(f"/sessions/{sid}").json()["goal_name"]
 
 
-def _sign_in(driver, server) -> None:
+def _sign_in(driver, server, token: str = TOKEN) -> None:
     """Open /ui; auth is on, so the page asks for the token, keeps it in sessionStorage and sends it on every call."""
     driver.get(f"{server.url}/ui")
     form = _wait(driver, _shown("token-form"), "no token form")
-    driver.find_element(By.ID, "token").send_keys(TOKEN)
+    driver.find_element(By.ID, "token").send_keys(token)
     form.submit()
 
 
@@ -173,3 +173,39 @@ def test_the_listing_updates_rows_in_place_and_a_gone_session_shows_no_controls(
     assert not d.find_element(By.ID, "controls").is_displayed()
     assert d.find_elements(By.CSS_SELECTOR, "#goal-buttons button") == []
     api.delete(f"/sessions/{sid}")
+
+
+def test_with_keys_the_console_shows_only_the_keys_sessions(chromium, ckpt_root, tmp_path):
+    """Signed in with one key of `--auth-tokens`, the listing holds that key's sessions only, and another key's
+    session page says not_found (its detail and event stream answer 404)."""
+    keys = tmp_path / "keys.txt"
+    keys.write_text("alice:alice-ui-token\nbob:bob-ui-token\n")
+    server = RunningServer(make_settings(checkpoints=[ckpt_root], auth_tokens=keys)).start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as api:
+            body = {"model": "tiny-gmt", "goal": "low"}
+            mine = api.post("/sessions", json=body, headers={"Authorization": "Bearer alice-ui-token"})
+            theirs = api.post("/sessions", json=body, headers={"Authorization": "Bearer bob-ui-token"})
+            mine, theirs = mine.json()["session_id"], theirs.json()["session_id"]
+        d = chromium
+        d.get(f"{server.url}/ui")
+        d.execute_script("sessionStorage.clear()")
+        _sign_in(d, server, "alice-ui-token")
+        _wait(
+            d,
+            lambda d: _text(d, f'#sessions tr[data-session="{mine}"] td.step') == "0",
+            "own session not listed",
+        )
+        listed = [
+            r.get_attribute("data-session") for r in d.find_elements(By.CSS_SELECTOR, "#sessions tbody tr")
+        ]
+        assert listed == [mine]
+        d.execute_script(f"location.hash = '#/session/{theirs}'")
+        _wait(
+            d,
+            lambda d: "not_found" in d.find_element(By.ID, "message").text,
+            "another key's session is shown",
+        )
+        assert not d.find_element(By.ID, "controls").is_displayed()
+    finally:
+        server.stop()
