@@ -84,6 +84,12 @@ def check_session_id(sid: object) -> str:
     return sid
 
 
+def echoed_id(sid: str) -> str:
+    """`sid` as an answer may repeat it: itself when it could name a session, else "" (an item of a many-session
+    act then names its index; an attacker's 200k characters never come back)."""
+    return sid if isinstance(sid, str) and len(sid) <= MAX_ID_LENGTH else ""
+
+
 def check_new_session_id(sid: str) -> str:
     """A client-chosen id for a new session: 1 to 128 URL-unreserved characters (letters, digits, `._~-`), not
     `.` or `..`.
@@ -1059,8 +1065,8 @@ class Core:
         for i, (sid, *_) in enumerate(items):
             try:
                 check_session_id(sid)
-            except ServiceError as e:
-                out[i] = e
+            except ServiceError as e:  # the id is not quoted: the item names its index
+                out[i] = type(e)(f"item {i}: {e.message}")
                 continue
             if sid in seen:
                 out[i] = InvalidArgument(f"session {sid!r} appears more than once in this call")

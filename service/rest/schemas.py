@@ -22,7 +22,7 @@ from pydantic import (
 )
 
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView
+from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import ServiceError
 from gmt.service.examples import Example
 from gmt.service.records import MAX_INFO_KEYS, MAX_REPORTED
@@ -452,9 +452,9 @@ class ActItemOut(BaseModel):
 
     @classmethod
     def of(cls, session_id: str, r: ActResult | ServiceError) -> ActItemOut:
-        """From the core's result or error."""
+        """From the core's result or error (an id too long to name a session is answered as "")."""
         if isinstance(r, ServiceError):
-            return cls(session_id=session_id, error=ErrorBody(code=r.code, message=r.message))
+            return cls(session_id=echoed_id(session_id), error=ErrorBody(code=r.code, message=r.message))
         return cls(**ActOut.of(r).model_dump())
 
 
