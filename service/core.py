@@ -790,9 +790,17 @@ class Core:
         if records:
             request += "|record"
         given = {"goal": goal} if target is None else {"target": target}
+        named = session_id is not None
         return await run_whole(
-            self._create(m, sid, g, mode, seed, request, session_id is not None, records, given)
+            self._create(m, sid, g, mode, seed, request, named, records, given),
+            # A caller gone with an unnamed session never learns its id: nobody could use or close it.
+            undo=None if named else self._roll_back,
         )
+
+    async def _roll_back(self, v: SessionView) -> None:
+        """Close a session made for a caller that went away before it was answered."""
+        log.info("session rolled back: its creator went away", extra={"session": short_id(v.session_id)})
+        await self.close_session(v.session_id)
 
     def _records(self, sid: str, record: bool | None) -> bool:
         """Whether a new session records: asked, or drawn by `--record-share`.

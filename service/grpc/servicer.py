@@ -214,7 +214,9 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 if not sid:
                     raise InvalidArgument("session_id is required in the first command of a stream")
                 if bound is not None and sid != bound:
-                    raise InvalidArgument(f"this stream controls session {bound!r}; a command names another one")
+                    raise InvalidArgument(
+                        f"this stream controls session {bound!r}; a command names another one"
+                    )
                 bound = cmd.session_id = sid
                 if kind == "act":
                     out = pb.ControlResponse(act=await within_deadline(context, self._act(cmd)))
