@@ -113,6 +113,7 @@ MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session ac
 UNLOAD_WAIT_S = 5.0  # longest wait, in a forced unload, for the acts already in the version's batcher
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
 MAX_LIST_OFFSET = 10**9  # the largest offset of `list_sessions` (far past any store; larger overflow int64)
+MAX_TIMELINE_PAGE = 1000  # the longest page of `timeline` (and its default)
 GoalRef = int | str | None
 _HEX = re.compile(r"[0-9a-fA-F]{12,64}")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
@@ -204,8 +205,9 @@ class TimelineView:
     Attributes:
         step: The session's step now (the step of its next act).
         episode: The session's episode now.
-        goals: The timeline entries in order: step, episode, goal, given, blend_steps, by, at.
-        entries: How many entries there were (more than `goals` once the timeline was full).
+        goals: A page of the timeline entries in order: step, episode, goal, given, blend_steps, by, at.
+        entries: How many entries there were (more than are kept once the timeline was full).
+        offset: The index of the page's first entry.
     """
 
     session_id: str
@@ -216,6 +218,7 @@ class TimelineView:
     episode: int
     goals: list[dict]
     entries: int
+    offset: int = 0
 
 
 @dataclass(frozen=True)
@@ -1343,12 +1346,22 @@ class Core:
             return None
         return self._archive_soon(s, timeline, records, "expiry")
 
-    async def timeline(self, sid: str) -> TimelineView:
-        """Every goal the session had. Raises NotFound / SessionExpired."""
+    async def timeline(self, sid: str, offset: int = 0, limit: int = MAX_TIMELINE_PAGE) -> TimelineView:
+        """A page of every goal the session had: `limit` entries from the `offset`-th, decoded in a worker thread.
+
+        Raises:
+            InvalidArgument: offset or limit out of range.
+            NotFound / SessionExpired: no such session.
+        """
         check_session_id(sid)
+        if not 0 <= offset <= MAX_LIST_OFFSET:
+            raise InvalidArgument(f"offset must be in [0, {MAX_LIST_OFFSET}], got {offset}")
+        if not 1 <= limit <= MAX_TIMELINE_PAGE:
+            raise InvalidArgument(f"limit must be in [1, {MAX_TIMELINE_PAGE}], got {limit}")
         async with self._lock(sid):
-            s, timeline, _ = await self.store.entries(sid, records=False)
+            s, timeline, _ = await self.store.entries(sid, records=False, page=(offset, limit))
         m = self.registry.find(s.model, s.model_version)
+        goals = await asyncio.to_thread(decode_timeline, timeline)
         return TimelineView(
             session_id=s.id,
             model=s.model,
@@ -1356,8 +1369,9 @@ class Core:
             fingerprint=s.fingerprint or (m.fingerprint if m else None),
             step=int(s.ctx.step),
             episode=s.ledger.episode,
-            goals=decode_timeline(timeline),
+            goals=goals,
             entries=s.ledger.entries,
+            offset=offset,
         )
 
     async def recording(self, sid: str) -> Recording:

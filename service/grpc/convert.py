@@ -99,6 +99,7 @@ def timeline(v: TimelineView) -> pb.Timeline:
         step=v.step,
         episode=v.episode,
         entries=v.entries,
+        offset=v.offset,
         goals=[
             pb.TimelineEntry(
                 step=e["step"],

@@ -10,7 +10,7 @@ from typing import TypeVar
 
 import grpc
 
-from gmt.service.core import Core
+from gmt.service.core import MAX_TIMELINE_PAGE, Core
 from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from gmt.service.grpc import convert
 from gmt.service.memory import Trimmer
@@ -169,7 +169,8 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def GetTimeline(self, request: pb.GetTimelineRequest, context) -> pb.Timeline:
         async def call():
-            return convert.timeline(await self.core.timeline(request.session_id))
+            limit = request.limit or MAX_TIMELINE_PAGE
+            return convert.timeline(await self.core.timeline(request.session_id, request.offset, limit))
 
         return await self._unary("GetTimeline", context, call)
 

@@ -307,7 +307,7 @@ class TimelineEntry(BaseModel):
 
 
 class TimelineOut(BaseModel):
-    """`GET /sessions/{id}/timeline`: every goal the session had, in order."""
+    """`GET /sessions/{id}/timeline`: a page of every goal the session had, in order."""
 
     session_id: str
     model: str
@@ -315,8 +315,11 @@ class TimelineOut(BaseModel):
     fingerprint: str | None = Field(description="sha256 of the version's weights and gmt.json.")
     step: int = Field(description="The session's step now (its next act's).")
     episode: int
-    entries: int = Field(description="Goal changes made; more than listed once the timeline is full.")
-    goals: list[TimelineEntry]
+    entries: int = Field(description="Goal changes made; more than kept once the timeline is full.")
+    offset: int = Field(
+        description="The index of the first entry listed (the next page starts after the last)."
+    )
+    goals: list[TimelineEntry] = Field(description="At most `limit` entries from `offset`.")
 
     @classmethod
     def of(cls, v: TimelineView) -> TimelineOut:
