@@ -6,6 +6,8 @@ without a token learns only what `Allow` says, and a fuzzer sees 405 (not 401) f
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -26,7 +28,7 @@ class KnownMethods:
     def known(self) -> frozenset[str]:
         """Every method some route answers."""
         if self._known is None:
-            self._known = frozenset(m for r in self.routes for m in getattr(r, "methods", None) or ())
+            self._known = frozenset(m for r in _flat(self.routes) for m in getattr(r, "methods", None) or ())
         return self._known
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -38,7 +40,7 @@ class KnownMethods:
         allow = sorted(
             {
                 m
-                for r in self.routes
+                for r in _flat(self.routes)
                 if getattr(r, "methods", None) and getattr(r, "path_regex", None) and r.path_regex.match(path)
                 for m in r.methods
             }
@@ -48,3 +50,14 @@ class KnownMethods:
         )
         response = error_response(405, "method_not_allowed", message, {"Allow": ", ".join(allow)})
         await response(scope, receive, send)
+
+
+def _flat(routes: list[BaseRoute]) -> Iterator[BaseRoute]:
+    """The routes with each included router's own (FastAPI keeps an `include_router`'s routes in its router; the
+    routers here have no prefix)."""
+    for r in routes:
+        inner = getattr(r, "original_router", None)
+        if inner is not None:
+            yield from _flat(inner.routes)
+        else:
+            yield r

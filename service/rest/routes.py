@@ -209,7 +209,7 @@ async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Re
     "/sessions/{session_id}/timeline",
     response_model=S.TimelineOut,
     tags=["records"],
-    responses=errors(404, 503),
+    responses=errors(400, 404, 503),
 )
 async def timeline(
     session_id: str,
