@@ -21,6 +21,7 @@ from pydantic import (
     field_validator,
 )
 
+from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
 from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import ServiceError
@@ -493,6 +494,7 @@ class LoadVersion(_Request):
     )
     fingerprint: StrictStr | None = Field(
         None,
+        pattern=r"^[0-9a-fA-F]{12,64}$",
         description="Refuse the checkpoint unless its fingerprint starts with these 12 to 64 hex digits.",
     )
 
@@ -506,7 +508,7 @@ class LoadVersionOut(VersionOut):
 class Promote(_Request):
     """`PUT /models/{name}/default`."""
 
-    version: StrictStr
+    version: StrictStr = Field(pattern=f"^{VERSION_PATTERN.pattern}$")
     share: float = Field(
         1.0,
         gt=0,

@@ -134,7 +134,10 @@ def test_schemathesis_finds_no_failure(served, tmp_path):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     out = r.stdout + r.stderr
     assert r.returncode == 0, out[-8000:]
-    assert "No issues found" in out, out[-8000:]
+    # With model management fuzzed, schemathesis warns (no failure) that its random versions are not loaded
+    # (404) and that its random checkpoint paths are mostly refused: no schema can name a served version or a
+    # checkpoint directory.
+    assert "No issues found" in out or (admin and re.search(r"\n=+ \d+ warnings? in ", out)), out[-8000:]
     selected = 20 if admin else 16
     assert re.search(rf"Selected: {selected}/20\s+Tested: {selected}", out), out[-3000:]
     generated = re.search(r"(\d+) generated, (\d+) passed", out)
