@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Literal
 
 import numpy as np
@@ -247,12 +248,16 @@ async def recording(
     ] = "json",
 ) -> Response:
     """The session's recording so far (a session created with `record`); does not reset the idle timer."""
-    rec = await core.recording(session_id)
+    rec = await core.recording(session_id)  # assembled in a worker thread
     headers = session_header(session_id)
-    if format == "npz":
+    if format == "npz":  # encoded in a worker thread too: up to --record-max-steps rows
         headers["Content-Disposition"] = f'attachment; filename="{rec.meta["session_id"]}.npz"'
-        return Response(rec.npz_bytes(), media_type="application/octet-stream", headers=headers)
-    return Response(recording_json(rec), media_type="application/json", headers=headers)
+        return Response(
+            await asyncio.to_thread(rec.npz_bytes), media_type="application/octet-stream", headers=headers
+        )
+    return Response(
+        await asyncio.to_thread(recording_json, rec), media_type="application/json", headers=headers
+    )
 
 
 _META = (

@@ -19,6 +19,8 @@ import orjson
 import pytest
 
 import gmt.service.core as core_module
+import gmt.service.rest.routes as routes_module
+from gmt.common.recording import Recording
 from gmt.service.core import MAX_TIMELINE_PAGE
 from gmt.service.records import MAX_GOALS_PER_STEP
 from gmt.v1 import policy_pb2 as pb
@@ -33,24 +35,24 @@ def _create(http: httpx.Client) -> str:
     return r.json()["session_id"]
 
 
+def _entry(i: int) -> dict:
+    """The i-th filled entry, as a timeline read lists it."""
+    return {
+        "step": 0,
+        "episode": 0,
+        "goal": i % 3,
+        "given": {"goal": i % 3},
+        "blend_steps": 0,
+        "by": "stream",
+        "at": 1.0,
+    }
+
+
 def _fill(server, sid: str, n: int) -> None:
     """Give the in-memory session `n` more timeline entries, as goal changes at step 0 would have."""
     s = server.core.store._sessions[sid]
     base = s.ledger.entries
-    s.ledger.timeline += [
-        orjson.dumps(
-            {
-                "step": 0,
-                "episode": 0,
-                "goal": i % 3,
-                "given": {"goal": i % 3},
-                "blend_steps": 0,
-                "by": "stream",
-            }
-            | {"at": 1.0, "n": base + i}
-        )
-        for i in range(n)
-    ]
+    s.ledger.timeline += [orjson.dumps(_entry(i) | {"n": base + i}) for i in range(n)]
     s.ledger.entries += n
 
 
@@ -80,18 +82,7 @@ def test_a_timeline_read_answers_one_page_and_the_pages_list_every_entry(big):
         seen += page["goals"]
         offset += len(page["goals"])
     assert len(seen) == ENTRIES and seen[0]["by"] == "create"
-    assert seen[1:] == [
-        {
-            "step": 0,
-            "episode": 0,
-            "goal": i % 3,
-            "given": {"goal": i % 3},
-            "blend_steps": 0,
-            "by": "stream",
-            "at": 1.0,
-        }
-        for i in range(ENTRIES - 1)
-    ]
+    assert seen[1:] == [_entry(i) for i in range(ENTRIES - 1)]
     for bad in ({"limit": 0}, {"limit": MAX_TIMELINE_PAGE + 1}, {"offset": -1}):
         r = http.get(f"/sessions/{sid}/timeline", params=bad)
         assert r.status_code == 400, (bad, r.text)
@@ -103,30 +94,55 @@ def test_a_timeline_read_answers_one_page_and_the_pages_list_every_entry(big):
         assert (t.offset, len(t.goals), t.goals[-1].goal) == (4990, 10, (ENTRIES - 2) % 3)
 
 
+def _act_served_while_held(monkeypatch, module, name: str, server, read_path: str, other: str, obs) -> None:
+    """Hold `module.name` (a function a read calls) until another session's act is answered, while `read_path`
+    is read: the act is answered only if the held function runs off the event loop."""
+    entered, acted = threading.Event(), threading.Event()
+    real = getattr(module, name)
+
+    def held(*args):
+        entered.set()
+        assert acted.wait(30), f"the act was not served while {name} ran"
+        return real(*args)
+
+    monkeypatch.setattr(module, name, held)
+    answers = {}
+    with httpx.Client(base_url=server.url, timeout=60) as reading:
+        reader = threading.Thread(target=lambda: answers.update(r=reading.get(read_path)))
+        reader.start()
+        try:
+            assert entered.wait(30)
+            with httpx.Client(base_url=server.url, timeout=10) as fresh:
+                r = fresh.post(f"/sessions/{other}/act", json={"observation": obs.tolist()})
+            assert r.status_code == 200, r.text
+        finally:
+            acted.set()
+            reader.join(60)
+    assert answers["r"].status_code == 200, answers["r"].text
+
+
 def test_another_sessions_act_is_served_while_a_timeline_is_decoded(big, monkeypatch, observations):
     server, http, sid = big
     other = _create(http)
-    entered, acted = threading.Event(), threading.Event()
-    decode = core_module.decode_timeline
+    path = f"/sessions/{sid}/timeline"
+    _act_served_while_held(monkeypatch, core_module, "decode_timeline", server, path, other, observations[0])
 
-    def held(entries):
-        entered.set()
-        assert acted.wait(30), "the act was not served while the timeline was decoded"
-        return decode(entries)
 
-    monkeypatch.setattr(core_module, "decode_timeline", held)
-    answers = {}
-    reader = threading.Thread(target=lambda: answers.update(t=http.get(f"/sessions/{sid}/timeline")))
-    reader.start()
-    try:
-        assert entered.wait(30)
-        with httpx.Client(base_url=server.url, timeout=10) as fresh:
-            r = fresh.post(f"/sessions/{other}/act", json={"observation": observations[0].tolist()})
-        assert r.status_code == 200, r.text
-    finally:
-        acted.set()
-        reader.join(60)
-    assert answers["t"].status_code == 200 and len(answers["t"].json()["goals"]) == MAX_TIMELINE_PAGE
+def test_another_sessions_act_is_served_while_a_recording_is_encoded(
+    make_server, tmp_path, monkeypatch, observations
+):
+    server = make_server(record_dir=tmp_path)
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        r = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0, "record": True})
+        sid, other = r.json()["session_id"], _create(http)
+        assert (
+            http.post(f"/sessions/{sid}/act", json={"observation": observations[1].tolist()}).status_code
+            == 200
+        )
+    for fmt, name in (("json", "recording_json"), ("npz", "Recording.npz_bytes")):
+        module, attr = (routes_module, name) if "." not in name else (Recording, name.split(".")[1])
+        path = f"/sessions/{sid}/recording?format={fmt}"
+        _act_served_while_held(monkeypatch, module, attr, server, path, other, observations[0])
 
 
 def test_goal_changes_without_an_act_are_limited_per_step(make_server, observations):
