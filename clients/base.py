@@ -408,7 +408,7 @@ class PolicyClient(abc.ABC):
 
     @abc.abstractmethod
     def get_timeline(self, session_id: str) -> Timeline:
-        """Every goal a session had."""
+        """Every goal a session had (read a page of at most `TIMELINE_PAGE` entries at a time)."""
 
     @abc.abstractmethod
     def act_many(self, items: Sequence[tuple]) -> list[ActResult | ServiceError]:

@@ -171,3 +171,18 @@ def test_goal_changes_without_an_act_are_limited_per_step(make_server, observati
         with pytest.raises(grpc.RpcError) as e:
             stub.SetGoal(pb.SetGoalRequest(session_id=sid, goal=pb.GoalSelector(id=1)))
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+@pytest.mark.parametrize("transport", ["rest", "grpc"])
+def test_the_python_clients_read_every_page(big, transport):
+    from gmt.client.grpc import GrpcClient
+    from gmt.client.rest import RestClient
+
+    server, _, sid = big
+    client = RestClient(server.url) if transport == "rest" else GrpcClient(server.target)
+    try:
+        t = client.get_timeline(sid)
+    finally:
+        client.close()
+    assert t.entries == len(t.goals) == ENTRIES
+    assert [g.goal for g in t.goals[1:]] == [i % 3 for i in range(ENTRIES - 1)]
