@@ -25,7 +25,6 @@ exhaust the process's descriptors, for gRPC and Redis too. Here:
 from __future__ import annotations
 
 import asyncio
-import itertools
 import logging
 from collections import Counter
 from typing import Any, Literal
@@ -101,14 +100,17 @@ class ConnectionGuard:
 
     def _victim(self, peer: str | None) -> GuardedHttpProtocol | None:
         """The connection to close for a new one from `peer`, None when there is none to close."""
+        # A body's answer may have started since the connection joined `_reading` (an early refusal): not it.
+        idle = list(self._evictable)
+        reading = [c for c in self._reading if c.reading()]
         if self._peers[peer] >= self.per_peer:  # at its share: it makes room with its own connections only
-            return next((c for c in itertools.chain(self._evictable, self._reading) if c.peer == peer), None)
+            return next((c for c in idle + reading if c.peer == peer), None)
         hog, held = max(self._peers.items(), key=lambda kv: kv[1])
         if held > self.per_peer:
-            for conn in itertools.chain(self._evictable, self._reading):
+            for conn in idle + reading:
                 if conn.peer == hog:
                     return conn
-        return next(iter(self._evictable), None) or next(iter(self._reading), None)
+        return next(iter(idle + reading), None)
 
     def leave(self, conn: GuardedHttpProtocol) -> None:
         """Stop counting a connection (closed, or being closed)."""
