@@ -38,6 +38,7 @@ from gmt.v1 import policy_pb2_grpc
 ATTACKS = Path(__file__).with_name("h2_attacks.py")
 NOFILE = 1024
 HALF_OPEN = 1100
+SLOW_BODIES = 460
 FRESH_S = 5
 
 
@@ -58,7 +59,7 @@ def descriptors(pid: int) -> int:
 class Slowloris:
     """h2_attacks.py slowloris in its own process; its JSON lines are collected by a thread."""
 
-    def __init__(self, port: int, connections: int, seconds: float) -> None:
+    def __init__(self, port: int, connections: int, seconds: float, body: bool = False) -> None:
         self.proc = subprocess.Popen(
             [
                 sys.executable,
@@ -72,6 +73,7 @@ class Slowloris:
                 "1",
                 "--seconds",
                 str(seconds),
+                *(["--body"] if body else []),
             ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -170,6 +172,40 @@ def test_half_open_connections_under_a_descriptor_limit(ckpt_root):
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in took.items())
             + f" ({within_s:.1f} s after the attack was open)"
         )
+    finally:
+        if attack is not None:
+            attack.kill()
+        server.kill()
+
+
+def test_slow_bodies_under_a_descriptor_limit(ckpt_root):
+    """Round 3: 460 connections that send whole headers with `Content-Length: 100000` and trickle the body denied
+    every fresh REST client (0 of 20) under a 1,024-descriptor limit: a connection reading a body was never
+    evictable. Here with no minimum rate and a body deadline beyond the test, so that only evictions make room."""
+    server = ServeProcess(
+        "--checkpoints",
+        str(ckpt_root / "tiny-gmt"),
+        "--body-timeout-s",
+        "120",
+        "--body-min-rate",
+        "0",
+        nofile=NOFILE,
+    )
+    attack = None
+    try:
+        info = server.wait_serving()
+        target = f"127.0.0.1:{info['grpc_port']}"
+        sid = httpx.post(f"{server.url}/sessions", json={"goal": 1}).json()["session_id"]
+        attack = Slowloris(info["rest_port"], SLOW_BODIES, seconds=40, body=True)
+        assert attack.ready.wait(30), "the attack did not start"
+        assert attack.records[-1]["open"] + attack.records[-1]["refused"] == SLOW_BODIES
+        for i in range(3):  # before: connection reset, every time
+            fresh_client(server.url, target, sid, 2 * i)
+        metrics = httpx.get(f"{server.url}/metrics", timeout=FRESH_S).text
+        closed = samples(metrics, "gmt_connections_closed")
+        assert closed.get((("reason", "evicted"), ("transport", "rest")), 0) >= 1, closed
+        assert closed.get((("reason", "body_timeout"), ("transport", "rest")), 0) == 0, closed
+        attack.stop()
     finally:
         if attack is not None:
             attack.kill()
