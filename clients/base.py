@@ -19,6 +19,7 @@ Every other answer (invalid argument, not found, ...) is final.
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 import re
 import time
@@ -95,6 +96,21 @@ class Timeline:
     episode: int
     entries: int
     goals: list[TimelineEntry] = field(default_factory=list)
+
+
+TIMELINE_PAGE = 1000  # timeline entries a server answers per read at most
+
+
+def whole_timeline(page: Callable[[int], Timeline]) -> Timeline:
+    """Every entry of a timeline the server answers a page at a time: `page(offset)` until a short page."""
+    first = page(0)
+    goals = list(first.goals)
+    while len(goals) < first.entries:
+        more = page(len(goals)).goals
+        if not more:  # past the entries a server keeps (the timeline is full)
+            break
+        goals += more
+    return dataclasses.replace(first, goals=goals)
 
 
 _INFO_KEY = re.compile(r"[A-Za-z0-9_.:/-]{1,64}")  # what the server accepts as an info key
@@ -392,7 +408,7 @@ class PolicyClient(abc.ABC):
 
     @abc.abstractmethod
     def get_timeline(self, session_id: str) -> Timeline:
-        """Every goal a session had."""
+        """Every goal a session had (read a page of at most `TIMELINE_PAGE` entries at a time)."""
 
     @abc.abstractmethod
     def act_many(self, items: Sequence[tuple]) -> list[ActResult | ServiceError]:

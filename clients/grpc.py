@@ -16,6 +16,7 @@ from gmt.client.base import (
     DEFAULT_BACKOFF_S,
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
+    TIMELINE_PAGE,
     ActResult,
     PolicyClient,
     Session,
@@ -27,6 +28,7 @@ from gmt.client.base import (
     goal_selector,
     new_session_id,
     report_fields,
+    whole_timeline,
     with_retries,
 )
 from gmt.client.errors import DeadlineExceeded, ProtocolError, ServiceError, error_for
@@ -396,8 +398,11 @@ class GrpcClient(PolicyClient):
         return self._seen_session(session_from_proto(answer))
 
     def get_timeline(self, session_id: str) -> Timeline:
-        req = pb.GetTimelineRequest(session_id=session_id)
-        return timeline_from_proto(self._call("GetTimeline", req, session_id=session_id, safe=True))
+        def page(offset: int) -> Timeline:
+            req = pb.GetTimelineRequest(session_id=session_id, offset=offset, limit=TIMELINE_PAGE)
+            return timeline_from_proto(self._call("GetTimeline", req, session_id=session_id, safe=True))
+
+        return whole_timeline(page)
 
     def close_session(self, session_id: str) -> None:
         self._forget(session_id)

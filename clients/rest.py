@@ -14,6 +14,7 @@ from gmt.client.base import (
     DEFAULT_BACKOFF_S,
     DEFAULT_RETRIES,
     DEFAULT_TIMEOUT_S,
+    TIMELINE_PAGE,
     ActResult,
     PolicyClient,
     Session,
@@ -25,6 +26,7 @@ from gmt.client.base import (
     goal_selector,
     new_session_id,
     report_fields,
+    whole_timeline,
     with_retries,
 )
 from gmt.client.errors import (
@@ -383,7 +385,10 @@ class RestClient(PolicyClient):
         return self._seen_session(session_from_json(answer))
 
     def get_timeline(self, session_id: str) -> Timeline:
-        return timeline_from_json(self._request("GET", f"/sessions/{session_id}/timeline", safe=True))
+        path = f"/sessions/{session_id}/timeline?limit={TIMELINE_PAGE}&offset="
+        return whole_timeline(
+            lambda offset: timeline_from_json(self._request("GET", f"{path}{offset}", safe=True))
+        )
 
     def get_recording(self, session_id: str):
         """The session's recording so far, as a `gmt.common.recording.Recording` (fetched as npz)."""

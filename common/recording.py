@@ -5,7 +5,9 @@ Minari dataset, `gmt replay` feeds them to another checkpoint.
 
 Format `gmt-recording` v1, one row per step the session answered, in order:
 
-`<session_id>.npz` (arrays; `np.load` reads it, no pickle):
+`<name>.npz` (arrays; `np.load` reads it, no pickle), where `<name>` is the whole session id (`file_stem`: a
+leading `.` and any character outside letters, digits and `._~-` percent-encoded) and, when a recording of a
+re-created id is already there, `@2`, `@3`, ... after it (nothing overwrites an earlier session's recording):
     episode [N] int64: the session's episode (0, then +1 at each reset)
     t [N] int64: the step within its episode (0, 1, ...)
     time [N] float64: server clock (seconds since the epoch) when the step was answered
@@ -18,7 +20,7 @@ Format `gmt-recording` v1, one row per step the session answered, in order:
     rewards [N] float64 (NaN where not reported); terminated [N] bool; truncated [N] bool
     info.<key> [N] float64 for every info key the client reported (NaN where not reported)
     meta [M] uint8: the metadata below as UTF-8 JSON, so that the .npz alone is complete
-`<session_id>.json` (the same metadata, written after the .npz: its presence marks a complete recording):
+`<name>.json` (the same metadata, written after the .npz: its presence marks a complete recording):
     format, version, session_id, model, fingerprint (of the model's weights and gmt.json), env_id,
     observation_space, action_space, statistic, goals (the model's goal table), action_mode, seed,
     created_at, ended_at, ended_by (close, expiry or shutdown; null for a live session's snapshot), steps,
@@ -36,7 +38,9 @@ as truncated (the recording ended before the environment did).
 from __future__ import annotations
 
 import io
+import itertools
 import json
+import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -178,17 +182,46 @@ class Recording:
         return buf.getvalue()
 
     def write(self, directory: str | Path) -> Path:
-        """Write `<session_id>.npz`, then `<session_id>.json`, each atomically (a temporary file renamed).
+        """Write `<name>.npz`, then `<name>.json` (see the module docstring), each a temporary file moved into
+        place. A recording of the same session (same id and `created_at`: a retried close, a second replica's
+        write) is replaced by this one, the same or longer; any other keeps its files, and this one takes the
+        next free name (claimed by a hard link, which never replaces a file, so two writers never share one).
 
         Returns:
             The .json path (the recording is complete once it exists).
         """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        stem = d / str(self.meta["session_id"])
-        _atomic_write(stem.with_suffix(".npz"), self.npz_bytes())
+        stem = file_stem(str(self.meta["session_id"]))
+        tmp = d / f".{stem}.{os.getpid()}.{id(self):x}.tmp"
+        tmp.write_bytes(self.npz_bytes())
+        try:
+            for n in itertools.count(1):
+                name = stem if n == 1 else f"{stem}@{n}"
+                if (d / f"{name}.json").exists():
+                    if not self._same_session(d / f"{name}.json"):
+                        continue
+                    tmp.replace(d / f"{name}.npz")
+                    break
+                try:
+                    os.link(tmp, d / f"{name}.npz")
+                    break
+                except FileExistsError:  # another writer's, not complete yet
+                    continue
+        finally:
+            tmp.unlink(missing_ok=True)
         text = json.dumps(self.meta, indent=1, allow_nan=False) + "\n"
-        return _atomic_write(stem.with_suffix(".json"), text.encode())
+        return _atomic_write(d / f"{name}.json", text.encode())
+
+    def _same_session(self, path: Path) -> bool:
+        """Whether the recording whose .json is `path` is of this recording's session (not an earlier one that
+        had its id)."""
+        try:
+            other = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            return False
+        key = ("session_id", "created_at")
+        return isinstance(other, dict) and all(other.get(k) == self.meta.get(k) for k in key)
 
     @classmethod
     def from_npz(cls, data: bytes | str | Path) -> Recording:
@@ -230,6 +263,17 @@ class Recording:
         return cls(meta, arrays)
 
 
+def file_stem(session_id: str) -> str:
+    """The file name (without suffix) of a session's recording: the whole id, a leading `.` and any character
+    outside letters, digits and `._~-` percent-encoded (so a name is never hidden, never a path, and two ids
+    never share one)."""
+    stem = "".join(c if c in _NAME_CHARS else "".join(f"%{b:02X}" for b in c.encode()) for c in session_id)
+    return "%2E" + stem[1:] if stem.startswith(".") else stem
+
+
+_NAME_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._~-")
+
+
 def read_recording(path: str | Path) -> Recording:
     """A recording from its `.json` (the .npz beside it) or from an .npz alone.
 
@@ -260,7 +304,7 @@ def find_recordings(paths: list[str | Path]) -> list[Path]:
         if p.is_dir():
             found = sorted(q for q in p.glob("*.json") if q.with_suffix(".npz").is_file())
             if not found:
-                raise FileNotFoundError(f"{p} holds no recording (<session_id>.json beside its .npz)")
+                raise FileNotFoundError(f"{p} holds no recording (<session id>.json beside its .npz)")
             out += found
         elif p.is_file():
             out.append(p)

@@ -266,26 +266,13 @@ def load_checkpoint(
         raise CheckpointError(f"{meta_path}: unreadable metadata: {e}") from None
     if len(goals) != cfg.n_goals:
         raise CheckpointError(f"{meta_path}: {len(goals)} goals listed for a model of {cfg.n_goals}")
-    model = GMT(cfg)
     try:
-        state = load_tensors(data)
+        state = load_tensors(data)  # as large as the file, which is read already
     except (SafetensorError, ValueError, OSError) as e:  # safetensors raises its own error types
         raise CheckpointError(f"{weights} is not a readable safetensors file: {e}") from e
-    expected = model.state_dict()
-    wrong = [
-        f"{k} {list(v.shape)} (config: {list(expected[k].shape)})"
-        for k, v in state.items()
-        if k in expected and tuple(v.shape) != tuple(expected[k].shape)
-    ]
-    if wrong:
-        raise CheckpointError(
-            f"{weights} does not match the config: wrong tensor shapes: {', '.join(wrong[:5])}"
-        )
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    if missing or unexpected:
-        raise CheckpointError(
-            f"{weights} does not match the config: missing {missing}, unexpected {unexpected}"
-        )
+    _check_shapes(state, cfg, weights)
+    model = GMT(cfg)  # only now: a config the tensors do not fill allocates nothing
+    model.load_state_dict(state, strict=True)
     model.eval()
     return Checkpoint(
         name=name or meta.get("name") or d.name,
@@ -305,6 +292,31 @@ def load_checkpoint(
         fingerprint=fp,
         version=version_of(meta, fp),
     )
+
+
+def _check_shapes(state: dict[str, torch.Tensor], cfg: GMTConfig, weights: Path) -> None:
+    """Compare the tensors with the ones `cfg` makes, built on the meta device (shapes only, no memory).
+
+    Raises:
+        CheckpointError: a tensor of another shape, a missing one or an unexpected one (five named at most).
+    """
+    with torch.device("meta"):
+        expected = {k: tuple(v.shape) for k, v in GMT(cfg).state_dict().items()}
+    wrong = [
+        f"{k} {list(v.shape)} (config: {list(expected[k])})"
+        for k, v in state.items()
+        if k in expected and tuple(v.shape) != expected[k]
+    ]
+    if wrong:
+        raise CheckpointError(
+            f"{weights} does not match the config: wrong tensor shapes: {', '.join(wrong[:5])}"
+        )
+    missing, unexpected = sorted(expected.keys() - state.keys()), sorted(state.keys() - expected.keys())
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{weights} does not match the config: {len(missing)} tensors missing {missing[:5]}, "
+            f"{len(unexpected)} unexpected {unexpected[:5]}"
+        )
 
 
 def _switch_relabel_steps(meta: dict, cfg: GMTConfig, meta_path: Path) -> int:

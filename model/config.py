@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
@@ -10,6 +12,20 @@ AttentionSpan = Literal["full", "window"]
 Conditioning = Literal["goal", "return"]
 ImageEncoderKind = Literal["nature", "fine"]
 Device = Literal["auto", "cpu", "cuda"]
+
+
+# Bounds of a model's sizes, far above any model here (the largest: n_embd 128, K 20, max_timestep 1024): a config
+# past them is refused before anything is allocated (a checkpoint's gmt.json is read before its weights).
+SIZE_BOUNDS = {
+    "act_dim": 65_536,
+    "n_goals": 4096,
+    "context_length": 4096,
+    "n_layer": 128,
+    "n_head": 128,
+    "n_embd": 16_384,
+    "max_timestep": 10_000_000,
+}
+MAX_OBS_ELEMENTS = 1 << 24  # elements of one observation
 
 
 @dataclass(frozen=True)
@@ -61,6 +77,12 @@ class GMTConfig:
             raise ValueError(f"obs_shape must be (D,) or (C, H, W), got {self.obs_shape}")
         if self.act_dim < 1 or self.n_goals < 1 or self.context_length < 1 or self.max_timestep < 1:
             raise ValueError("act_dim, n_goals, context_length and max_timestep must be positive")
+        if min(self.obs_shape) < 1 or math.prod(self.obs_shape) > MAX_OBS_ELEMENTS:
+            raise ValueError(f"obs_shape must have 1 to {MAX_OBS_ELEMENTS} elements, got {self.obs_shape}")
+        for name, most in SIZE_BOUNDS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 1 <= value <= most:
+                raise ValueError(f"{name} must be a whole number from 1 to {most}, got {value!r}")
         if self.n_embd % self.n_head != 0:
             raise ValueError(f"n_embd={self.n_embd} is not divisible by n_head={self.n_head}")
         if not 0.0 <= self.dropout < 1.0:

@@ -86,6 +86,12 @@ def check_session_id(sid: object) -> str:
     return sid
 
 
+def echoed_id(sid: str) -> str:
+    """`sid` as an answer may repeat it: itself when it could name a session, else "" (an item of a many-session
+    act then names its index; an attacker's 200k characters never come back)."""
+    return sid if isinstance(sid, str) and len(sid) <= MAX_ID_LENGTH else ""
+
+
 def check_new_session_id(sid: str) -> str:
     """A client-chosen id for a new session: 1 to 128 URL-unreserved characters (letters, digits, `._~-`), not
     `.` or `..`.
@@ -109,6 +115,7 @@ MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session ac
 UNLOAD_WAIT_S = 5.0  # longest wait, in a forced unload, for the acts already in the version's batcher
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
 MAX_LIST_OFFSET = 10**9  # the largest offset of `list_sessions` (far past any store; larger overflow int64)
+MAX_TIMELINE_PAGE = 1000  # the longest page of `timeline` (and its default)
 GoalRef = int | str | None
 _HEX = re.compile(r"[0-9a-fA-F]{12,64}")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
@@ -200,8 +207,9 @@ class TimelineView:
     Attributes:
         step: The session's step now (the step of its next act).
         episode: The session's episode now.
-        goals: The timeline entries in order: step, episode, goal, given, blend_steps, by, at.
-        entries: How many entries there were (more than `goals` once the timeline was full).
+        goals: A page of the timeline entries in order: step, episode, goal, given, blend_steps, by, at.
+        entries: How many entries there were (more than are kept once the timeline was full).
+        offset: The index of the page's first entry.
     """
 
     session_id: str
@@ -212,6 +220,7 @@ class TimelineView:
     episode: int
     goals: list[dict]
     entries: int
+    offset: int = 0
 
 
 @dataclass(frozen=True)
@@ -796,9 +805,17 @@ class Core:
         if records:
             request += "|record"
         given = {"goal": goal} if target is None else {"target": target}
+        named = session_id is not None
         return await run_whole(
-            self._create(m, sid, g, mode, seed, request, session_id is not None, records, given)
+            self._create(m, sid, g, mode, seed, request, named, records, given),
+            # A caller gone with an unnamed session never learns its id: nobody could use or close it.
+            undo=None if named else self._roll_back,
         )
+
+    async def _roll_back(self, v: SessionView) -> None:
+        """Close a session made for a caller that went away before it was answered."""
+        log.info("session rolled back: its creator went away", extra={"session": short_id(v.session_id)})
+        await self.close_session(v.session_id)
 
     def _records(self, sid: str, record: bool | None) -> bool:
         """Whether a new session records: asked, or drawn by `--record-share`.
@@ -1076,8 +1093,8 @@ class Core:
         for i, (sid, *_) in enumerate(items):
             try:
                 check_session_id(sid)
-            except ServiceError as e:
-                out[i] = e
+            except ServiceError as e:  # the id is not quoted: the item names its index
+                out[i] = type(e)(f"item {i}: {e.message}")
                 continue
             if sid in seen:
                 out[i] = InvalidArgument(f"session {sid!r} appears more than once in this call")
@@ -1346,13 +1363,23 @@ class Core:
             return None
         return self._archive_soon(s, timeline, records, "expiry")
 
-    async def timeline(self, sid: str) -> TimelineView:
-        """Every goal the session had. Raises NotFound / SessionExpired."""
+    async def timeline(self, sid: str, offset: int = 0, limit: int = MAX_TIMELINE_PAGE) -> TimelineView:
+        """A page of every goal the session had: `limit` entries from the `offset`-th, decoded in a worker thread.
+
+        Raises:
+            InvalidArgument: offset or limit out of range.
+            NotFound / SessionExpired: no such session.
+        """
         check_session_id(sid)
+        if not 0 <= offset <= MAX_LIST_OFFSET:
+            raise InvalidArgument(f"offset must be in [0, {MAX_LIST_OFFSET}], got {offset}")
+        if not 1 <= limit <= MAX_TIMELINE_PAGE:
+            raise InvalidArgument(f"limit must be in [1, {MAX_TIMELINE_PAGE}], got {limit}")
         async with self._lock(sid):
-            s, timeline, _ = await self.store.entries(sid, records=False)
+            s, timeline, _ = await self.store.entries(sid, records=False, page=(offset, limit))
             self._owned(s)
         m = self.registry.find(s.model, s.model_version)
+        goals = await asyncio.to_thread(decode_timeline, timeline)
         return TimelineView(
             session_id=s.id,
             model=s.model,
@@ -1360,8 +1387,9 @@ class Core:
             fingerprint=s.fingerprint or (m.fingerprint if m else None),
             step=int(s.ctx.step),
             episode=s.ledger.episode,
-            goals=decode_timeline(timeline),
+            goals=goals,
             entries=s.ledger.entries,
+            offset=offset,
         )
 
     async def recording(self, sid: str) -> Recording:

@@ -90,7 +90,7 @@ class UnsupportedMediaType(ServiceError):
 
 
 class ResourceExhausted(ServiceError):
-    """The server holds its maximum number of live sessions."""
+    """The server holds its maximum number of live sessions, or a session's goal changed too often at one step."""
 
     code, http_status, grpc_code = "resource_exhausted", 429, "RESOURCE_EXHAUSTED"
 

@@ -25,11 +25,13 @@ class ConnectionCaps:
         rest: REST connections (past it the oldest one without a request in progress is closed).
         grpc: gRPC connections (past it gRPC closes the new one).
         descriptors: The descriptor limit they were derived from.
+        rest_per_peer: REST connections one client address may hold while the server is full.
     """
 
     rest: int
     grpc: int
     descriptors: int
+    rest_per_peer: int = 0
 
 
 def connection_caps(settings: Settings, descriptors: int | None = None) -> ConnectionCaps:
@@ -37,8 +39,10 @@ def connection_caps(settings: Settings, descriptors: int | None = None) -> Conne
     so that neither transport can take the descriptors the other, Redis and the process itself need."""
     fds = descriptor_limit() if descriptors is None else descriptors
     auto = max(16, (fds - FD_RESERVE) // 2)
+    rest = settings.rest_max_connections or auto
     return ConnectionCaps(
-        rest=settings.rest_max_connections or auto,
+        rest=rest,
         grpc=settings.grpc_max_connections or auto,
         descriptors=fds,
+        rest_per_peer=settings.rest_max_connections_per_peer or max(1, rest // 2),
     )

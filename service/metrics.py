@@ -113,8 +113,8 @@ class Metrics:
         self.connections_closed = Counter(
             "gmt_connections_closed",
             "Connections (REST) and Control streams (gRPC) the server closed to protect itself, by transport and "
-            "reason: header_timeout, body_timeout, evicted (the oldest connection without a request in progress, "
-            "for a new one past the cap), over_limit (a new connection past the cap, none could be evicted), "
+            "reason: header_timeout, body_timeout, body_rate (a body under --body-min-rate), evicted (a connection "
+            "not being answered, closed for a new one past the cap), over_limit (a new connection past the cap, none could be evicted), "
             "write_timeout (a Control stream whose client took no answer).",
             ["transport", "reason"],
             registry=r,

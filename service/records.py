@@ -30,12 +30,13 @@ import numpy as np
 import orjson
 
 from gmt.common.recording import FORMAT, INFO_PREFIX, VERSION, Recording
-from gmt.service.errors import InvalidArgument
+from gmt.service.errors import InvalidArgument, ResourceExhausted
 
 MAX_INFO_KEYS = 32  # keys of a reported info object
 INFO_KEY = re.compile(r"[A-Za-z0-9_.:/-]{1,64}")  # an info key: letters, digits and _ . : / - (1 to 64)
 MAX_REPORTED = 1e12  # largest |value| of a reported reward or info value
 MAX_TIMELINE = 100_000  # timeline entries kept per session; later changes still apply, unlisted
+MAX_GOALS_PER_STEP = 16  # goal changes taking effect at one step of a session (no act in between) at most
 MAX_RECORD_STEPS = 10_000_000  # the largest --record-max-steps
 BY = ("create", "reset", "rest", "grpc", "stream")
 
@@ -200,7 +201,12 @@ class Ledger:
 
     def note_goal(self, step: int, goal: int, given: dict, blend_steps: int, by: str, now: float) -> bool:
         """Append a timeline entry for a goal taking effect at `step`; False when it repeats the last entry
-        (a retried change: nothing is appended and nothing should change)."""
+        (a retried change: nothing is appended and nothing should change).
+
+        Raises:
+            ResourceExhausted: `MAX_GOALS_PER_STEP` changes already take effect at `step` (only the last of
+                them is ever used: an act must come first), and nothing is appended.
+        """
         entry = {
             "step": step,
             "episode": self.episode,
@@ -215,7 +221,17 @@ class Ledger:
             and all(last.get(k) == v for k, v in entry.items())
         ):
             return False
-        entry |= {"by": by, "at": now, "n": self.entries}
+        same_step = last is not None and (last.get("episode"), last.get("step")) == (self.episode, step)
+        if by in ("create", "reset"):
+            k = 0  # a change of its own counts from here
+        else:
+            k = last.get("k", 1) + 1 if same_step else 1
+        if k > MAX_GOALS_PER_STEP:
+            raise ResourceExhausted(
+                f"the session's goal changed {MAX_GOALS_PER_STEP} times at step {step} with no act in between "
+                "(only the last is used): act before changing it again"
+            )
+        entry |= {"by": by, "at": now, "n": self.entries, "k": k}
         self.last, self.last_changed = entry, True
         if self.entries < MAX_TIMELINE:
             self.new_timeline.append(orjson.dumps(entry))
@@ -282,11 +298,12 @@ class Ledger:
 
 
 def decode_timeline(entries: list[bytes]) -> list[dict]:
-    """Timeline entries as dicts (the internal index `n` dropped)."""
+    """Timeline entries as dicts (the internal index `n` and count `k` dropped)."""
     out = []
     for raw in entries:
         e = orjson.loads(raw)
         e.pop("n", None)
+        e.pop("k", None)
         out.append(e)
     return out
 

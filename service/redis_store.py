@@ -582,11 +582,14 @@ class RedisSessionStore(SessionStore):
         if held is not None:
             self.on_remove(sid, held.session.key)
 
-    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+    async def entries(
+        self, sid: str, records: bool, page: tuple[int, int] | None = None
+    ) -> tuple[Session, list[bytes], list[bytes]]:
         if sid in self._unconfirmed:
             await self._confirmed_read(sid)  # nothing unacknowledged is reported
+        first, last = (page[0], page[0] + page[1] - 1) if page else (0, -1)
         async with self.redis.pipeline(transaction=True) as p:
-            p.hgetall(self._key(sid)).lrange(self._timeline(sid), 0, -1)
+            p.hgetall(self._key(sid)).lrange(self._timeline(sid), first, last)
             if records:
                 p.lrange(self._recording(sid), 0, -1)
             fields, timeline, *rest = await self._call(p.execute())

@@ -317,10 +317,16 @@ class ModelRegistry:
         """Take `version` out of the table (the model goes with its last version).
 
         Raises:
-            FailedPrecondition: it is the default while other versions are loaded.
+            FailedPrecondition: it is the default while other versions are loaded, or the only version this server
+                serves (a server left with none answers nothing).
             NotFound: no such model or version.
         """
         mv, m = self.entry(name), self.version(name, version)
+        if len(self.loaded()) == 1:
+            raise FailedPrecondition(
+                f"version {version!r} of model {name!r} is the only version this server serves: load another "
+                "before unloading it"
+            )
         if version == mv.default and len(mv.versions) > 1:
             raise FailedPrecondition(
                 f"version {version!r} is the default of model {name!r}: promote another version before unloading it"

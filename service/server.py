@@ -145,7 +145,13 @@ class Server:
         self.rest_port = sock.getsockname()[1]
         caps = connection_caps(s)
         guard = ConnectionGuard(
-            caps.rest, s.header_timeout_s, s.body_timeout_s, s.replica_id, self.core.metrics
+            caps.rest,
+            s.header_timeout_s,
+            s.body_timeout_s,
+            s.replica_id,
+            self.core.metrics,
+            body_min_rate=s.body_min_rate,
+            per_peer=caps.rest_per_peer,
         )
         config = uvicorn.Config(
             create_app(s, self.core),

@@ -154,9 +154,14 @@ class SessionStore(abc.ABC):
         """
 
     @abc.abstractmethod
-    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+    async def entries(
+        self, sid: str, records: bool, page: tuple[int, int] | None = None
+    ) -> tuple[Session, list[bytes], list[bytes]]:
         """The session with its timeline entries and (when `records`) its step records, as one snapshot; a look
         that changes nothing and holds nothing.
+
+        Args:
+            page: (offset, limit): only those timeline entries (all of them when None).
 
         Raises:
             SessionExpired: it was idle for too long (it is then removed).
@@ -286,9 +291,13 @@ class MemorySessionStore(SessionStore):
             self._sessions[session.id] = session
         session.written()
 
-    async def entries(self, sid: str, records: bool) -> tuple[Session, list[bytes], list[bytes]]:
+    async def entries(
+        self, sid: str, records: bool, page: tuple[int, int] | None = None
+    ) -> tuple[Session, list[bytes], list[bytes]]:
         s = self._lookup(sid)
-        return s, list(s.ledger.timeline or ()), list(s.ledger.records or ()) if records else []
+        timeline = s.ledger.timeline or []
+        timeline = timeline[page[0] : page[0] + page[1]] if page else list(timeline)
+        return s, timeline, list(s.ledger.records or ()) if records else []
 
     async def delete(self, sid: str, read: Session | None = None) -> None:
         self._remove(self._lookup(sid), expired=False)

@@ -59,8 +59,12 @@ class Settings(BaseSettings):
             client_header_timeout).
         body_timeout_s: A REST request's body must arrive within this long of its headers, else the connection is
             closed (nginx: client_body_timeout, which times each read instead).
+        body_min_rate: Bytes per second a REST request's body must average after its first second, else 408 and
+            the connection is closed (0: no minimum; Apache's mod_reqtimeout MinRate).
         rest_max_connections: Open REST connections at most (0 = half the descriptor limit above a reserve, see
             docs/reliability.md); a new one past it closes the oldest connection without a request in progress.
+        rest_max_connections_per_peer: REST connections one client address may hold while the server is full (0 =
+            half of rest_max_connections): past it, its new connections are refused and its slow ones go first.
         grpc_max_connections: Open gRPC connections at most (0 = from the descriptor limit); gRPC closes new ones
             past it at once.
         grpc_handshake_timeout_s: A gRPC connection must complete its HTTP/2 handshake within this long.
@@ -109,7 +113,9 @@ class Settings(BaseSettings):
     keep_alive_s: float = Field(75.0, ge=1)
     header_timeout_s: float = Field(10.0, gt=0)
     body_timeout_s: float = Field(30.0, gt=0)
+    body_min_rate: int = Field(500, ge=0)
     rest_max_connections: int = Field(0, ge=0)
+    rest_max_connections_per_peer: int = Field(0, ge=0)
     grpc_max_connections: int = Field(0, ge=0)
     grpc_handshake_timeout_s: float = Field(10.0, gt=0)
     grpc_window_bytes: int = Field(64 * 1024, ge=1024, le=(1 << 31) - 1)

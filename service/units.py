@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -43,8 +43,12 @@ def point_of_no_return(unit: Unit | None = None) -> None:
         unit.cancellable = False
 
 
-async def run_whole(work: Awaitable[T]) -> T:
+async def run_whole(work: Awaitable[T], undo: Callable[[T], Awaitable[object]] | None = None) -> T:
     """Await `work` as one unit (see the module docstring).
+
+    Args:
+        undo: For a change nobody can use unless its caller hears of it (an unnamed create): awaited with the
+            change's result when the caller gave up past the point of no return, so that it is rolled back.
 
     Raises:
         asyncio.CancelledError: the caller was cancelled (the change was then dropped if nothing of it was
@@ -61,10 +65,22 @@ async def run_whole(work: Awaitable[T]) -> T:
     except asyncio.CancelledError:
         if unit.cancellable:
             task.cancel()  # nothing applied yet: it never happened
+        elif undo is not None:
+            _orphan(asyncio.ensure_future(_undone(task, undo)))
         elif not task.done():
-            _orphans.add(task)
-            task.add_done_callback(_orphan_done)
+            _orphan(task)
         raise
+
+
+async def _undone(task: asyncio.Future[T], undo: Callable[[T], Awaitable[object]]) -> None:
+    """Wait for `task` (a change whose caller went away), then undo what it made."""
+    result = await task
+    await undo(result)
+
+
+def _orphan(task: asyncio.Future) -> None:
+    _orphans.add(task)
+    task.add_done_callback(_orphan_done)
 
 
 def _orphan_done(task: asyncio.Task) -> None:

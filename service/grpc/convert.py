@@ -8,7 +8,7 @@ from dataclasses import asdict
 
 import numpy as np
 
-from gmt.service.core import ActResult, GoalRef, ModelView, SessionView, TimelineView
+from gmt.service.core import ActResult, GoalRef, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import InvalidArgument, ServiceError
 from gmt.service.observations import decode_tensor
 from gmt.service.records import Report, check_report
@@ -99,6 +99,7 @@ def timeline(v: TimelineView) -> pb.Timeline:
         step=v.step,
         episode=v.episode,
         entries=v.entries,
+        offset=v.offset,
         goals=[
             pb.TimelineEntry(
                 step=e["step"],
@@ -142,10 +143,11 @@ def act_response(r: ActResult) -> pb.ActResponse:
 
 
 def act_batch_result(session_id: str, r: ActResult | ServiceError) -> pb.ActBatchResult:
-    """One item of an ActBatchResponse: the action, or the error (its code and message) that failed it."""
+    """One item of an ActBatchResponse: the action, or the error (its code and message) that failed it (an id too
+    long to name a session is answered as "")."""
     if isinstance(r, ServiceError):
         return pb.ActBatchResult(
-            session_id=session_id, error=pb.ActBatchError(code=r.code, message=r.message)
+            session_id=echoed_id(session_id), error=pb.ActBatchError(code=r.code, message=r.message)
         )
     return pb.ActBatchResult(session_id=session_id, action=act_response(r))
 

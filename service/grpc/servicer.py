@@ -10,7 +10,7 @@ from typing import TypeVar
 
 import grpc
 
-from gmt.service.core import Core
+from gmt.service.core import MAX_TIMELINE_PAGE, Core
 from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from gmt.service.grpc import convert
 from gmt.service.memory import Trimmer
@@ -169,7 +169,8 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
 
     async def GetTimeline(self, request: pb.GetTimelineRequest, context) -> pb.Timeline:
         async def call():
-            return convert.timeline(await self.core.timeline(request.session_id))
+            limit = request.limit or MAX_TIMELINE_PAGE
+            return convert.timeline(await self.core.timeline(request.session_id, request.offset, limit))
 
         return await self._unary("GetTimeline", context, call)
 
@@ -214,7 +215,9 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 if not sid:
                     raise InvalidArgument("session_id is required in the first command of a stream")
                 if bound is not None and sid != bound:
-                    raise InvalidArgument(f"this stream controls session {bound!r}, not {sid!r}")
+                    raise InvalidArgument(
+                        f"this stream controls session {bound!r}; a command names another one"
+                    )
                 bound = cmd.session_id = sid
                 if kind == "act":
                     out = pb.ControlResponse(act=await within_deadline(context, self._act(cmd)))

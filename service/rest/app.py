@@ -22,6 +22,7 @@ from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from gmt.service.rest import docs, media, openapi
+from gmt.service.rest.methods import KnownMethods
 from gmt.service.rest.models_admin import admin_api
 from gmt.service.rest.routes import act_answer, api, public, session_header
 from gmt.service.settings import Settings
@@ -387,7 +388,8 @@ class _App(FastAPI):
 
     def build_middleware_stack(self) -> ASGIApp:
         inner = PlainBodies(FastAct(super().build_middleware_stack(), self.settings))
-        return ServedBy(AnswerCutOff(AuthFirst(inner, self.settings)), self.replica_id)
+        authed = AuthFirst(inner, self.settings)
+        return ServedBy(AnswerCutOff(KnownMethods(authed, self.router.routes)), self.replica_id)
 
     def openapi(self) -> dict:
         """The document for the loaded models and the auth setting (`gmt.service.rest.openapi`), built once the

@@ -34,6 +34,8 @@ from gmt.service.observations import MAX_ABS_VALUE
 from gmt.service.records import INFO_KEY, MAX_INFO_KEYS, MAX_REPORTED
 
 BEARER = "bearerAuth"
+ADMIN = "adminAuth"
+MANAGEMENT_TAG = "model management"  # the tag of `models_admin`'s routes
 OPEN_OPERATIONS = {("/healthz", "get"), ("/readyz", "get")}  # answered without a token
 VECTOR_TENSOR_DTYPES = ("uint8", "int8", "uint16", "int16")  # every value of these is within +-MAX_ABS_VALUE
 B64 = "[A-Za-z0-9+/]"
@@ -66,9 +68,18 @@ def build(app: FastAPI, core: Core | None) -> dict:
     if models:
         _exact_bodies(doc, schemas, models)
         _act_examples(doc, models, getattr(app.state, "examples", {}))
-    if settings.keys:
-        _bearer_auth(doc)
+    _version_paths(doc)
+    _bearer_auth(doc, bool(settings.keys), settings.admin_token is not None)
     return doc
+
+
+def _version_paths(doc: dict) -> None:
+    """Give every `{version}` path parameter the pattern the server checks (`core.check_version`)."""
+    for item in doc["paths"].values():
+        for op in item.values():
+            for p in op.get("parameters", []):
+                if p["in"] == "path" and p["name"] == "version":
+                    p["schema"] = {**p["schema"], "pattern": f"^{VERSION_PATTERN.pattern}$", "maxLength": 64}
 
 
 # ----- request bodies -----------------------------------------------------------------------------------------
@@ -360,21 +371,34 @@ def _tensor(dtype: str, shape: list[int]) -> dict:
 
 
 # ----- auth ---------------------------------------------------------------------------------------------------
-def _bearer_auth(doc: dict) -> None:
-    doc["components"]["securitySchemes"] = {
-        BEARER: {
+def _bearer_auth(doc: dict, token: bool, admin_token: bool) -> None:
+    """Declare the bearer schemes the server checks: `--auth-token` on every operation but the health checks,
+    `--admin-token` (instead) on model management; each secured operation documents its 401."""
+    schemes = {}
+    if token:
+        schemes[BEARER] = {
             "type": "http",
             "scheme": "bearer",
-            "description": "The server's --auth-token: `Authorization: Bearer <token>`.",
+            "description": "A key of the server (--auth-token, or one of --auth-tokens): `Authorization: Bearer <token>`.",
         }
-    }
+    if admin_token:
+        schemes[ADMIN] = {
+            "type": "http",
+            "scheme": "bearer",
+            "description": "The server's --admin-token, for model management: `Authorization: Bearer <token>`.",
+        }
+    if not schemes:
+        return
+    doc["components"]["securitySchemes"] = schemes
     unauthenticated = {
         "description": "Missing or wrong bearer token",
         "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
     }
     for path, item in doc["paths"].items():
         for method, op in item.items():
-            if (path, method) in OPEN_OPERATIONS:
+            managing = MANAGEMENT_TAG in op.get("tags", ())
+            scheme = ADMIN if managing and admin_token else BEARER if token else None
+            if (path, method) in OPEN_OPERATIONS or scheme is None:
                 continue
-            op["security"] = [{BEARER: []}]
+            op["security"] = [{scheme: []}]
             op.setdefault("responses", {})["401"] = unauthenticated

@@ -7,20 +7,26 @@ exhaust the process's descriptors, for gRPC and Redis too. Here:
 
 - a request's headers must arrive within `header_timeout_s` of its first byte (of the connection's opening, for
   its first request), else the server answers 408 and closes the connection;
-- its body must arrive within `body_timeout_s` of its headers, else the same;
+- its body must arrive within `body_timeout_s` of its headers, and average at least `body_min_rate` bytes a second
+  after its first second, else the same;
 - a request line and headers larger than `MAX_HEAD_BYTES` answer 431 and the connection closes (httptools has no
   limit of its own), and a request that is not valid HTTP/1.1 answers 400; both in the error envelope of every
   other answer, `{"error": {"code", "message"}}` (uvicorn answers plain text);
-- at most `max_connections` connections are open: a new one past it closes the oldest connection that has no
-  request in progress (one still sending its headers, or an idle keep-alive one), or, when every connection has a
-  request in progress, the new one. The cap is kept below the descriptor limit (`gmt.service.limits`), so that
-  accept() never fails for lack of descriptors.
+- at most `max_connections` connections are open. A new one past it closes, in this order: the oldest connection
+  not being answered (one still sending its headers or body, or an idle keep-alive one) of a client address
+  holding more than `per_peer` connections; else the oldest one without a request in progress (sending its
+  headers, or idle); else the oldest one still sending its body (its application reads a disconnect); else, when
+  every connection is being answered, the new one is closed. A new connection whose address already holds
+  `per_peer` connections of a full server makes room with its own address's connections only (the same order),
+  else it is closed: one address (a proxy) alone behaves as without the share. The cap is kept below the descriptor limit
+  (`gmt.service.limits`), so that accept() never fails for lack of descriptors.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections import Counter
 from typing import Any, Literal
 
 import orjson
@@ -50,6 +56,8 @@ class ConnectionGuard:
         body_timeout_s: Longest time a request's body may take after its headers.
         replica_id: Sent as `X-Served-By` with the 408 answers.
         metrics: Where `gmt_rest_connections` and `gmt_connections_closed` are counted.
+        body_min_rate: Bytes per second a body must average after its first second (0: no minimum).
+        per_peer: Connections one client address may hold while the server is full.
     """
 
     def __init__(
@@ -59,42 +67,70 @@ class ConnectionGuard:
         body_timeout_s: float,
         replica_id: str,
         metrics: Metrics,
+        body_min_rate: int = 0,
+        per_peer: int = 0,
     ) -> None:
         self.max_connections = max_connections
         self.header_timeout_s = header_timeout_s
         self.body_timeout_s = body_timeout_s
+        self.body_min_rate = body_min_rate
+        self.per_peer = per_peer or max_connections
         self.served_by = replica_id.encode("ascii")
         self.metrics = metrics
         self.open = 0
         self._evictable: dict[GuardedHttpProtocol, None] = {}  # no request in progress; oldest first
+        self._reading: dict[GuardedHttpProtocol, None] = {}  # sending a body, not answered yet; oldest first
+        self._peers: Counter[str | None] = Counter()  # counted connections by client address
         metrics.rest_connections.set_function(lambda: self.open)
 
     def admit(self, conn: GuardedHttpProtocol) -> bool:
-        """Count a new connection; past the cap, close the oldest evictable one, or refuse this one (False)."""
+        """Count a new connection; past the cap, close another one for it (see the module docstring), or refuse
+        this one (False)."""
         if self.open >= self.max_connections:
-            victim = next(iter(self._evictable), None)
+            victim = self._victim(conn.peer)
             if victim is None:
                 self.metrics.closed("rest", "over_limit")
                 return False
             self.leave(victim)
-            victim.transport.close()
+            victim.drop()
             self.metrics.closed("rest", "evicted")
         self.open += 1
+        self._peers[conn.peer] += 1
         return True
+
+    def _victim(self, peer: str | None) -> GuardedHttpProtocol | None:
+        """The connection to close for a new one from `peer`, None when there is none to close."""
+        # A body's answer may have started since the connection joined `_reading` (an early refusal): not it.
+        idle = list(self._evictable)
+        reading = [c for c in self._reading if c.reading()]
+        if self._peers[peer] >= self.per_peer:  # at its share: it makes room with its own connections only
+            return next((c for c in idle + reading if c.peer == peer), None)
+        hog, held = max(self._peers.items(), key=lambda kv: kv[1])
+        if held > self.per_peer:
+            for conn in idle + reading:
+                if conn.peer == hog:
+                    return conn
+        return next(iter(idle + reading), None)
 
     def leave(self, conn: GuardedHttpProtocol) -> None:
         """Stop counting a connection (closed, or being closed)."""
         if conn.counted:
             conn.counted = False
             self.open -= 1
+            self._peers[conn.peer] -= 1
+            if not self._peers[conn.peer]:
+                del self._peers[conn.peer]
         self._evictable.pop(conn, None)
+        self._reading.pop(conn, None)
 
     def update(self, conn: GuardedHttpProtocol) -> None:
-        """Record whether `conn` may be closed to make room; one that just became so goes last."""
-        if conn.counted and conn.evictable():
-            self._evictable.setdefault(conn, None)
-        else:
-            self._evictable.pop(conn, None)
+        """Record whether `conn` may be closed to make room, and how readily; one that just became so goes last."""
+        evictable, reading = conn.counted and conn.evictable(), conn.counted and conn.reading()
+        for group, member in ((self._evictable, evictable), (self._reading, reading)):
+            if member:
+                group.setdefault(conn, None)
+            else:
+                group.pop(conn, None)
 
 
 class GuardedHttpProtocol(HttpToolsProtocol):
@@ -109,15 +145,21 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         super().__init__(*args, **kwargs)
         self.guard = guard
         self.counted = False
+        self.peer: str | None = None
         self.phase: Phase = "idle"
         self._deadline: asyncio.TimerHandle | None = None
+        self._rate_check: asyncio.TimerHandle | None = None
         self._head_bytes = 0
         self._head_too_large = False
+        self._body_start = 0.0
+        self._body_bytes = 0
 
     # Connection
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        peer = transport.get_extra_info("peername")
+        self.peer = peer[0] if isinstance(peer, tuple) and peer else None
         if not self.guard.admit(self):
             transport.abort()
             return
@@ -127,6 +169,7 @@ class GuardedHttpProtocol(HttpToolsProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        self._stop_rate_check()
         self.guard.leave(self)
         super().connection_lost(exc)
 
@@ -137,6 +180,8 @@ class GuardedHttpProtocol(HttpToolsProtocol):
                 self._arm(self.guard.header_timeout_s, "header_timeout")
             elif self.phase == "body":
                 self._arm(self.guard.body_timeout_s, "body_timeout")
+                if self.guard.body_min_rate and self._rate_check is None:
+                    self._rate_check = self.loop.call_at(self._body_start + 2.0, self._check_rate)
 
     def evictable(self) -> bool:
         """No request in progress: waiting for one, or still receiving one's headers."""
@@ -145,6 +190,21 @@ class GuardedHttpProtocol(HttpToolsProtocol):
             and (self.cycle is None or self.cycle.response_complete)
             and not self.pipeline
         )
+
+    def reading(self) -> bool:
+        """Receiving a request's body, and nothing of its answer sent yet."""
+        return self.phase == "body" and self.cycle is not None and not self.cycle.response_started
+
+    def drop(self) -> None:
+        """Close the connection to make room for another; a request whose body it was reading reads a
+        disconnect."""
+        self._disarm()
+        self._stop_rate_check()
+        cycle = self.cycle
+        if cycle is not None and not cycle.response_complete:
+            cycle.disconnected = True
+            cycle.message_event.set()
+        self.transport.close()
 
     # Parser callbacks and the response
 
@@ -186,12 +246,19 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         self._disarm()
         super().on_headers_complete()
         self.phase = "body"
+        self._body_start, self._body_bytes = self.loop.time(), 0
         self.guard.update(self)
+
+    def on_body(self, body: bytes) -> None:
+        self._body_bytes += len(body)
+        super().on_body(body)
 
     def on_message_complete(self) -> None:
         self._disarm()
+        self._stop_rate_check()
         super().on_message_complete()
         self.phase = "busy"
+        self.guard.update(self)
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -209,6 +276,24 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         if self._deadline is not None:
             self._deadline.cancel()
             self._deadline = None
+
+    def _stop_rate_check(self) -> None:
+        if self._rate_check is not None:
+            self._rate_check.cancel()
+            self._rate_check = None
+
+    def _check_rate(self) -> None:
+        """Each second from the body's second second: its bytes so far must average `body_min_rate` a second
+        over the time after its first second."""
+        self._rate_check = None
+        if self.phase != "body" or self.transport.is_closing():
+            return
+        rate = self.guard.body_min_rate
+        if self._body_bytes >= rate * (self.loop.time() - self._body_start - 1.0):
+            self._rate_check = self.loop.call_later(1.0, self._check_rate)
+            return
+        self._disarm()
+        self._expired("body_rate", 0.0)
 
     def _expired(self, reason: str, seconds: float) -> None:
         self._deadline = None
@@ -229,8 +314,11 @@ class GuardedHttpProtocol(HttpToolsProtocol):
             # is dropped (as when the client goes away).
             cycle.disconnected = True
             cycle.message_event.set()
-        what = "headers" if reason == "header_timeout" else "body"
-        message = f"the request's {what} did not arrive within {seconds:g} s"
+        if reason == "body_rate":
+            message = f"the request's body arrived at under {self.guard.body_min_rate} bytes/s"
+        else:
+            what = "headers" if reason == "header_timeout" else "body"
+            message = f"the request's {what} did not arrive within {seconds:g} s"
         self._answer_and_close(b"408 Request Timeout", "request_timeout", message)
 
     def _answer_and_close(self, status: bytes, code: str, message: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Literal
 
 import numpy as np
@@ -12,7 +13,7 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from gmt.common.recording import COLUMNS
-from gmt.service.core import MAX_ID_LENGTH, Core
+from gmt.service.core import MAX_ID_LENGTH, MAX_LIST_OFFSET, MAX_TIMELINE_PAGE, Core
 from gmt.service.errors import ServiceError
 from gmt.service.observations import decode_base64, decode_tensor
 from gmt.service.records import check_report
@@ -209,13 +210,21 @@ async def set_goal(session_id: str, body: S.SetGoal, core: CoreDep, response: Re
     "/sessions/{session_id}/timeline",
     response_model=S.TimelineOut,
     tags=["records"],
-    responses=errors(404, 503),
+    responses=errors(400, 404, 503),
 )
-async def timeline(session_id: str, core: CoreDep, response: Response) -> S.TimelineOut:
-    """Every goal the session had, from the step of the first act that used it (does not reset the idle
-    timer)."""
+async def timeline(
+    session_id: str,
+    core: CoreDep,
+    response: Response,
+    offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET, description="Entries to skip."),
+    limit: int = Query(
+        MAX_TIMELINE_PAGE, ge=1, le=MAX_TIMELINE_PAGE, description="Entries to list at most (one page)."
+    ),
+) -> S.TimelineOut:
+    """Every goal the session had, from the step of the first act that used it, a page at a time (`offset`,
+    `limit`; `entries` counts them all); does not reset the idle timer."""
     response.headers.update(session_header(session_id))
-    return S.TimelineOut.of(await core.timeline(session_id))
+    return S.TimelineOut.of(await core.timeline(session_id, offset, limit))
 
 
 @api.get(
@@ -239,12 +248,16 @@ async def recording(
     ] = "json",
 ) -> Response:
     """The session's recording so far (a session created with `record`); does not reset the idle timer."""
-    rec = await core.recording(session_id)
+    rec = await core.recording(session_id)  # assembled in a worker thread
     headers = session_header(session_id)
-    if format == "npz":
+    if format == "npz":  # encoded in a worker thread too: up to --record-max-steps rows
         headers["Content-Disposition"] = f'attachment; filename="{rec.meta["session_id"]}.npz"'
-        return Response(rec.npz_bytes(), media_type="application/octet-stream", headers=headers)
-    return Response(recording_json(rec), media_type="application/json", headers=headers)
+        return Response(
+            await asyncio.to_thread(rec.npz_bytes), media_type="application/octet-stream", headers=headers
+        )
+    return Response(
+        await asyncio.to_thread(recording_json, rec), media_type="application/json", headers=headers
+    )
 
 
 _META = (

@@ -21,8 +21,9 @@ from pydantic import (
     field_validator,
 )
 
+from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView
+from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import ServiceError
 from gmt.service.examples import Example
 from gmt.service.records import MAX_INFO_KEYS, MAX_REPORTED
@@ -307,7 +308,7 @@ class TimelineEntry(BaseModel):
 
 
 class TimelineOut(BaseModel):
-    """`GET /sessions/{id}/timeline`: every goal the session had, in order."""
+    """`GET /sessions/{id}/timeline`: a page of every goal the session had, in order."""
 
     session_id: str
     model: str
@@ -315,8 +316,11 @@ class TimelineOut(BaseModel):
     fingerprint: str | None = Field(description="sha256 of the version's weights and gmt.json.")
     step: int = Field(description="The session's step now (its next act's).")
     episode: int
-    entries: int = Field(description="Goal changes made; more than listed once the timeline is full.")
-    goals: list[TimelineEntry]
+    entries: int = Field(description="Goal changes made; more than kept once the timeline is full.")
+    offset: int = Field(
+        description="The index of the first entry listed (the next page starts after the last)."
+    )
+    goals: list[TimelineEntry] = Field(description="At most `limit` entries from `offset`.")
 
     @classmethod
     def of(cls, v: TimelineView) -> TimelineOut:
@@ -452,9 +456,9 @@ class ActItemOut(BaseModel):
 
     @classmethod
     def of(cls, session_id: str, r: ActResult | ServiceError) -> ActItemOut:
-        """From the core's result or error."""
+        """From the core's result or error (an id too long to name a session is answered as "")."""
         if isinstance(r, ServiceError):
-            return cls(session_id=session_id, error=ErrorBody(code=r.code, message=r.message))
+            return cls(session_id=echoed_id(session_id), error=ErrorBody(code=r.code, message=r.message))
         return cls(**ActOut.of(r).model_dump())
 
 
@@ -490,6 +494,7 @@ class LoadVersion(_Request):
     )
     fingerprint: StrictStr | None = Field(
         None,
+        pattern=r"^[0-9a-fA-F]{12,64}$",
         description="Refuse the checkpoint unless its fingerprint starts with these 12 to 64 hex digits.",
     )
 
@@ -503,7 +508,7 @@ class LoadVersionOut(VersionOut):
 class Promote(_Request):
     """`PUT /models/{name}/default`."""
 
-    version: StrictStr
+    version: StrictStr = Field(pattern=f"^{VERSION_PATTERN.pattern}$")
     share: float = Field(
         1.0,
         gt=0,

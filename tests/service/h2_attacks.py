@@ -6,6 +6,7 @@
   server's frames only to learn its SETTINGS and WINDOW_UPDATEs, and sends exactly as much as the server's
   flow-control window allows (it is a well-behaved HTTP/2 peer in everything but reading).
 - `slowloris`: many TCP connections to the REST port, each sending the headers of a request one byte at a time
+  (`--body`: whole headers with `Content-Length: 100000`, then the body one byte at a time)
   and never finishing them.
 
 Each prints JSON lines (`progress`; `ready` once slowloris has opened its connections; `done`, a summary) and
@@ -225,8 +226,17 @@ def slowloris(args) -> None:
             resource.RLIMIT_NOFILE, (want if hard == resource.RLIM_INFINITY else min(want, hard), hard)
         )
     stop = watch_stdin()
-    head = f"GET /healthz HTTP/1.1\r\nHost: {args.host}\r\nUser-Agent: slowloris\r\nX-Padding: ".encode()
-    head += b"x" * 100_000
+    if args.body:  # whole headers at once, then the body one byte per interval
+        head = (
+            f"POST /sessions HTTP/1.1\r\nHost: {args.host}\r\nUser-Agent: slowloris\r\n"
+            "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+        ).encode()
+        first = len(head) + 1
+        head += b" " * 100_000
+    else:
+        head = f"GET /healthz HTTP/1.1\r\nHost: {args.host}\r\nUser-Agent: slowloris\r\nX-Padding: ".encode()
+        head += b"x" * 100_000
+        first = 1
     socks: dict[socket.socket, int] = {}  # socket -> bytes sent
     refused = closed = answered = 0
     deadline = time.monotonic() + args.seconds
@@ -235,9 +245,9 @@ def slowloris(args) -> None:
         s.settimeout(2)
         try:
             s.connect((args.host, args.port))
-            s.send(head[:1])
+            s.sendall(head[:first])
             s.setblocking(False)
-            socks[s] = 1
+            socks[s] = first
         except OSError:
             refused += 1
             s.close()
@@ -288,6 +298,7 @@ def main() -> None:
     s.add_argument("--connections", type=int, default=1100)
     s.add_argument("--interval", type=float, default=1.0, help="seconds between bytes")
     s.add_argument("--seconds", type=float, default=30)
+    s.add_argument("--body", action="store_true", help="send whole headers, then trickle a 100,000-byte body")
     args = p.parse_args()
     if args.cmd == "control-flood":
         asyncio.run(control_flood(args))

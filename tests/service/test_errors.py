@@ -593,7 +593,7 @@ def test_control_stream_answers_errors_in_band_and_stays_open(stub, grpc_twins, 
     )
     assert "unknown goal name 'fastest'" in out[1].error.message
     assert "blend_steps must be an integer" in out[2].error.message
-    assert f"this stream controls session '{sid}', not 'someone-else'" in out[3].error.message
+    assert f"this stream controls session '{sid}'; a command names another one" in out[3].error.message
     assert "empty command" in out[4].error.message
     want = stub.Act(pb.ActRequest(session_id=twin, values=pb.FloatVector(values=o)))
     assert list(out[5].act.action) == list(want.action) and out[5].act.step == want.step == 1

@@ -563,3 +563,15 @@ def acts_answered(http) -> float:
     """Acts the server answered 200 (its request metrics)."""
     line = 'gmt_request_duration_seconds_count{code="200",method="act",transport="rest"} '
     return float(next(x for x in http.get("/metrics").text.splitlines() if x.startswith(line)).split()[-1])
+
+
+def test_the_only_version_a_server_serves_is_not_unloaded(make_server, roots, versions):
+    """A fuzzer with management rights once unloaded the only model (`?force=true`): the server then answered
+    nothing. Now that unload answers 409 and the version goes on serving."""
+    s = make_server(checkpoints=[roots / MODEL])
+    with httpx.Client(base_url=s.url, timeout=30) as http:
+        r = http.delete(f"/models/{MODEL}/versions/{versions['v1']}", params={"force": "true"})
+        assert r.status_code == 409, r.text
+        assert "only version this server serves" in r.json()["error"]["message"]
+        assert http.get("/readyz").status_code == 200
+        create(http, seed=1)

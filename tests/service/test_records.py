@@ -371,3 +371,46 @@ def test_python_clients_record_report_and_read_the_timeline(make_server, tmp_pat
         s.close()
         other.close()
     assert {p.name for p in tmp_path.glob("*.json")} == {f"{s.id}.json", f"{other.id}.json"}
+
+
+def test_recordings_are_named_by_the_whole_id_and_never_overwritten(make_server, tmp_path):
+    """Ids that differ after their last dot get their own files (`Path.with_suffix` once cut both to `bot-7`), a
+    re-created id gets a new file beside the first one's, and `gmt data import-sessions` reads them all."""
+    from gmt.common.recording import find_recordings
+    from gmt.model.data.served import import_sessions
+
+    rec_dir = tmp_path / "rec"
+    server = make_server(record_dir=rec_dir)
+    plan = [("bot-7.episode-12", 3), ("bot-7.episode-13", 4), ("bot-7.episode-12", 2), (".hidden", 2)]
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        for sid, steps in plan:
+            assert _create(http, session_id=sid) == sid
+            for t in range(steps):
+                _act(http, sid, t)
+            assert http.delete(f"/sessions/{sid}").status_code == 204
+    files = find_recordings([rec_dir])
+    got = sorted((read_recording(p).meta["session_id"], read_recording(p).steps) for p in files)
+    assert got == sorted(plan), [p.name for p in files]
+    assert (rec_dir / "bot-7.episode-12.json").is_file() and (rec_dir / "bot-7.episode-13.json").is_file()
+    done = import_sessions([rec_dir], "gmt/halfcheetah/served-v0", tmp_path / "minari")
+    assert (done.recordings, done.episodes, done.transitions) == (4, 4, sum(n for _, n in plan) - 4)
+
+
+def test_a_rewritten_recording_of_one_session_replaces_its_own_file(tmp_path):
+    """A retried close writes the same session again (same id and creation time): it replaces its own file, so
+    an import never counts its steps twice; another session with that id gets the next name."""
+    from gmt.common.recording import COLUMNS, FORMAT, VERSION, find_recordings
+
+    def rec(created_at: float, steps: int) -> Recording:
+        arrays = {c: np.zeros(steps) for c in COLUMNS}
+        return Recording(
+            {"format": FORMAT, "version": VERSION, "session_id": "a.b", "created_at": created_at}, arrays
+        )
+
+    first = rec(1.0, 2).write(tmp_path)
+    assert rec(1.0, 3).write(tmp_path) == first == tmp_path / "a.b.json"
+    assert rec(2.0, 1).write(tmp_path) == tmp_path / "a.b@2.json"
+    got = sorted(
+        (read_recording(p).meta["created_at"], read_recording(p).steps) for p in find_recordings([tmp_path])
+    )
+    assert got == [(1.0, 3), (2.0, 1)]

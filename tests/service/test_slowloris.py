@@ -38,6 +38,7 @@ from gmt.v1 import policy_pb2_grpc
 ATTACKS = Path(__file__).with_name("h2_attacks.py")
 NOFILE = 1024
 HALF_OPEN = 1100
+SLOW_BODIES = 460
 FRESH_S = 5
 
 
@@ -58,7 +59,7 @@ def descriptors(pid: int) -> int:
 class Slowloris:
     """h2_attacks.py slowloris in its own process; its JSON lines are collected by a thread."""
 
-    def __init__(self, port: int, connections: int, seconds: float) -> None:
+    def __init__(self, port: int, connections: int, seconds: float, body: bool = False) -> None:
         self.proc = subprocess.Popen(
             [
                 sys.executable,
@@ -72,6 +73,7 @@ class Slowloris:
                 "1",
                 "--seconds",
                 str(seconds),
+                *(["--body"] if body else []),
             ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -170,6 +172,40 @@ def test_half_open_connections_under_a_descriptor_limit(ckpt_root):
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in took.items())
             + f" ({within_s:.1f} s after the attack was open)"
         )
+    finally:
+        if attack is not None:
+            attack.kill()
+        server.kill()
+
+
+def test_slow_bodies_under_a_descriptor_limit(ckpt_root):
+    """Round 3: 460 connections that send whole headers with `Content-Length: 100000` and trickle the body denied
+    every fresh REST client (0 of 20) under a 1,024-descriptor limit: a connection reading a body was never
+    evictable. Here with no minimum rate and a body deadline beyond the test, so that only evictions make room."""
+    server = ServeProcess(
+        "--checkpoints",
+        str(ckpt_root / "tiny-gmt"),
+        "--body-timeout-s",
+        "120",
+        "--body-min-rate",
+        "0",
+        nofile=NOFILE,
+    )
+    attack = None
+    try:
+        info = server.wait_serving()
+        target = f"127.0.0.1:{info['grpc_port']}"
+        sid = httpx.post(f"{server.url}/sessions", json={"goal": 1}).json()["session_id"]
+        attack = Slowloris(info["rest_port"], SLOW_BODIES, seconds=40, body=True)
+        assert attack.ready.wait(30), "the attack did not start"
+        assert attack.records[-1]["open"] + attack.records[-1]["refused"] == SLOW_BODIES
+        for i in range(3):  # before: connection reset, every time
+            fresh_client(server.url, target, sid, 2 * i)
+        metrics = httpx.get(f"{server.url}/metrics", timeout=FRESH_S).text
+        closed = samples(metrics, "gmt_connections_closed")
+        assert closed.get((("reason", "evicted"), ("transport", "rest")), 0) >= 1, closed
+        assert closed.get((("reason", "body_timeout"), ("transport", "rest")), 0) == 0, closed
+        attack.stop()
     finally:
         if attack is not None:
             attack.kill()
@@ -296,7 +332,7 @@ def test_an_idle_keep_alive_connection_outlives_the_header_timeout(make_server):
 
 
 def test_the_cap_closes_the_oldest_connection_without_a_request_in_progress(make_server):
-    s = make_server(rest_max_connections=3, header_timeout_s=60, body_timeout_s=60)
+    s = make_server(rest_max_connections=3, header_timeout_s=60, body_timeout_s=60, body_min_rate=0)
     port = s.server.rest_port
     half_open = connect(port, b"GET /healthz HTTP/1.1\r\nHost: t\r\n")
     busy = connect(port, POST_HEAD + BODY[:1])
@@ -320,18 +356,95 @@ def test_the_cap_closes_the_oldest_connection_without_a_request_in_progress(make
         sock.close()
 
 
-def test_past_the_cap_with_every_request_in_progress_the_new_connection_is_closed(make_server):
-    s = make_server(rest_max_connections=1, body_timeout_s=60)
-    busy = connect(s.server.rest_port, POST_HEAD + BODY[:1])
-    wait_for_body_phase(s, 1)
+def test_past_the_cap_with_every_request_being_answered_the_new_connection_is_closed(make_server):
+    s = make_server(rest_max_connections=1, body_min_rate=0)
+    with httpx.Client(base_url=s.url) as http:
+        sid = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).json()["session_id"]
+    # An event stream: its request is being answered for as long as the session lives.
+    events = connect(
+        s.server.rest_port, b"GET /sessions/%s/events HTTP/1.1\r\nHost: t\r\n\r\n" % sid.encode()
+    )
+    assert read_answer_head(events).startswith(b"HTTP/1.1 200")
     extra = connect(s.server.rest_port)
     _, when = read_until_closed(extra, 5)
     extra.close()
     assert when is not None, "the connection past the cap was not closed"
     assert closed_count(s, "over_limit") == 1
-    busy.sendall(BODY[1:])
-    assert read_answer_head(busy).startswith(b"HTTP/1.1 201")
-    busy.close()
+    events.close()
+
+
+def test_a_body_below_the_minimum_rate_answers_408(make_server):
+    """A body trickled at 1 byte a second is cut after its first seconds, long before --body-timeout-s."""
+    s = make_server(body_timeout_s=60, body_min_rate=500)
+    head = b"POST /sessions HTTP/1.1\r\nHost: t\r\ncontent-type: application/json\r\ncontent-length: 100000\r\n\r\n"
+    sock = connect(s.server.rest_port, head + b"{")
+    out, when = b"", None
+    for _ in range(20):  # one byte a second until the server closes
+        more, when = read_until_closed(sock, 1.0)
+        out += more
+        if when is not None:
+            break
+        try:
+            sock.sendall(b" ")
+        except OSError:
+            break
+    sock.close()
+    assert out.startswith(b"HTTP/1.1 408 "), out
+    assert b"500 bytes/s" in out
+    assert closed_count(s, "body_rate") == 1
+    with httpx.Client(base_url=s.url) as http:
+        assert http.get("/healthz").status_code == 200
+
+
+def connect_from(source: str, port: int, data: bytes = b"") -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), source_address=(source, 0))
+    if data:
+        sock.sendall(data)
+    return sock
+
+
+SLOW_HEAD = (
+    b"POST /sessions HTTP/1.1\r\nHost: t\r\ncontent-type: application/json\r\ncontent-length: 100000\r\n\r\n{"
+)
+
+
+def test_a_full_server_evicts_the_slow_bodies_of_a_peer_past_its_share(make_server):
+    """One peer (127.0.0.2) fills the server with connections that sent their headers and trickle a body: a fresh
+    client from another address is served (the hog's oldest body is closed for it); while the server is full,
+    a new connection of the hog takes the place of one of its own, never the fresh client's. Before: body-phase connections were never evictable, and the
+    fresh client was refused."""
+    s = make_server(
+        rest_max_connections=8, rest_max_connections_per_peer=4, body_timeout_s=60, body_min_rate=0
+    )
+    port = s.server.rest_port
+    hog = [connect_from("127.0.0.2", port, SLOW_HEAD) for _ in range(8)]
+    wait_for_body_phase(s, 8)
+    with httpx.Client(base_url=s.url, timeout=10) as http:
+        assert http.get("/healthz").status_code == 200  # its connection stays open, idle: the server is full
+        _, when = read_until_closed(hog[0], 5)
+        assert when is not None, "the hog's oldest slow body was not closed"
+        assert closed_count(s, "evicted") == 1
+        more = connect_from("127.0.0.2", port, SLOW_HEAD)  # past its share of a full server: it pays itself
+        _, when = read_until_closed(hog[1], 5)
+        assert when is not None, "the hog's new connection did not take the place of its own oldest one"
+        assert closed_count(s, "evicted") == 2
+        assert http.get("/healthz").status_code == 200  # the fresh client's connection was not taken for it
+        assert closed_count(s, "evicted") == 2
+    for c in (*hog, more):
+        c.close()
+
+
+def test_body_phase_connections_are_evicted_when_nothing_else_can_be(make_server):
+    s = make_server(rest_max_connections=2, body_timeout_s=60, body_min_rate=0)
+    port = s.server.rest_port
+    slow = [connect(port, SLOW_HEAD) for _ in range(2)]
+    wait_for_body_phase(s, 2)
+    with httpx.Client(base_url=s.url, timeout=10) as http:
+        assert http.get("/healthz").status_code == 200
+    _, when = read_until_closed(slow[0], 5)
+    assert when is not None, "the oldest slow body was not closed for the new connection"
+    for c in slow:
+        c.close()
 
 
 @pytest.mark.parametrize(

@@ -290,10 +290,14 @@ class ResetSessionRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., goal: _Optional[_Union[GoalSelector, _Mapping]] = ...) -> None: ...
 
 class GetTimelineRequest(_message.Message):
-    __slots__ = ("session_id",)
+    __slots__ = ("session_id", "offset", "limit")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+    offset: int
+    limit: int
+    def __init__(self, session_id: _Optional[str] = ..., offset: _Optional[int] = ..., limit: _Optional[int] = ...) -> None: ...
 
 class TimelineEntry(_message.Message):
     __slots__ = ("step", "episode", "goal", "given", "blend_steps", "by", "at")
@@ -314,7 +318,7 @@ class TimelineEntry(_message.Message):
     def __init__(self, step: _Optional[int] = ..., episode: _Optional[int] = ..., goal: _Optional[int] = ..., given: _Optional[_Union[GoalSelector, _Mapping]] = ..., blend_steps: _Optional[int] = ..., by: _Optional[str] = ..., at: _Optional[float] = ...) -> None: ...
 
 class Timeline(_message.Message):
-    __slots__ = ("session_id", "model", "fingerprint", "step", "episode", "entries", "goals", "model_version")
+    __slots__ = ("session_id", "model", "fingerprint", "step", "episode", "entries", "goals", "model_version", "offset")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
@@ -323,6 +327,7 @@ class Timeline(_message.Message):
     ENTRIES_FIELD_NUMBER: _ClassVar[int]
     GOALS_FIELD_NUMBER: _ClassVar[int]
     MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     model: str
     fingerprint: str
@@ -331,7 +336,8 @@ class Timeline(_message.Message):
     entries: int
     goals: _containers.RepeatedCompositeFieldContainer[TimelineEntry]
     model_version: str
-    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., fingerprint: _Optional[str] = ..., step: _Optional[int] = ..., episode: _Optional[int] = ..., entries: _Optional[int] = ..., goals: _Optional[_Iterable[_Union[TimelineEntry, _Mapping]]] = ..., model_version: _Optional[str] = ...) -> None: ...
+    offset: int
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[str] = ..., fingerprint: _Optional[str] = ..., step: _Optional[int] = ..., episode: _Optional[int] = ..., entries: _Optional[int] = ..., goals: _Optional[_Iterable[_Union[TimelineEntry, _Mapping]]] = ..., model_version: _Optional[str] = ..., offset: _Optional[int] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
     __slots__ = ("session_id",)
