@@ -1,7 +1,7 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
 Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `store`,
-`cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
+`batching`, `cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
 
 - `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
   a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
@@ -24,8 +24,12 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   redis_vs_memory and redis_unix_vs_memory: {rest, rest_batch, p50_1_session_added_ms(_rounds)}}: the same server
   with sessions in memory and in a local redis-server reached over loopback TCP and over its Unix socket, all three
   up at once, rounds alternated.
+- `batching`: {sessions, baseline, servers: {current | baseline: {alone | idle_neighbours | rest | rest_batch:
+  {..., rounds}}}, idle_vs_alone: {current, baseline}, vs_baseline: {rest, rest_batch}}: one session's REST p50
+  alone and beside `sessions - 1` idle sessions of its model, then `sessions` acting, for this checkout's server
+  and a baseline commit's (`git archive`, run from this environment), both up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
-One module per section (`engine`, `serving`, `store`, `cluster`, `failover`, `training`, `alternatives`), what
+One module per section (`engine`, `serving`, `store`, `batching`, `cluster`, `failover`, `training`, `alternatives`), what
 they share in `harness`, the whole run in `run`, its tables in `report`, the command in `cli`.
 """

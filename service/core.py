@@ -407,7 +407,6 @@ class Core:
             self._executor,
             max_batch=1 if s.naive else s.max_batch,
             max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
-            expected=lambda k=m.key: self.store.local_count(k),
             observe=lambda size, sec, n=m.name, v=m.version: self.metrics.observe_batch(n, v, size, sec),
             inline_alone=m.engine.describe().kernel == "native",
         )
