@@ -20,10 +20,11 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
 - `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.bench.failover`): {sessions, killed,
   promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
-- `store`: {stores: {memory | redis | redis_unix: {rest, rest_batch, rest_1_session: {..., rounds}}},
-  redis_vs_memory and redis_unix_vs_memory: {rest, rest_batch, p50_1_session_added_ms(_rounds)}}: the same server
-  with sessions in memory and in a local redis-server reached over loopback TCP and over its Unix socket, all three
-  up at once, rounds alternated.
+- `store`: {stores: {memory | redis | redis_unix | replicated: {rest, rest_batch, rest_1_session: {..., rounds}}},
+  redis_vs_memory, redis_unix_vs_memory and replicated_vs_memory: {rest, rest_batch,
+  p50_1_session_added_ms(_rounds)}}: the same server with sessions in memory, in a local redis-server reached over
+  loopback TCP and over its Unix socket, and in a Redis primary with AOF (`everysec`) and one replica with
+  `--store-min-replicas 1` (as `make cluster` deploys it), all four up at once, rounds alternated.
 - `batching`: {sessions, baseline, servers: {current | baseline: {alone | idle_neighbours | rest | rest_batch:
   {..., rounds}}}, idle_vs_alone: {current, baseline}, vs_baseline: {rest, rest_batch}}: one session's REST p50
   alone and beside `sessions - 1` idle sessions of its model, then `sessions` acting, for this checkout's server

@@ -1,5 +1,5 @@
 """`gmt bench --sections batching`: what idle sessions cost an acting one, and the 256-session figures, for this
-checkout's server beside a baseline commit's server in the same run.
+checkout's last commit's server beside a baseline commit's server in the same run.
 
 Both servers run at once and take the same loads in turn, in alternating rounds (the store section's method), so
 that the machine's drift falls on both alike.
@@ -29,7 +29,7 @@ _PACKAGE_DIRS = (
 )
 
 
-def baseline_tree(commit: str, into: Path) -> Path:
+def commit_tree(commit: str, into: Path) -> Path:
     """The repository at `commit` (`git archive` of the repository this module lives in) laid out as an import root
     (`<root>/gmt/...` as symbolic links), to put first on `PYTHONPATH`: a `gmt serve` of that commit from this
     environment. Returns the root."""
@@ -49,16 +49,21 @@ def baseline_tree(commit: str, into: Path) -> Path:
 
 
 def bench_batching(
-    checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rounds: int = 4, baseline: str = "4bb58d0"
+    checkpoint: Path,
+    sessions: int = 256,
+    seconds: float = 8.0,
+    rounds: int = 4,
+    baseline: str = "4bb58d0",
+    current: str = "HEAD",
 ) -> dict:
-    """This checkout's server and `baseline`'s, at once, same loads in alternating rounds of `seconds / 2`:
+    """The servers of commits `current` (this checkout's last commit) and `baseline`, at once, same loads in alternating rounds of `seconds / 2`:
 
     - `alone`: one session acting over REST, no other session on the server;
     - `idle_neighbours`: the same session with `sessions - 1` idle sessions of its model beside it;
     - `rest` / `rest_batch`: `sessions` sessions acting (one connection each / all in one `POST /act`).
 
     Figures over rounds as in the store section (acts/s mean, p50 and p99 medians); `idle_vs_alone` is each
-    server's p50 with idle neighbours over its p50 alone, `vs_baseline` this checkout's acts/s over the baseline's.
+    server's p50 with idle neighbours over its p50 alone, `vs_baseline` current's acts/s over the baseline's.
     """
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-batching-"))
     per_round = max(seconds / 2, 1.0)
@@ -66,17 +71,19 @@ def bench_batching(
     rows: dict = {s: {load: [] for load in loads} for s in ("current", "baseline")}
     procs: dict = {}
     try:
-        root = baseline_tree(baseline, tmp / "baseline")
-        old_path = os.environ.get("PYTHONPATH")
-        os.environ["PYTHONPATH"] = str(root)
-        try:
-            procs["baseline"] = start_server(checkpoint, naive=False)
-        finally:
-            if old_path is None:
-                os.environ.pop("PYTHONPATH")
-            else:
-                os.environ["PYTHONPATH"] = old_path
-        procs["current"] = start_server(checkpoint, naive=False)
+        # Both run from `git archive` trees the same way: a server run from the editable install measured slower
+        # here than the same code run from such a tree.
+        for server, commit in (("baseline", baseline), ("current", current)):
+            root = commit_tree(commit, tmp / server)
+            old_path = os.environ.get("PYTHONPATH")
+            os.environ["PYTHONPATH"] = str(root)
+            try:
+                procs[server] = start_server(checkpoint, naive=False)
+            finally:
+                if old_path is None:
+                    os.environ.pop("PYTHONPATH")
+                else:
+                    os.environ["PYTHONPATH"] = old_path
         urls = {
             s: (f"http://127.0.0.1:{info['rest_port']}", info["models"][0]) for s, (_, info) in procs.items()
         }
@@ -115,6 +122,7 @@ def bench_batching(
         "model": str(checkpoint),
         "sessions": sessions,
         "baseline": baseline,
+        "current": current,
         "seconds_per_round": per_round,
         "rounds": rounds,
         "servers": {s: {load: _over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
