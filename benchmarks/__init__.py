@@ -1,7 +1,7 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
 Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `store`,
-`cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
+`batching`, `cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
 
 - `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
   a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
@@ -20,12 +20,17 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
 - `failover`: the Redis primary of `gmt cluster` killed under load (`gmt.bench.failover`): {sessions, killed,
   promoted, resume_s, retried_answers (by kind), lost_sessions, sessions_unlike_twin, ...}.
 - `training`: {steps_per_s, gflops_achieved, gemm_gflops: {fp32, bf16}} for the default model and batch.
-- `store`: {stores: {memory | redis | redis_unix: {rest, rest_batch, rest_1_session: {..., rounds}}},
-  redis_vs_memory and redis_unix_vs_memory: {rest, rest_batch, p50_1_session_added_ms(_rounds)}}: the same server
-  with sessions in memory and in a local redis-server reached over loopback TCP and over its Unix socket, all three
-  up at once, rounds alternated.
+- `store`: {stores: {memory | redis | redis_unix | replicated: {rest, rest_batch, rest_1_session: {..., rounds}}},
+  redis_vs_memory, redis_unix_vs_memory and replicated_vs_memory: {rest, rest_batch,
+  p50_1_session_added_ms(_rounds)}}: the same server with sessions in memory, in a local redis-server reached over
+  loopback TCP and over its Unix socket, and in a Redis primary with AOF (`everysec`) and one replica with
+  `--store-min-replicas 1` (as `make cluster` deploys it), all four up at once, rounds alternated.
+- `batching`: {sessions, baseline, servers: {current | baseline: {alone | idle_neighbours | rest | rest_batch:
+  {..., rounds}}}, idle_vs_alone: {current, baseline}, vs_baseline: {rest, rest_batch}}: one session's REST p50
+  alone and beside `sessions - 1` idle sessions of its model, then `sessions` acting, for this checkout's server
+  and a baseline commit's (`git archive`, run from this environment), both up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
-One module per section (`engine`, `serving`, `store`, `cluster`, `failover`, `training`, `alternatives`), what
+One module per section (`engine`, `serving`, `store`, `batching`, `cluster`, `failover`, `training`, `alternatives`), what
 they share in `harness`, the whole run in `run`, its tables in `report`, the command in `cli`.
 """

@@ -10,6 +10,7 @@ SECTIONS = (
     "engine",
     "serving",
     "store",
+    "batching",
     "records",
     "cluster",
     "soak",

@@ -328,3 +328,28 @@ def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]
             threading.Thread(target=lambda: [None for _ in proc.stdout], daemon=True).start()
             return proc, f"redis://127.0.0.1:{port}/0"
     raise RuntimeError("redis-server exited before it was ready")
+
+
+def replicated_redis(directory: Path) -> tuple[list[subprocess.Popen], str]:
+    """A Redis primary and one replica as `make cluster` runs them (AOF on, `appendfsync everysec`, data under
+    `directory`), the replica in sync: (both processes, the primary's URL). A server given
+    `--store-min-replicas 1` then has every write acknowledged by the replica (WAIT)."""
+    from gmt.service.cluster import _replica_in_sync, free_port
+
+    ports = [free_port(), free_port()]
+    procs = []
+    for i, port in enumerate(ports):
+        d = directory / f"redis-{i}"
+        d.mkdir(parents=True, exist_ok=True)
+        cmd = ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--dir", str(d), "--save", ""]
+        cmd += ["--appendonly", "yes", "--appendfsync", "everysec", "--repl-diskless-sync-delay", "0"]
+        cmd += ["--replicaof", "127.0.0.1", str(ports[0])] if i else []
+        procs.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL))
+    deadline = time.monotonic() + 30
+    while not _replica_in_sync("127.0.0.1", ports[1], ports[0]):
+        if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
+            for p in procs:
+                p.kill()
+            raise RuntimeError("the Redis replica never came in sync")
+        time.sleep(0.05)
+    return procs, f"redis://127.0.0.1:{ports[0]}/0"

@@ -9,6 +9,7 @@ import tempfile
 from pathlib import Path
 
 from gmt.bench.alternatives import bench_alternatives
+from gmt.bench.batching import bench_batching
 from gmt.bench.cluster import bench_cluster, bench_scaleout
 from gmt.bench.console import bench_console
 from gmt.bench.engine import bench_engine
@@ -69,6 +70,11 @@ def run(
                 }
             else:
                 result["store"] = bench_store(checkpoint or _default(tmp), max(sessions), seconds)
+        if "batching" in sections:
+            if shutil.which("wrk") is None:
+                result["batching"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
+            else:
+                result["batching"] = bench_batching(checkpoint or _default(tmp), max(sessions), seconds)
         if "records" in sections:
             if shutil.which("wrk") is None or shutil.which("redis-server") is None:
                 result["records"] = {

@@ -1,8 +1,10 @@
 """`gmt bench --sections store`: the same server with sessions in memory and in a local redis-server (over loopback
-TCP, and over a Unix socket: the co-located deployment), same load, measured in alternating rounds."""
+TCP, over a Unix socket: the co-located deployment, and as `make cluster` deploys it: AOF `everysec`, one Redis
+replica, `--store-min-replicas 1`), same load, measured in alternating rounds."""
 
 from __future__ import annotations
 
+import shutil
 import statistics
 import sys
 import tempfile
@@ -14,12 +16,14 @@ from gmt.bench.harness import (
     close_sessions,
     open_sessions,
     redis_server,
+    replicated_redis,
     start_server,
 )
 
 
 def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rounds: int = 4) -> dict:
-    """The three servers (memory, Redis over TCP, Redis over its Unix socket) run at once and take the same loads
+    """The four servers (memory, Redis over TCP, Redis over its Unix socket, a replicated Redis with AOF whose
+    every write waits for its replica) run at once and take the same loads
     in turn, `rounds` times, `seconds / 2` each (so that the machine's drift, up to 2x between runs here, falls
     on all three alike): one session's REST p50, then REST one call per act (one connection per session) and
     `POST /act` at `sessions`.
@@ -30,6 +34,7 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rou
     sock_dir = tempfile.mkdtemp(prefix="gmt-bench-redis-")
     sock = str(Path(sock_dir) / "redis.sock")
     redis, url = redis_server(unix_socket=sock)
+    replicated, replicated_url = replicated_redis(Path(sock_dir))
     per_round = max(seconds / 2, 1.0)
     out: dict = {
         "model": str(checkpoint),
@@ -41,6 +46,7 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rou
         "memory": (),
         "redis": ("--redis-url", url),
         "redis_unix": ("--redis-url", f"unix://{sock}?db=0"),
+        "replicated": ("--redis-url", replicated_url, "--store-min-replicas", "1"),
     }
     procs: dict = {}
     rows: dict = {s: {"rest_1_session": [], "rest": [], "rest_batch": []} for s in stores}
@@ -74,13 +80,18 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rou
             proc.terminate()
         for proc, _, _ in procs.values():
             proc.wait(30)
-        redis.terminate()
-        redis.wait(30)
-        Path(sock).unlink(missing_ok=True)
-        Path(sock_dir).rmdir()
+        for r in (redis, *replicated):
+            r.terminate()
+        for r in (redis, *replicated):
+            r.wait(30)
+        shutil.rmtree(sock_dir, ignore_errors=True)
     out["stores"] = {s: {load: _over_rounds(r) for load, r in loads.items()} for s, loads in rows.items()}
     m = out["stores"]["memory"]
-    for store, key in (("redis", "redis_vs_memory"), ("redis_unix", "redis_unix_vs_memory")):
+    for store, key in (
+        ("redis", "redis_vs_memory"),
+        ("redis_unix", "redis_unix_vs_memory"),
+        ("replicated", "replicated_vs_memory"),
+    ):
         r = out["stores"][store]
         out[key] = {
             "rest": round(r["rest"]["acts_per_s"] / m["rest"]["acts_per_s"], 3),

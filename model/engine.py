@@ -48,6 +48,24 @@ class StepFailed(ArithmeticError):
     """A step produced non-finite values; the session was left as it was before the step."""
 
 
+DEVICES = ("cpu", "cuda", "auto")
+
+
+def resolve_device(device: str) -> str:
+    """`cpu` or a torch CUDA device name for `device` (`cpu`, `cuda`, `cuda:N` or `auto`).
+
+    Raises:
+        ValueError: an unknown name, or `cuda` where torch sees no GPU.
+    """
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device != "cpu" and device.split(":")[0] != "cuda":
+        raise ValueError(f"device must be one of {', '.join(DEVICES)} (or cuda:N), got {device!r}")
+    if device != "cpu" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: torch sees no CUDA GPU here (use --device cpu or auto)")
+    return device
+
+
 def check_blend_steps(blend_steps: object) -> int:
     """`blend_steps` if it can be a gradual switch's length: an integer in 0..MAX_BLEND_STEPS.
 
@@ -105,6 +123,9 @@ class PolicyEngine:
             available and the model has vector observations); False keeps the torch step.
         switch_relabel_steps: Steps of context a goal change relabels (`set_goal`; None = the checkpoint's
             `switch_relabel_steps`).
+        device: Where the network runs: `cpu` (the native step where it can, else torch), `cuda` (the torch step
+            on the GPU, the key/value pool allocated there for `n_slots` sessions up front; the network is moved
+            there) or `auto` (`cuda` when a GPU is visible, else `cpu`).
     """
 
     def __init__(
@@ -114,14 +135,20 @@ class PolicyEngine:
         n_slots: int = 16,
         native: bool | None = None,
         switch_relabel_steps: int | None = None,
+        device: str = "cpu",
     ) -> None:
         if checkpoint.config.conditioning != "goal":
             raise ValueError(
                 "this checkpoint is a Decision Transformer (return-to-go conditioning): it is a baseline for "
                 "`gmt eval`, which runs it with gmt.model.evaluate_dt; the engine serves goal-conditioned models"
             )
+        self.device = resolve_device(device)
+        if self.device != "cpu":
+            if native:
+                raise ValueError(f"the native step runs on the CPU, not on {self.device!r}")
+            native = False
         self.ckpt = checkpoint
-        self.model = checkpoint.model.eval()
+        self.model = checkpoint.model.eval().to(self.device)
         self.cfg = checkpoint.config
         self.K = self.cfg.context_length
         self.n_goals = self.cfg.n_goals
@@ -150,7 +177,7 @@ class PolicyEngine:
                 )
             self.action_modes = (default, *(m for m in self.action_modes if m != default))
         self._lock = threading.RLock()
-        self.pool = SessionPool(self.cfg, self.incremental, n_slots)
+        self.pool = SessionPool(self.cfg, self.incremental, n_slots, self.device)
         self.switch_relabel_steps = (
             checkpoint.switch_relabel_steps if switch_relabel_steps is None else switch_relabel_steps
         )
@@ -159,7 +186,7 @@ class PolicyEngine:
                 f"switch_relabel_steps must be 0 to {self.pool.H} (the history kept), got {self.switch_relabel_steps}"
             )
         self._native = self._native_step(native) if self.incremental else None
-        self._predict = Predictor(self.model, self.pool, self.incremental, self._native)
+        self._predict = Predictor(self.model, self.pool, self.incremental, self._native, self.device)
 
     def _native_step(self, native: bool | None):
         """The native step for this model, or None (torch step). Raises if `native` is True and it cannot run."""

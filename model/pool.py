@@ -34,12 +34,13 @@ class SessionPool:
         goal, step, blend_from, blend_steps, blend_done, mode, seed, version: [S] per-slot scalars.
         h_goal, h_blend_to: [S, H] goal tokens; h_blend_w: [S, H] blend weights.
         h_state: [S, H, *obs_shape] normalised states; h_action: [S, H, A] (or [S, H] ids) actions taken.
-        cache: the key/value cache (incremental path only).
+        cache: the key/value cache (incremental path only), on `device` (allocated there for `n_slots` sessions
+            up front: size the pool for the sessions expected, so that it rarely grows).
     """
 
     SCALARS = ("goal", "step", "blend_from", "blend_steps", "blend_done", "mode", "seed", "version")
 
-    def __init__(self, cfg: GMTConfig, incremental: bool, n_slots: int = 16) -> None:
+    def __init__(self, cfg: GMTConfig, incremental: bool, n_slots: int = 16, device: str = "cpu") -> None:
         self.H = cfg.history_steps
         self.modes = MODES
         state_dtype = np.uint8 if cfg.is_image else np.float32
@@ -52,7 +53,7 @@ class SessionPool:
             "h_state": ((self.H, *cfg.obs_shape), state_dtype),
             "h_action": ((self.H, *act_shape), act_dtype),
         }
-        self._cfg, self._incremental, self._initial = cfg, incremental, n_slots
+        self._cfg, self._incremental, self._initial, self._device = cfg, incremental, n_slots, device
         self.generation = 0  # changes whenever the arrays are replaced (native code holds their addresses)
         self._allocate_arrays(n_slots)
         self.keys: dict[str, int] = {}
@@ -60,7 +61,7 @@ class SessionPool:
     def _allocate_arrays(self, n_slots: int) -> None:
         for name, (shape, dtype) in self._layout.items():
             setattr(self, name, np.zeros((n_slots, *shape), dtype=dtype))
-        self.cache = KVCache(self._cfg, n_slots) if self._incremental else None
+        self.cache = KVCache(self._cfg, n_slots, self._device) if self._incremental else None
         self.free = list(range(n_slots - 1, -1, -1))
         self.generation += 1
 

@@ -29,10 +29,15 @@ class Predictor:
         pool: The pool whose slots it reads (and whose cache the incremental path advances).
         incremental: Use the key/value-cache path, else the recompute path.
         native: The native step (`gmt.model.native.NativeStep`) for the incremental path, or None (torch).
+        device: Where the torch step runs (the model's parameters and the pool's cache live there); inputs are
+            copied to it and predictions back, once per batch.
     """
 
-    def __init__(self, model: GMT, pool: SessionPool, incremental: bool, native=None) -> None:
+    def __init__(
+        self, model: GMT, pool: SessionPool, incremental: bool, native=None, device: str = "cpu"
+    ) -> None:
         self.model, self.pool, self.incremental, self.native = model, pool, incremental, native
+        self.device = torch.device(device)
         self.K = model.cfg.context_length
         self._arange_h = np.arange(pool.H)
 
@@ -50,7 +55,13 @@ class Predictor:
                 pred = self._incremental(slots, t, g, goal, w, states)
             else:
                 pred = self._recompute(slots, t, g, goal, w, states)
-            return pred.float().numpy()  # [B, A]
+            return pred.float().cpu().numpy()  # [B, A]
+
+    def _t(self, x) -> torch.Tensor:
+        """A numpy array (or tensor) as a tensor on the step's device."""
+        return (torch.from_numpy(x) if isinstance(x, np.ndarray) else x).to(
+            self.device
+        )  # (a no-op on the CPU)
 
     @torch.inference_mode()
     def rebuild_cache(self, slot: int) -> None:
@@ -72,13 +83,13 @@ class Predictor:
         pos = np.arange(t - n, t) % p.H
         kv: list = []
         self.model(
-            torch.from_numpy(p.h_goal[slot, pos][None]),
-            torch.from_numpy(p.h_state[slot, pos][None]),
-            torch.from_numpy(p.h_action[slot, pos][None]),
-            torch.arange(t - n, t)[None],
-            torch.ones(1, n, dtype=torch.bool),
-            torch.from_numpy(p.h_blend_to[slot, pos][None]),
-            torch.from_numpy(p.h_blend_w[slot, pos][None]),
+            self._t(p.h_goal[slot, pos][None]),
+            self._t(p.h_state[slot, pos][None]),
+            self._t(p.h_action[slot, pos][None]),
+            self._t(torch.arange(t - n, t)[None]),
+            self._t(torch.ones(1, n, dtype=torch.bool)),
+            self._t(p.h_blend_to[slot, pos][None]),
+            self._t(p.h_blend_w[slot, pos][None]),
             last_only=True,
             kv_out=kv,
         )
@@ -87,7 +98,7 @@ class Predictor:
         ring = tok % cache.width
         for layer, (k, v) in enumerate(kv):
             cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
-        cache.tok[slot, ring] = tok
+        cache.tok[slot, ring.to(cache.device)] = tok.to(cache.device)
 
     def _replay_cache(self, slot: int, t: int, n: int) -> None:
         """Run the stored steps t - n .. t - 1 of `slot` through the native step, oldest first.
@@ -136,20 +147,20 @@ class Predictor:
             order = np.argsort(slots, kind="stable")
             sorted_rows = [x[order] for x in (slots, t, g, goal, w, states)]
             out = self._incremental(*sorted_rows)
-            return out[torch.from_numpy(np.argsort(order))]
+            return out[self._t(np.argsort(order))]
         p = self.pool
         prev = p.h_action[slots, (t - 1) % p.H]  # [B, A] (junk where t == 0)
         prev[t == 0] = 0
         blend = bool((w > 0).any())
         return self.model.step(
-            torch.from_numpy(prev),
-            torch.from_numpy(g),
-            torch.from_numpy(states),
-            torch.from_numpy(t),
+            self._t(prev),
+            self._t(g),
+            self._t(states),
+            self._t(t),
             p.cache,
-            torch.from_numpy(slots),
-            torch.from_numpy(goal) if blend else None,
-            torch.from_numpy(w) if blend else None,
+            self._t(slots),
+            self._t(goal) if blend else None,
+            self._t(w) if blend else None,
         )
 
     def _recompute(self, slots, t, g, goal, w, states) -> torch.Tensor:
@@ -165,13 +176,13 @@ class Predictor:
         goals[pad], blend_to[pad], blend_w[pad], st[pad], ac[pad] = 0, 0, 0, 0, 0
         blend = bool((blend_w > 0).any())
         pred, _ = self.model(
-            torch.from_numpy(goals),
-            torch.from_numpy(st),
-            torch.from_numpy(ac),
-            torch.from_numpy(np.where(valid, idx, 0)),
-            torch.from_numpy(valid),
-            torch.from_numpy(blend_to) if blend else None,
-            torch.from_numpy(blend_w) if blend else None,
+            self._t(goals),
+            self._t(st),
+            self._t(ac),
+            self._t(np.where(valid, idx, 0)),
+            self._t(valid),
+            self._t(blend_to) if blend else None,
+            self._t(blend_w) if blend else None,
             last_only=True,
         )
         return pred[:, 0]  # [B, A]

@@ -1,7 +1,11 @@
 """Cross-session micro-batching: concurrent `act` calls on one model share one forward pass.
 
-A batch closes when it holds `max_batch` requests, when every session that could send one already has
-(`expected()`; a session has at most one request in flight), or `max_wait_s` after its first request arrived.
+A batch waits (at most `max_wait_s` after its first request) only for the sessions that are acting: those answered
+within the last `active_window_s` (a session has at most one request in flight, so one of them not queued may be
+on its way). An idle session, one that never acted or stopped acting, is never waited for, so idle neighbours cost
+an acting session nothing; with none acting beside it, a request runs as soon as the engine is free, with what
+arrived while it was busy. A batch closes when it holds `max_batch` requests, when every acting session has a
+request queued, or at the deadline.
 The forward runs in a worker thread so that the event loop keeps serving (a lone session's may run on the loop,
 see `inline_alone`).
 """
@@ -25,6 +29,8 @@ from gmt.service.errors import Unavailable
 
 log = logging.getLogger("gmt.batcher")
 
+ACTIVE_S = 1.0  # a session answered within this long (or twice the batch wait, if longer) counts as acting
+
 
 @dataclass
 class _Item:
@@ -35,6 +41,11 @@ class _Item:
     unit: units.Unit | None = None  # the change it belongs to: no longer cancellable once its forward starts
 
 
+def _key(ctx: Context | object) -> object:
+    """The session an item belongs to: its pool slot (a session has at most one request in flight)."""
+    return getattr(ctx, "slot", ctx)
+
+
 class MicroBatcher:
     """Collects (context, observation) pairs for one engine and answers them in batches.
 
@@ -42,13 +53,18 @@ class MicroBatcher:
         engine: The model's engine.
         executor: Runs `engine.act` off the event loop (None: on the loop itself, for the naive server).
         max_batch: Most requests in one forward pass.
-        max_wait_s: Longest time the first request of a batch waits for others.
-        expected: Number of sessions that could have a request queued (waiting stops when all have).
+        max_wait_s: Longest time the first request of a batch waits for the acting sessions not yet queued.
         observe: Called with (batch size, forward seconds) after every forward pass.
-        inline_alone: When no other session of this model could be waiting and nothing is queued, run an act
+        inline_alone: When nothing is queued or running and no other session is acting, run an act
             right away on the event loop: a lone session then pays no queue, batching task or thread hop
             (~0.3 ms here). For engines whose step is short (the native kernel: ~0.2 ms), so the loop is never
             held long.
+        clock: Monotonic seconds, for the acting window.
+
+    Attributes:
+        active_window_s: How long after its last answer a session counts as acting: `ACTIVE_S`, or twice
+            `max_wait_s` if that is longer.
+        waits: Batches that waited for an acting session (instrumentation: idle sessions never add to it).
     """
 
     def __init__(
@@ -57,22 +73,27 @@ class MicroBatcher:
         executor: Executor | None,
         max_batch: int,
         max_wait_s: float,
-        expected: Callable[[], int] | None = None,
         observe: Callable[[int, float], None] | None = None,
         inline_alone: bool = False,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.engine = engine
         self.executor = executor
         self.max_batch = max_batch
         self.max_wait_s = max_wait_s
-        self.expected = expected or (lambda: max_batch)
         self.observe = observe
         self.inline_alone = inline_alone
+        self.clock = clock
         self._pending: collections.deque[_Item] = collections.deque()
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
         self._running: list[_Item] = []
         self._groups = 0
+        self.active_window_s = max(ACTIVE_S, 2 * max_wait_s)
+        # Sessions that acted one at a time, by `_key`: loop time of their last answer, oldest first.
+        self._active: dict[object, float] = {}
+        self._missing: set = set()  # acting sessions the batch being gathered still waits for
+        self.waits = 0
 
     def start(self) -> None:
         """Start the (supervised) batching task on the running loop."""
@@ -129,12 +150,41 @@ class MicroBatcher:
         """
         if self._task is None or self._task.done():
             raise RuntimeError("batcher is not running")
-        if self.inline_alone and not self._pending and not self._running and self.expected() <= 1:
-            return self._act_alone(ctx, obs)
-        fut = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        key = _key(ctx)
+        if (
+            self.inline_alone
+            and not self._pending
+            and not self._running
+            and not self._acting(self.clock(), key)
+        ):
+            action = self._act_alone(ctx, obs)
+            self._answered(key, self.clock())
+            return action
+        fut = loop.create_future()
         self._pending.append(_Item(ctx, obs, fut, unit=units.current()))
+        self._missing.discard(key)
         self._wake.set()
         return await fut
+
+    def _answered(self, key: object, now: float) -> None:
+        self._active.pop(key, None)
+        self._active[key] = now  # the most recent last
+
+    def _acting(self, now: float, exclude: object = None) -> set:
+        """Acting sessions (answered within `active_window_s`) other than `exclude` and those queued; sessions
+        answered longer ago are forgotten until they act again."""
+        active, oldest = self._active, now - self.active_window_s
+        while active:
+            key = next(iter(active))
+            if active[key] >= oldest:
+                break
+            del active[key]
+        acting = set(active)
+        acting.discard(exclude)
+        if acting:
+            acting.difference_update(_key(it.ctx) for it in self._pending)
+        return acting
 
     def _act_alone(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
         """A lone session's act, run right here on the loop: no queue, no batching task, no thread hop."""
@@ -178,21 +228,30 @@ class MicroBatcher:
         return self.queued
 
     async def _gather(self) -> None:
+        """Wait (up to `max_wait_s`) for the acting sessions that have no request queued; none: return at once."""
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.max_wait_s
-        while True:
-            n = self._live()
-            if n == 0 or n >= self.max_batch or n >= self.expected():
-                return
-            remaining = deadline - loop.time()
-            if remaining <= 0:
-                return
-            self._wake.clear()
-            try:
-                async with asyncio.timeout(remaining):
-                    await self._wake.wait()
-            except TimeoutError:
-                return
+        now = loop.time()
+        n = self._live()
+        if n == 0 or n >= self.max_batch or self.max_wait_s <= 0 or not self._active:
+            return
+        self._missing = self._acting(self.clock())
+        if not self._missing:
+            return
+        self.waits += 1
+        deadline = now + self.max_wait_s
+        try:
+            while self._missing and self._live() < self.max_batch:
+                remaining = deadline - loop.time()
+                if remaining <= 0:
+                    return
+                self._wake.clear()
+                try:
+                    async with asyncio.timeout(remaining):
+                        await self._wake.wait()
+                except TimeoutError:
+                    return
+        finally:
+            self._missing = set()
 
     async def _run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -231,7 +290,10 @@ class MicroBatcher:
                 self._running = []
             if self.observe is not None:
                 self.observe(len(batch), time.perf_counter() - t0)
+            now = self.clock()
             for it, a in zip(batch, actions, strict=True):
+                if not it.group:
+                    self._answered(_key(it.ctx), now)
                 if it.future.done():
                     continue
                 if isinstance(a, Exception):

@@ -282,7 +282,9 @@ class Core:
             missing = [str(p) for p in s.checkpoints if not p.exists()]
             if missing:
                 log.warning("checkpoint path does not exist", extra={"paths": missing})
-            self.registry = await asyncio.to_thread(ModelRegistry.load, list(s.checkpoints), s.naive)
+            self.registry = await asyncio.to_thread(
+                ModelRegistry.load, list(s.checkpoints), s.naive, **self._engine_placement()
+            )
         if not self.registry.models:
             log.warning(
                 "no model loaded: no checkpoint directory (one with gmt.json) under the checkpoint paths; "
@@ -411,6 +413,10 @@ class Core:
         """One model. Raises NotFound."""
         return self._view_model(self.registry.entry(name))
 
+    def _engine_placement(self) -> dict:
+        """Where a loaded version's engine runs: `--device`, its pool sized for `--max-sessions` off the CPU."""
+        return {"device": self.settings.device, "n_slots": self.settings.max_sessions}
+
     def _start_batcher(self, m: LoadedModel) -> None:
         """Start the micro-batcher of a version newly in the registry."""
         s = self.settings
@@ -419,7 +425,6 @@ class Core:
             self._executor,
             max_batch=1 if s.naive else s.max_batch,
             max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
-            expected=lambda k=m.key: self.store.local_count(k),
             observe=lambda size, sec, n=m.name, v=m.version: self.metrics.observe_batch(n, v, size, sec),
             inline_alone=m.engine.describe().kernel == "native",
         )
@@ -522,7 +527,9 @@ class Core:
         d = self.checkpoint_path(path)
         async with self._admin:
             try:
-                m = await asyncio.to_thread(load_model, name, d, self.settings.naive, fingerprint)
+                m = await asyncio.to_thread(
+                    load_model, name, d, self.settings.naive, fingerprint, **self._engine_placement()
+                )
             except CheckpointError as e:
                 raise InvalidArgument(f"checkpoint refused: {e}") from None
             except OSError as e:  # unreadable files (permissions, a directory where a file should be, ...)
@@ -647,7 +654,15 @@ class Core:
             if m is not None:
                 return m
             try:
-                m = await asyncio.to_thread(load_model, name, path, self.settings.naive, fp or None, DRAINING)
+                m = await asyncio.to_thread(
+                    load_model,
+                    name,
+                    path,
+                    self.settings.naive,
+                    fp or None,
+                    DRAINING,
+                    **self._engine_placement(),
+                )
                 self.registry.add(m)
             except (CheckpointError, ServiceError) as e:
                 msg = e.message if isinstance(e, ServiceError) else str(e)

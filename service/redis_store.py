@@ -185,6 +185,10 @@ class RedisSessionStore(SessionStore):
             tuple[list, asyncio.Future]
         ] = []  # (changes, their caller) waiting for this turn's write
         self._flushes: set[asyncio.Task] = set()
+        # Group commit (`min_replicas`): the fast connection a WAIT is in flight on, and the writes sent on it
+        # since, each with the list its script's replies arrive in: the next WAIT covers them all.
+        self._waiting_on: resp.RespConnection | None = None
+        self._uncovered: list[tuple[list, list]] = []
 
     # ----- keys and calls ---------------------------------------------------------------------------------------
     def _key(self, sid: str) -> str:
@@ -427,22 +431,64 @@ class RedisSessionStore(SessionStore):
 
     def _flush(self, spin_s: float = 0.0) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
-        them): at once on the open fast connection (polling for the reply up to `spin_s`,
-        `RespConnection.send`), else from a task that connects first."""
+        them, one WAIT in flight at a time: the writes sent while one is in flight share the next, `_waited`): at
+        once on the open fast connection (polling for the reply up to `spin_s`, `RespConnection.send`), else from
+        a task that connects first."""
         queue, self._queue = self._queue, []
         keys = [k for entries, _ in queue for ks, _ in entries for k in ks]
         argv = [a for entries, _ in queue for _, args in entries for a in args]
         # EVAL, not EVALSHA: no script-cache round trip, and a promoted replica needs no script loaded.
         commands = [["EVAL", _SAVE, len(keys), *keys, self._ttl_ms, *argv]]
-        if self.min_replicas:
-            commands.append(["WAIT", self.min_replicas, self._wait_ms])
         conn = self._fast
         if conn is not None and not conn.closed:
-            conn.send(lambda replies: self._answer(queue, conn, replies), *commands, spin_s=spin_s)
+            if not self.min_replicas:
+                conn.send(lambda replies: self._answer(queue, conn, replies), *commands, spin_s=spin_s)
+            elif self._waiting_on is conn:
+                # Group commit: a WAIT is in flight on this connection (Redis holds the connection's later
+                # commands until it is answered). The write goes now; one WAIT for every write sent meanwhile
+                # follows once that one is answered (`_waited`).
+                got: list = []
+                self._uncovered.append((queue, got))
+                conn.send(got.append, *commands)
+            else:
+                self._waiting_on = conn
+                wait = ["WAIT", self.min_replicas, self._wait_ms]
+                conn.send(
+                    lambda replies: self._waited(conn, [(queue, None)], replies),
+                    *commands,
+                    wait,
+                    spin_s=spin_s,
+                )
             return
+        if self.min_replicas:
+            commands.append(["WAIT", self.min_replicas, self._wait_ms])
         task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
         task.add_done_callback(self._flushes.discard)
+
+    def _waited(self, conn: resp.RespConnection, group: list[tuple[list, list | None]], replies) -> None:
+        """Answer the writes a WAIT covered, from their script's replies and the WAIT's (`replies`: [script, WAIT]
+        for the write sent with it, then the WAIT alone for those sent while another WAIT was in flight); then
+        send one WAIT for the writes sent meanwhile, or fail them with the connection."""
+        for queue, got in group:
+            if got is None or isinstance(replies, BaseException):
+                self._answer(queue, conn, replies)
+            elif got and not isinstance(got[0], BaseException):
+                self._answer(queue, conn, [*got[0], *replies])
+            else:
+                self._answer(queue, conn, got[0] if got else resp.ConnectionLost("no reply to the write"))
+        if self._waiting_on is not conn:
+            return
+        uncovered, self._uncovered = self._uncovered, []
+        if not uncovered:
+            self._waiting_on = None
+            return
+        try:
+            conn.send(lambda r: self._waited(conn, uncovered, r), ["WAIT", self.min_replicas, self._wait_ms])
+        except resp.ConnectionLost as e:
+            self._waiting_on = None
+            for queue, _ in uncovered:
+                self._answer(queue, conn, e)
 
     async def _flush_slowly(self, queue: list, commands: list[list]) -> None:
         try:

@@ -23,7 +23,7 @@ from gmt.model.checkpoint import (
     read_meta,
     version_of,
 )
-from gmt.model.engine import PolicyEngine
+from gmt.model.engine import PolicyEngine, resolve_device
 from gmt.service.errors import AlreadyExists, FailedPrecondition, InvalidArgument, NotFound, Unavailable
 
 log = logging.getLogger("gmt.registry")
@@ -48,10 +48,16 @@ def discover(paths: list[Path]) -> list[Path]:
     return found
 
 
-def engine_for(checkpoint: Checkpoint, naive: bool = False) -> PolicyEngine:
+def engine_for(
+    checkpoint: Checkpoint, naive: bool = False, device: str = "cpu", n_slots: int = 16
+) -> PolicyEngine:
     """The engine serving a checkpoint: incremental for `window` models, the reference recompute otherwise or when
-    `naive`."""
-    return PolicyEngine(checkpoint, incremental=False if naive else None)
+    `naive`; on `device` (`PolicyEngine`), whose session pool is allocated for `n_slots` sessions up front when it
+    is not the CPU."""
+    on_cpu = resolve_device(device) == "cpu"
+    return PolicyEngine(
+        checkpoint, incremental=False if naive else None, device=device, n_slots=16 if on_cpu else n_slots
+    )
 
 
 def canary_draw(version: str, sid: str) -> float:
@@ -136,11 +142,14 @@ class ModelRegistry:
         return [m for mv in self.names.values() for m in mv.versions.values()]
 
     @classmethod
-    def load(cls, paths: list[Path], naive: bool = False) -> ModelRegistry:
+    def load(
+        cls, paths: list[Path], naive: bool = False, device: str = "cpu", n_slots: int = 16
+    ) -> ModelRegistry:
         """Load every checkpoint found under `paths`, each the one version of the model named by its directory; a
         broken one is logged and skipped.
 
-        `naive` serves every model by the reference recompute (the exactness oracle and benchmark baseline).
+        `naive` serves every model by the reference recompute (the exactness oracle and benchmark baseline);
+        `device` and `n_slots` as in `engine_for`.
         """
         reg = cls()
         for d in discover(paths):
@@ -152,7 +161,7 @@ class ModelRegistry:
                 log.error("checkpoint skipped", extra={"path": str(d), "error": reg.errors[str(d)]})
                 continue
             try:
-                m = load_model(name, d, naive)
+                m = load_model(name, d, naive, device=device, n_slots=n_slots)
             except CheckpointError as e:
                 reg.errors[str(d)] = str(e)
                 log.error("checkpoint failed to load", extra={"path": str(d), "error": str(e)})
@@ -343,7 +352,13 @@ class ModelRegistry:
 
 
 def load_model(
-    name: str, path: Path, naive: bool = False, expect_fingerprint: str | None = None, state: str = SERVING
+    name: str,
+    path: Path,
+    naive: bool = False,
+    expect_fingerprint: str | None = None,
+    state: str = SERVING,
+    device: str = "cpu",
+    n_slots: int = 16,
 ) -> LoadedModel:
     """Load the checkpoint at `path` as a version of model `name`, with its engine (slow: run it in a thread).
 
@@ -353,7 +368,7 @@ def load_model(
     """
     try:
         ckpt = load_checkpoint(path, name=name, expect_fingerprint=expect_fingerprint)
-        engine = engine_for(ckpt, naive)
+        engine = engine_for(ckpt, naive, device, n_slots)
     except CheckpointError:
         raise
     except Exception as e:  # noqa: BLE001 - whatever a malformed checkpoint makes torch or the engine raise
@@ -371,6 +386,7 @@ def load_model(
             "attention": ckpt.config.attention,
             "engine": info.path,
             "kernel": info.kernel,
+            "device": engine.device,
         },
     )
     return m

@@ -36,6 +36,13 @@ def serve_command(**flags: Any) -> None:
             for err in e.errors(include_url=False, include_input=False)
         ]
         raise typer.BadParameter("; ".join(problems)) from None
+    if settings.device != "cpu":
+        from gmt.model.engine import resolve_device
+
+        try:
+            resolve_device(settings.device)
+        except ValueError as e:  # e.g. cuda on a machine without a GPU: say so before loading anything
+            raise typer.BadParameter(str(e), param_hint="--device") from None
     logs.configure(settings.log_format, settings.log_level)
     try:
         if settings.event_loop == "uvloop":

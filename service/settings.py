@@ -77,6 +77,9 @@ class Settings(BaseSettings):
         grpc_write_timeout_s: A Control stream whose client takes no answer for this long (its flow-control window
             stays closed) ends with RESOURCE_EXHAUSTED, which the client reads after the answers still queued.
         event_loop: `uvloop` (the default: a faster loop for both transports) or `asyncio`.
+        device: Where the networks run: `cpu` (the native step), `cuda` (a batched torch step on the GPU, each
+            model's key/value pool allocated there for --max-sessions sessions up front) or `auto` (`cuda` when
+            torch sees a GPU, else `cpu`).
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
         replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC
@@ -123,6 +126,7 @@ class Settings(BaseSettings):
     grpc_max_concurrent_rpcs: int = Field(2048, ge=1)
     grpc_write_timeout_s: float = Field(30.0, gt=0)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
+    device: str = Field("cpu", pattern=r"^(cpu|auto|cuda(:\d+)?)$")
     naive: bool = False
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
     record_dir: Path | None = None

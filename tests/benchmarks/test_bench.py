@@ -139,7 +139,7 @@ def test_store_section_alternates_rounds_over_three_live_servers(window_ckpt):
     from gmt.bench.store import bench_store
 
     res = bench_store(window_ckpt, sessions=3, seconds=2.0, rounds=2)
-    for store in ("memory", "redis", "redis_unix"):
+    for store in ("memory", "redis", "redis_unix", "replicated"):
         for load in ("rest_1_session", "rest", "rest_batch"):
             row = res["stores"][store][load]
             assert len(row["rounds"]) == 2 and row["errors"] == 0 and row["acts_per_s"] > 0, (
@@ -153,3 +153,23 @@ def test_store_section_alternates_rounds_over_three_live_servers(window_ckpt):
     m, r = res["stores"]["memory"], res["stores"]["redis"]
     assert res["redis_vs_memory"]["rest"] == round(r["rest"]["acts_per_s"] / m["rest"]["acts_per_s"], 3)
     assert len(res["redis_vs_memory"]["p50_1_session_added_ms_rounds"]) == 2
+
+
+def test_batching_section_serves_two_commits_and_measures_idle_neighbours(window_ckpt):
+    from gmt.bench.batching import bench_batching
+
+    res = bench_batching(window_ckpt, sessions=3, seconds=2.0, rounds=1, baseline="HEAD", current="HEAD")
+    for server in ("current", "baseline"):
+        for load in ("alone", "idle_neighbours", "rest", "rest_batch"):
+            row = res["servers"][server][load]
+            assert row["errors"] == 0 and row["acts_per_s"] > 0 and len(row["rounds"]) == 1, (
+                server,
+                load,
+                row,
+            )
+        assert res["servers"][server]["idle_neighbours"]["sessions"] == 1
+        assert res["servers"][server]["rest"]["sessions"] == 3
+    v = res["servers"]
+    assert res["vs_baseline"]["rest"] == round(
+        v["current"]["rest"]["acts_per_s"] / v["baseline"]["rest"]["acts_per_s"], 3
+    )

@@ -1,10 +1,12 @@
-"""MicroBatcher alone, with a recording engine: batch bounds, waiting, cancellation, failures."""
+"""MicroBatcher alone, with a recording engine: batch bounds, waiting only for acting sessions, cancellation,
+failures. Contexts are plain names here (a session is its context's `slot`, or the context itself)."""
 
 import asyncio
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
+from service_harness import FakeClock
 
 from gmt.service.batcher import MicroBatcher
 
@@ -44,7 +46,7 @@ def test_batches_never_exceed_max_batch(pool):
     eng = RecordingEngine()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=2, max_wait_s=0.05, expected=lambda: 5)
+        b = MicroBatcher(eng, pool, max_batch=2, max_wait_s=0.05)
         b.start()
         out = await asyncio.gather(*(b.act(None, i) for i in range(5)))
         await b.close()
@@ -54,54 +56,86 @@ def test_batches_never_exceed_max_batch(pool):
     assert [len(x) for x in eng.batches] == [2, 2, 1]
 
 
-def test_waits_for_expected_sessions_then_stops_waiting(pool):
+async def in_step(b: MicroBatcher, names: list[str], rounds: int = 1) -> None:
+    """Every named session acts at once, `rounds` times."""
+    for r in range(rounds):
+        await asyncio.gather(*(b.act(n, f"{n}{r}") for n in names))
+
+
+def test_waits_for_an_acting_session_then_runs(pool):
     eng = RecordingEngine()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10, expected=lambda: 3)
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10)
         b.start()
-        futs = [asyncio.ensure_future(b.act(None, x)) for x in ("a", "b", "c")]
-        out = await asyncio.wait_for(asyncio.gather(*futs), 5)  # far less than max_wait_s
+        await in_step(b, ["a", "b", "c"])
+        assert b.waits == 0  # all three arrived together: nobody acting was missing
+        first = [asyncio.ensure_future(b.act(n, f"{n}!")) for n in ("a", "b")]
+        while b.waits < 1:  # the batch of a and b waits for c, which is acting
+            await asyncio.sleep(0)
+        out = await asyncio.wait_for(asyncio.gather(*first, b.act("c", "c!")), 5)  # far less than max_wait_s
         await b.close()
         return out
 
-    assert run(main()) == ["a", "b", "c"]
-    assert eng.batches == [["a", "b", "c"]]
+    assert run(main()) == ["a!", "b!", "c!"]
+    assert eng.batches[-1] == ["a!", "b!", "c!"]
+
+
+def test_sessions_that_stopped_acting_are_not_waited_for(pool):
+    """A session answered longer ago than the acting window no longer holds a batch; one that never acted (an
+    idle session) never did."""
+    eng = RecordingEngine()
+    clock = FakeClock()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0.01, clock=clock)
+        b.start()
+        await in_step(b, ["busy", "stopped"])
+        clock.advance(b.active_window_s / 2)
+        assert await asyncio.wait_for(b.act("busy", "held"), 5) == "held"
+        assert b.waits == 1  # "stopped" still counted as acting: the batch waited for it (10 ms)
+        clock.advance(b.active_window_s)
+        for i in range(5):
+            assert await asyncio.wait_for(b.act("busy", i), 5) == i
+        await b.close()
+        return b.waits
+
+    assert run(main()) == 1
+    assert eng.batches[-5:] == [[i] for i in range(5)]
 
 
 def test_wait_is_bounded(pool):
     eng = RecordingEngine()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0.01, expected=lambda: 100)
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0.01)
         b.start()
-        out = await asyncio.wait_for(b.act(None, 1), 5)
+        await in_step(b, ["a", "late"])
+        out = await asyncio.wait_for(b.act("a", 1), 5)  # "late" is acting and does not come
         await b.close()
-        return out
+        return out, b.waits
 
-    assert run(main()) == 1 and eng.batches == [[1]]
+    assert run(main()) == (1, 1) and eng.batches[-1] == [1]
 
 
 def test_cancelled_request_is_dropped_before_the_forward(pool):
     eng = RecordingEngine()
-    expected = [5]
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10, expected=lambda: expected[0])
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10)
         b.start()
-        doomed = asyncio.ensure_future(b.act(None, "doomed"))
-        kept = asyncio.ensure_future(b.act(None, "kept"))
-        while b._live() < 2:  # both queued; the batcher waits for 5
+        await in_step(b, ["doomed", "kept", "last"])
+        doomed = asyncio.ensure_future(b.act("doomed", "doomed"))
+        kept = asyncio.ensure_future(b.act("kept", "kept"))
+        while b.waits < 1:  # both queued; the batcher waits for "last", acting
             await asyncio.sleep(0)
         doomed.cancel()
-        expected[0] = 2  # "kept" and "last" complete the batch, unless "doomed" still counts
-        last = asyncio.ensure_future(b.act(None, "last"))
-        out = await asyncio.wait_for(asyncio.gather(kept, last), 5)
+        out = await asyncio.wait_for(asyncio.gather(kept, b.act("last", "last")), 5)
         await b.close()
         return out
 
     assert run(main()) == ["kept", "last"]
-    assert eng.batches == [["kept", "last"]]
+    assert eng.batches[-1] == ["kept", "last"]
 
 
 def test_requests_arriving_during_a_forward_form_the_next_batch(pool):
@@ -109,7 +143,7 @@ def test_requests_arriving_during_a_forward_form_the_next_batch(pool):
     eng.gate.clear()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0, expected=lambda: 1)
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
         b.start()
         first = asyncio.ensure_future(b.act(None, 0))
         assert await asyncio.to_thread(eng.entered.wait, 5)  # the forward of [0] is running, held at the gate
@@ -129,7 +163,7 @@ def test_a_failing_forward_fails_its_batch_only(pool):
     eng = RecordingEngine()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0, expected=lambda: 1)
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
         b.start()
         eng.fail = True
         with pytest.raises(RuntimeError, match="boom"):
@@ -171,23 +205,37 @@ def test_a_crashed_batcher_fails_its_calls_as_unavailable_and_restarts(pool):
 
 @pytest.mark.parametrize("inline_alone", [False, True])
 def test_a_lone_session_runs_on_the_loop_only_when_asked_and_alone(pool, inline_alone):
-    """With `inline_alone`, a batch of one whose model has no other session runs on the event loop's thread
-    (no hop); with several sessions, or without the option, the forward runs in the executor."""
+    """With `inline_alone`, a batch of one with no other session acting runs on the event loop's thread (no hop);
+    two sessions acting together are batched in the executor once both are acting; without the option, every
+    forward runs in the executor."""
     eng = RecordingEngine()
-    live = {"n": 1}
 
     async def main():
-        b = MicroBatcher(
-            eng, pool, max_batch=8, max_wait_s=0.5, expected=lambda: live["n"], inline_alone=inline_alone
-        )
+        b = MicroBatcher(eng, pool, max_batch=8, max_wait_s=0.5, inline_alone=inline_alone)
         b.start()
-        assert await b.act(None, "alone") == "alone"
-        live["n"] = 2
-        assert await asyncio.gather(b.act(None, "x"), b.act(None, "y")) == ["x", "y"]
+        assert await b.act("s", "alone") == "alone"
+        await in_step(b, ["x", "y"], rounds=2)
         await b.close()
         return threading.current_thread().name
 
     loop_thread = run(main())
     assert eng.threads[0] == loop_thread if inline_alone else eng.threads[0] != loop_thread
-    assert eng.threads[1] != loop_thread
-    assert eng.batches == [["alone"], ["x", "y"]]
+    assert eng.threads[-1] != loop_thread
+    assert eng.batches[0] == ["alone"] and eng.batches[-1] == ["x1", "y1"]
+
+
+def test_a_served_session_beside_idle_sessions_of_its_model_never_waits(make_server, observations):
+    """A real server with a minute-long batch wait: one session acts while five others of its model stay idle;
+    every act is answered without waiting for them (before, each act waited the whole batch wait)."""
+    import httpx
+
+    srv = make_server(batch_wait_ms=60_000)
+    with httpx.Client(base_url=srv.url, timeout=10) as http:  # an act held by the wait would time out
+        sids = [
+            http.post("/sessions", json={"model": "tiny-gmt", "goal": 1, "seed": i}).json()["session_id"]
+            for i in range(6)
+        ]
+        for t, obs in enumerate(observations[:6]):
+            r = http.post(f"/sessions/{sids[0]}/act", json={"observation": obs.tolist(), "step": t})
+            assert r.status_code == 200, r.text
+    assert [b.waits for b in srv.core._batchers.values()] == [0] * len(srv.core._batchers)

@@ -30,7 +30,7 @@ from gmt.v1 import policy_pb2_grpc
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = "tiny-cheetah"
-BATCH_WAIT_MS = 400  # a lone act waits this long in the batcher (other sessions could join): time to kill it
+BATCH_WAIT_MS = 400  # an act waits this long for a session still acting (`pad`): the kill window
 STEPS, KILL_AT = 8, 4
 
 needs_programs = pytest.mark.skipif(
@@ -237,6 +237,15 @@ def held_by_victim(url: str, rest: int, grpc: int, timeout_s: float = 30.0) -> N
     raise AssertionError(f"the acts never reached {url}: in flight {now}")
 
 
+def pad(padding, steps: int, barrier: threading.Barrier) -> None:
+    """`padding` acts `steps` times beside the episodes, then waits at their barrier and never acts again: it still
+    counts as acting on its replica (for a second), so the acts after the barrier wait BATCH_WAIT_MS for it (the
+    window in which the test kills the replica)."""
+    for _ in range(steps):
+        padding.act(np.zeros(17))
+    barrier.wait(30)
+
+
 def _episode(session, obs, barrier, timings, out, errors) -> None:
     try:
         for t, o in enumerate(obs):
@@ -278,9 +287,9 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
         for kind, client in (("rest", rest), ("grpc", stream_client)):
             with client.create_session(MODEL, 1, seed=seeds[kind]) as twin:
                 want[kind] = [twin.act(o).action for o in obs[kind]]
-        # Sessions that nginx routes to the victim (REST by path, gRPC by x-session-id), plus one idle session
-        # there, so that the batcher holds the in-flight acts (it stops waiting once every session it has seen
-        # has an act queued).
+        # Sessions that nginx routes to the victim (REST by path, gRPC by x-session-id), plus a padding session
+        # there that acts beside them and stops right before step KILL_AT (`pad`), so that the batcher holds the
+        # in-flight acts waiting for it (a batch waits only for sessions that are acting).
         sessions = {}
         padding = None
         for _ in range(40):
@@ -298,13 +307,14 @@ def test_replica_killed_mid_request_the_episode_continues_exactly_on_the_other(r
                 sessions[kind] = s
         assert len(sessions) == 2 and padding is not None, "no session was routed to the victim"
 
-        barrier = threading.Barrier(3)
+        barrier = threading.Barrier(4)
         got = {k: [] for k in sessions}
         timings, errors = [], []
         threads = [
             threading.Thread(target=_episode, args=(s, obs[k], barrier, timings, got[k], errors), name=k)
             for k, s in sessions.items()
         ]
+        threads.append(threading.Thread(target=pad, args=(padding, KILL_AT, barrier)))
         for t in threads:
             t.start()
         barrier.wait(30)

@@ -122,26 +122,29 @@ async def _act_all(url, sids, observations):
 
 
 def test_concurrent_sessions_share_one_forward_pass(make_server, engine, ckpt_root):
+    """Sessions acting together share one forward pass once each is acting (the batcher waits only for sessions
+    answered within its acting window, so not in their first round)."""
     server = make_server(batch_wait_ms=10_000, max_batch=64)
-    n = 8
+    n, rounds = 8, 4
     rng = np.random.default_rng(3)
-    obs = rng.normal(size=(2, n, OBS_DIM)).astype(np.float32)
+    obs = rng.normal(size=(rounds, n, OBS_DIM)).astype(np.float32)
+    version = load_checkpoint(ckpt_root / "tiny-gmt").version
+    key = (("model", "tiny-gmt"), ("version", version))
+    small = ("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))
     with httpx.Client(base_url=server.url) as http:
         sids = [create(http, goal=i % 3) for i in range(n)]
         got = [asyncio.run(_act_all(server.url, sids, obs[t])) for t in range(2)]
-        batches = metric_samples(http, "gmt_batch_size")
-    version = load_checkpoint(ckpt_root / "tiny-gmt").version
-    key = (("model", "tiny-gmt"), ("version", version))
-    # All 8 requests of each round went through one forward pass: 2 batches, 16 observations.
-    assert batches[("gmt_batch_size_count", key)] == 2
-    assert batches[("gmt_batch_size_sum", key)] == 2 * n
-    assert (
-        batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
-    )
+        before = metric_samples(http, "gmt_batch_size")
+        got += [asyncio.run(_act_all(server.url, sids, obs[t])) for t in range(2, rounds)]
+        after = metric_samples(http, "gmt_batch_size")
+    # All 8 requests of each later round went through one forward pass: 2 batches, 16 observations.
+    assert after[("gmt_batch_size_count", key)] - before[("gmt_batch_size_count", key)] == 2
+    assert after[("gmt_batch_size_sum", key)] - before[("gmt_batch_size_sum", key)] == 2 * n
+    assert after[small] == before[small]
     # Batching changes nothing: every session's actions are the engine's for that session alone.
     for i in range(n):
         ctx = engine.new_context(i % 3)
-        for t in range(2):
+        for t in range(rounds):
             want = engine.act([ctx], [obs[t, i]])[0]
             assert got[t][i].status_code == 200
             np.testing.assert_array_equal(np.float32(got[t][i].json()["action"]), want)
@@ -158,38 +161,52 @@ def test_a_bad_row_inside_a_batch_fails_only_its_own_request(make_server, tmp_pa
     fragile = tiny_checkpoint()
     fragile.obs_norm.mean[0], fragile.obs_norm.std[0] = 0.0, 1e9 / 3e38  # x0 = 1e9 normalises to 3e38
     save_checkpoint(fragile, tmp_path / "tiny-gmt")
-    # The three acts must reach the batcher within the wait (2 s: room for a slow machine); the lone retry
-    # below waits it out too (3 live sessions, 1 act queued), inside the client's 5 s timeout.
+    # Two rounds together first, so that the batcher waits for all three (it waits only for sessions acting); the
+    # three acts must reach the batcher within the wait (2 s: room for a slow machine); the lone retry below
+    # waits it out too (the other two are acting), inside the client's 5 s timeout.
     server = make_server(checkpoints=[tmp_path], batch_wait_ms=2_000)
+    warm = np.random.default_rng(5).normal(size=(2, 3, OBS_DIM)).astype(np.float32)
+    warm[:, :, 0] = 0.0
     obs = np.random.default_rng(4).normal(size=(3, OBS_DIM)).astype(np.float32)
     obs[:, 0] = 0.0
     bad = obs[1].copy()
     bad[0] = 1e9  # within the accepted range
+    key = (("model", "tiny-gmt"), ("version", load_checkpoint(tmp_path / "tiny-gmt").version))
     with httpx.Client(base_url=server.url) as http:
         sids = [create(http, goal=2) for _ in range(3)]
+        for w in warm:
+            assert [r.status_code for r in asyncio.run(_act_all(server.url, sids, w))] == [200] * 3
+        before = metric_samples(http, "gmt_batch_size")
         rs = asyncio.run(_act_all(server.url, sids, [obs[0], bad, obs[2]]))
         assert [r.status_code for r in rs] == [200, 400, 200]
         assert rs[1].json()["error"]["code"] == "invalid_argument"
         batches = metric_samples(http, "gmt_batch_size")
-        key = (("model", "tiny-gmt"), ("version", load_checkpoint(tmp_path / "tiny-gmt").version))
-        assert batches[("gmt_batch_size_count", key)] == 1 and batches[("gmt_batch_size_sum", key)] == 3
-        retry = act(http, sids[1], obs[1])  # the failed session is where it was: its step 0 again
-        assert retry.status_code == 200 and retry.json()["step"] == 0
+        assert batches[("gmt_batch_size_count", key)] - before[("gmt_batch_size_count", key)] == 1
+        assert batches[("gmt_batch_size_sum", key)] - before[("gmt_batch_size_sum", key)] == 3
+        retry = act(http, sids[1], obs[1])  # the failed session is where it was: its step 2 again
+        assert retry.status_code == 200 and retry.json()["step"] == 2
     engine = PolicyEngine(fragile)
-    for r, o in ((rs[0], obs[0]), (rs[2], obs[2]), (retry, obs[1])):
-        np.testing.assert_array_equal(
-            np.float32(r.json()["action"]), engine.act([engine.new_context(2)], [o])[0]
-        )
+    for i, r, o in ((0, rs[0], obs[0]), (2, rs[2], obs[2]), (1, retry, obs[1])):
+        ctx = engine.new_context(2)
+        for w in warm:
+            engine.act([ctx], [w[i]])
+        np.testing.assert_array_equal(np.float32(r.json()["action"]), engine.act([ctx], [o])[0])
 
 
 def test_grpc_deadline_is_respected_and_the_session_is_unchanged(make_server, observations):
-    # Two live sessions and one queued request: the batcher would wait 20 s for the second one.
+    # Two sessions that acted together, then one request: the batcher would wait 20 s for the other, acting.
     server = make_server(batch_wait_ms=20_000)
     stub = stub_for(server)
     victim, twin = (
         stub.CreateSession(pb.CreateSessionRequest(model="tiny-gmt", goal=pb.GoalSelector(id=1))).session_id
         for _ in range(2)
     )
+    for o in observations[2:4]:
+        futs = [
+            stub.Act.future(pb.ActRequest(session_id=s, values=pb.FloatVector(values=o)))
+            for s in (victim, twin)
+        ]
+        assert [f.result(timeout=30).step for f in futs] == [futs[0].result().step] * 2
     with pytest.raises(grpc.RpcError) as e:
         stub.Act(pb.ActRequest(session_id=victim, values=pb.FloatVector(values=observations[0])), timeout=0.3)
     assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
@@ -199,7 +216,7 @@ def test_grpc_deadline_is_respected_and_the_session_is_unchanged(make_server, ob
         for s in (victim, twin)
     ]
     a, b = (f.result(timeout=30) for f in futs)
-    assert a.step == b.step == 0 and list(a.action) == list(b.action)
+    assert a.step == b.step == 2 and list(a.action) == list(b.action)
     with httpx.Client(base_url=server.url) as http:
         samples = metric_samples(http, "gmt_request_duration_seconds")
     assert (

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 from service_harness import CLUSTER_ENV, clean_env
-from test_cluster import MODEL, grpc_replica, held_by_victim, rest_replica
+from test_cluster import MODEL, grpc_replica, held_by_victim, pad, rest_replica
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
@@ -26,7 +26,7 @@ from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
 STEPS, CHANGE_AT, KILL_AT = 10, 3, 6
-BATCH_WAIT_MS = 400  # a lone act waits this long in the batcher: time to kill the replica holding it
+BATCH_WAIT_MS = 400  # an act waits this long for a session still acting: the kill window
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,9 @@ def test_replica_killed_mid_episode_the_recordings_hold_every_answered_step_once
     ):
         stub = policy_pb2_grpc.PolicyServiceStub(channel)
         sessions, padding = {}, None
-        for i in range(40):  # recorded sessions routed to the victim, and an idle one that holds its batcher
+        for i in range(
+            40
+        ):  # recorded sessions routed to the victim, and a padding one that holds its batcher (`pad`)
             if len(sessions) == 2 and padding is not None:
                 break
             kind = "rest" if "rest" not in sessions else "grpc" if "grpc" not in sessions else "padding"
@@ -113,12 +115,13 @@ def test_replica_killed_mid_episode_the_recordings_hold_every_answered_step_once
         )
         assert changed.effective_step == CHANGE_AT
 
-        barrier = threading.Barrier(3)
+        barrier = threading.Barrier(4)
         errors: list[BaseException] = []
         threads = [
             threading.Thread(target=_episode, args=(s, obs[k], CHANGE_AT, barrier, got[k], errors), name=k)
             for k, s in sessions.items()
         ]
+        threads.append(threading.Thread(target=pad, args=(padding, KILL_AT - CHANGE_AT, barrier)))
         for t in threads:
             t.start()
         barrier.wait(30)

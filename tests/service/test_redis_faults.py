@@ -241,3 +241,66 @@ def test_a_step_no_replica_holds_is_never_acknowledged(tmp_path, ckpt_root):
         if server is not None:
             server.stop()
         _stop(replica, primary)
+
+
+def test_writes_sent_while_a_wait_is_in_flight_share_the_next_wait(tmp_path, engine):
+    """Group commit with `min_replicas`: the replica is paused, so the first write's WAIT stays in flight; four more
+    writes, each in a turn of its own, go out at once without a WAIT of their own; once the replica resumes, one
+    WAIT covers all four. Every write is acknowledged, and Redis ran 5 scripts but 2 WAITs (before: 5 and 5)."""
+    import asyncio
+
+    import redis
+
+    from gmt.service.redis_store import RedisSessionStore
+    from gmt.service.sessions import Session
+
+    port, replica_port = free_port(), free_port()
+    primary = _redis_node(port, tmp_path / "primary", aof=False)
+    replica = _redis_node(
+        replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port), aof=False
+    )
+    try:
+        _poll(
+            lambda: cluster._replica_in_sync("127.0.0.1", replica_port, port), 10, "the replica did not sync"
+        )
+
+        async def scenario() -> list:
+            store = RedisSessionStore(
+                f"redis://127.0.0.1:{port}/0", 60, 10, time.time, min_replicas=1, wait_timeout_s=20
+            )
+
+            async def stepped(sid: str) -> tuple[Session, int]:
+                got = await store.get(sid)
+                read = got.ctx.version
+                got.ctx = engine.from_stored(got.ctx, key=sid) if hasattr(got.ctx, "states") else got.ctx
+                engine.act([got.ctx], [np.zeros(17, np.float32)])
+                return got, read
+
+            sids = [f"s{i}" for i in range(5)]
+            for sid in sids:
+                await store.create(
+                    Session(sid, "tiny-gmt", engine.new_context(0, key=sid), time.time(), time.time())
+                )
+                await store.save(*await stepped(sid))  # (the first write opens the store's own connection)
+            with redis.Redis(port=port) as r:
+                r.config_resetstat()
+                os.kill(replica.pid, signal.SIGSTOP)
+                try:
+                    saves = []
+                    for sid in sids:
+                        saves.append(asyncio.ensure_future(store.save(*await stepped(sid))))
+                        await asyncio.sleep(0)  # the next write in a turn of its own
+                        await asyncio.sleep(0)
+                    assert store._waiting_on is not None and len(store._uncovered) == 4
+                finally:
+                    os.kill(replica.pid, signal.SIGCONT)
+                results = await asyncio.gather(*saves, return_exceptions=True)
+                stats = r.info("commandstats")
+            await store.close()
+            return [results, stats["cmdstat_eval"]["calls"], stats["cmdstat_wait"]["calls"]]
+
+        results, evals, waits = asyncio.run(scenario())
+        assert results == [None] * 5
+        assert (evals, waits) == (5, 2)
+    finally:
+        _stop(primary, replica)

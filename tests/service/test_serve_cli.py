@@ -138,3 +138,28 @@ def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
     first, hint = r.stderr.strip().splitlines()
     assert first.startswith("error: cannot listen for REST on [::2]:0: ")
     assert "--host" in hint and "GMT_HOST" in hint and "port" not in hint
+
+
+@pytest.mark.parametrize(
+    ("device", "message"),
+    [
+        ("tpu", "String should match pattern"),
+        *([("cuda", "torch sees no CUDA GPU here")] if not __import__("torch").cuda.is_available() else []),
+    ],
+)
+def test_serve_refuses_a_device_it_cannot_use_before_loading_anything(tmp_path, device, message):
+    gmt = str(Path(sys.executable).parent / "gmt")
+    args = [
+        gmt,
+        "serve",
+        "--checkpoints",
+        str(tmp_path),
+        "--device",
+        device,
+        "--rest-port",
+        "0",
+        "--grpc-port",
+        "0",
+    ]
+    done = subprocess.run(args, capture_output=True, text=True, env=clean_env(), timeout=60)
+    assert done.returncode == 2 and message in done.stderr and "device" in done.stderr, done.stderr

@@ -7,8 +7,8 @@ an idle Control stream), docs/reliability.md "SIGTERM with requests in flight":
   once, a busy one right after the answer of its command;
 - the process exits 0, well within its grace period.
 
-The acts are held in flight by the batcher: an idle session that could still send one keeps each batch open for
---batch-wait-ms. The test waits for the server's `gmt_requests_in_flight` gauge to count them all before it
+The acts are held in flight by the batcher: a session that acted a moment before still counts as acting, so the
+batcher keeps each batch open for it for --batch-wait-ms. The test waits for the server's `gmt_requests_in_flight` gauge to count them all before it
 sends the signal, and for answers and statuses afterwards; it never sleeps to synchronise.
 """
 
@@ -53,6 +53,13 @@ def queued(http: httpx.Client) -> float:
         if family.name == "gmt_batch_queued"
         for s in family.samples
     )
+
+
+def hold_batches(http: httpx.Client, sid: str) -> None:
+    """Make `sid` act once, then never again: for twice --batch-wait-ms it counts as acting, so the batcher keeps
+    the next batches open for --batch-wait-ms waiting for it."""
+    r = http.post(f"/sessions/{sid}/act", json={"observation": [0.0] * OBS_DIM, "step": 0})
+    assert r.status_code == 200, r.text
 
 
 def wait_until(condition, timeout_s: float, what: str):
@@ -113,7 +120,7 @@ def test_sigterm_answers_requests_in_flight_and_exits_0(ckpt_root):
                 for i in range(N_REST + 4)
             ]
             rest_sids, unary_sid, busy_sid, idle_sid = sids[:N_REST], *sids[N_REST : N_REST + 3]
-            # sids[-1] never acts: the batcher waits BATCH_WAIT_MS for it before running a batch
+            hold_batches(http, sids[-1])
 
             idle = Stream(stub, idle_sid)  # open, waiting for its first command
             streams.append(idle)
@@ -224,6 +231,7 @@ def test_calls_still_running_when_the_grace_period_ends_answer_unavailable(ckpt_
         ):
             stub = policy_pb2_grpc.PolicyServiceStub(channel)
             sids = [http.post("/sessions", json={"goal": 0}).json()["session_id"] for _ in range(3)]
+            hold_batches(http, sids[2])
             out: dict[str, object] = {}
 
             def rest_act() -> None:
