@@ -81,7 +81,8 @@ def test_schema_declares_bearer_auth_only_when_it_is_on(served):
             "bearerAuth": {
                 "type": "http",
                 "scheme": "bearer",
-                "description": "The server's --auth-token: `Authorization: Bearer <token>`.",
+                "description": "A key of the server (--auth-token, or one of --auth-tokens): "
+                "`Authorization: Bearer <token>`.",
             }
         }
         everything = {(path, method) for path, item in doc["paths"].items() for method in item}
