@@ -508,12 +508,20 @@ def collect(
         )
 
 
-def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None, ds=None):
+STATISTIC_HELP = (
+    "Per-trajectory statistic: AGG(SOURCE) (AGG mean, sum, min, max, first, last, std; SOURCE reward, info.KEY, "
+    "obs[i], action[i], optionally abs(...)), a name (mean_x_velocity, return) or module:function; default: "
+    "inferred from the data (mean_x_velocity where infos record x_velocity, else return) and printed."
+)
+
+
+def _relabel(dataset: str, statistic: str | None, k: int | None, seed: int, data_dir: Path | None, ds=None):
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import relabel
-    from gmt.model.data.statistics import MissingInfoError, per_trajectory
+    from gmt.model.data.statistics import MissingInfoError, chosen_statistic, per_trajectory
 
     ds = ds or load_dataset(dataset, data_dir)
+    statistic = statistic or chosen_statistic(ds, typer.echo)
     try:
         values = per_trajectory(statistic, ds)
     except (MissingInfoError, KeyError) as e:
@@ -526,7 +534,7 @@ def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: P
 @needs("data", "gmt data describe")
 def describe(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    statistic: str = typer.Option(None, help=STATISTIC_HELP),
     k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
     seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
@@ -557,8 +565,9 @@ def describe(
         )
     if served is not None:  # relabelling by the statistic is for comparison only: it may not apply
         from gmt.model.data.relabel import relabel
-        from gmt.model.data.statistics import MissingInfoError, per_trajectory
+        from gmt.model.data.statistics import MissingInfoError, chosen_statistic, per_trajectory
 
+        statistic = statistic or chosen_statistic(ds, typer.echo)
         try:
             table = relabel(per_trajectory(statistic, ds), statistic=statistic, k=k, seed=seed)
         except (MissingInfoError, ValueError) as e:
@@ -567,6 +576,7 @@ def describe(
         typer.echo(f"for comparison, relabelled per trajectory by {statistic}:")
     else:
         ds, table = _relabel(dataset, statistic, k, seed, data_dir, ds)
+        statistic = table.statistic
     typer.echo(table.format())
     seps = separation(table)
     if seps:
@@ -584,7 +594,7 @@ def describe(
 def relabel(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
     out: Path = typer.Option(..., help="Where to write the goal table (JSON)."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    statistic: str = typer.Option(None, help=STATISTIC_HELP),
     k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
     seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
@@ -633,10 +643,15 @@ def import_sessions(
 
 @app.command()
 def statistics() -> None:
-    """List the registered per-trajectory statistics."""
-    from gmt.common.statistics import get_statistic, list_statistics
+    """List the registered per-trajectory statistics and how to write any other."""
+    from gmt.common.statistics import AGGREGATIONS, canonical, get_statistic, list_statistics
 
     for name in list_statistics():
         s = get_statistic(name)
         needs = f" (needs info {sorted(s.requires)})" if s.requires else ""
-        typer.echo(f"{name:<18} {s.description}{needs}")
+        same = f" = {canonical(name)}" if canonical(name) != name else ""
+        typer.echo(f"{name:<18} {s.description}{same}{needs}")
+    typer.echo(
+        f"any other: AGG(SOURCE), AGG one of {', '.join(AGGREGATIONS)}, SOURCE reward, info.KEY, obs[i] or "
+        "action[i], optionally abs(...), e.g. mean(abs(obs[2])); or module:function (docs/your-own-data.md)"
+    )

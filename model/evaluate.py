@@ -174,7 +174,7 @@ def play_lockstep(
     ctxs: list,
     goal_at: list[Callable[[int], int]],
     steps: int,
-    record: Callable[[int, int, float, dict], None],
+    record: Callable[[int, int, float, dict, object, object], None],
     progress: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step every episode together through one engine until each ends or `steps` steps are played.
@@ -186,7 +186,8 @@ def play_lockstep(
         ctxs: One engine context per episode.
         goal_at: Per episode, the goal to pursue at a step (set before acting when it changes).
         steps: Most steps per episode.
-        record: Called with (episode, step, reward, info) after every environment step.
+        record: Called with (episode, step, reward, info, the observation acted on, the action) after every
+            environment step.
         progress: Show a progress bar.
 
     Returns:
@@ -209,8 +210,9 @@ def play_lockstep(
         if failed:
             raise failed[0]
         for i, a in zip(idx, actions, strict=True):
+            before = obs[i]
             obs[i], r, term, trunc, info = envs[i].step(a)
-            record(i, t, r, info)
+            record(i, t, r, info, before, a)
             if term or trunc:
                 terminated[i] = term
                 alive[i], lengths[i] = False, t + 1
@@ -253,8 +255,8 @@ def evaluate(
     ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     signal = np.full((len(runs), steps), np.nan)
 
-    def record(i: int, t: int, reward: float, info: dict) -> None:
-        signal[i, t] = signal_from_step(ckpt.statistic, reward, info)
+    def record(i: int, t: int, reward: float, info: dict, ob: object, action: object) -> None:
+        signal[i, t] = signal_from_step(ckpt.statistic, reward, info, ob, action)
 
     terminated, _ = play_lockstep(
         engine, envs, obs, ctxs, [c.goal_at for c, _ in runs], steps, record, progress

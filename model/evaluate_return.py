@@ -292,7 +292,7 @@ def evaluate_returns(
     ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     rewards = np.zeros((len(runs), steps))
 
-    def record(i: int, t: int, reward: float, info: dict) -> None:
+    def record(i: int, t: int, reward: float, info: dict, ob: object, action: object) -> None:
         rewards[i, t] = reward
 
     _, lengths = play_lockstep(engine, envs, obs, ctxs, [c.goal_at for c, _ in runs], steps, record, progress)

@@ -15,6 +15,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from gmt.common.spaces import space_to_dict
+from gmt.common.statistics import default_statistic
 from gmt.model.augment import augment_frames
 from gmt.model.calibrate import action_noise
 from gmt.model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
@@ -353,7 +354,7 @@ def train(
         action_space=space_to_dict(dataset.action_space),
         obs_norm=norm,
         action_codec=codec,
-        statistic=tc.statistic,
+        statistic=tc.statistic or default_statistic(dataset.info_keys)[0],
         goals=goals,
         meta=meta,
         action_noise=noise,

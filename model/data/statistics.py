@@ -9,6 +9,8 @@ from gmt.common.statistics import (
     Statistic,
     aggregate,
     available_statistics,
+    canonical,
+    default_statistic,
     get_statistic,
     list_statistics,
     missing_message,
@@ -23,7 +25,10 @@ __all__ = [
     "Statistic",
     "aggregate",
     "available_statistics",
+    "canonical",
     "check_dataset",
+    "chosen_statistic",
+    "default_statistic",
     "get_statistic",
     "list_statistics",
     "missing_message",
@@ -41,6 +46,8 @@ def check_dataset(name: str, dataset: OfflineDataset) -> Statistic:
         MissingInfoError: Naming the missing info keys and the statistics still available.
     """
     stat = get_statistic(name)
+    if stat.requires <= dataset.info_keys and dataset.episodes:
+        stat.per_step(dataset.episodes[0])  # an obs[i] / action[i] out of range fails here, naming its size
     keys = dataset.info_keys
     if not stat.requires <= keys:
         raise MissingInfoError(f"{dataset.dataset_id}: {missing_message(stat, keys)}")
@@ -51,3 +58,11 @@ def per_trajectory(name: str, dataset: OfflineDataset) -> np.ndarray:
     """The statistic of every episode of `dataset`, shape [N]."""
     stat = check_dataset(name, dataset)
     return np.asarray([stat.of_episode(ep) for ep in dataset.episodes], dtype=np.float64)
+
+
+def chosen_statistic(dataset: OfflineDataset, echo=print) -> str:
+    """The statistic to cluster when the user named none (`default_statistic` of the data's infos), printed
+    with what it stands for and how to choose another."""
+    name, why = default_statistic(dataset.info_keys)
+    echo(f"statistic: {name} = {canonical(name)} ({why}; --statistic picks another, e.g. mean(abs(obs[0])))")
+    return name
