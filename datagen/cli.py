@@ -358,8 +358,26 @@ def collect(
         help="Multiplier of the snapshots' action-noise std (default per env: HalfCheetah 0.35, else 1).",
     ),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
-    keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),
-    keep_falls: bool = typer.Option(False, help="Keep snapshot episodes that end in a fall (termination)."),
+    keep_stuck: bool = typer.Option(
+        None,
+        "--keep-stuck/--drop-stuck",
+        help="Keep (or replace) episodes in which a running agent stopped for good; default: replaced on the "
+        "shipped locomotion tasks, kept elsewhere.",
+        show_default=False,
+    ),
+    keep_falls: bool = typer.Option(
+        None,
+        "--keep-falls/--drop-falls",
+        help="Keep (or replace) episodes that end in a termination; default: replaced on the shipped locomotion "
+        "tasks (a fall), kept elsewhere (how an episode ends).",
+        show_default=False,
+    ),
+    policy: str = typer.Option(
+        None,
+        help="module:function, your policy: function(obs, level, rng) -> action, collected at each --level "
+        "instead of the behaviour snapshots (docs/your-own-data.md).",
+    ),
+    level: list[str] = typer.Option(None, help="A level name passed to --policy; repeat (two or more)."),
     pool_start: list[str] = typer.Option(
         None,
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "
@@ -472,6 +490,13 @@ def collect(
                 f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint=option
             )
     shares = _level_values(pool_start, "SHARE", "--pool-start") if pool_start else None
+    if policy is not None:
+        from gmt.datagen.user_policy import load_policy_function
+
+        try:
+            load_policy_function(policy)  # a name that cannot be imported: said before the environment starts
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--policy") from None
 
     try:
         cfg = CollectConfig(
@@ -484,8 +509,10 @@ def collect(
             max_steps=max_steps,
             noise_scale=noise_scale,
             include_random=not no_random,
-            drop_stuck=not keep_stuck,
-            drop_falls=not keep_falls,
+            drop_stuck=None if keep_stuck is None else not keep_stuck,
+            drop_falls=None if keep_falls is None else not keep_falls,
+            policy=policy,
+            levels=level or None,
             pool_start=shares,
             pool_checkpoint=pool_checkpoint,
             pool_cycle=pool_cycle,

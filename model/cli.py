@@ -136,6 +136,9 @@ def _trained(ckpt, out: Path) -> None:
     if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
         return
     info = ckpt.meta["training"]
+    note = (ckpt.meta.get("goal_spread") or {}).get("note")
+    if note:
+        typer.echo(note, err=note.startswith("warning"))
     typer.echo(
         f"wrote {out} ({info['wall_time_s']} s, {info['steps_per_s']} steps/s, final loss {info['final']['loss']:.4f})"
     )

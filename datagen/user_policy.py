@@ -1,0 +1,59 @@
+"""A user's own behaviour policy for `gmt data collect --policy module:function --level NAME ...`.
+
+The function is called for every step as `function(obs, level, rng) -> action`: `obs` the environment's
+observation, `level` the name of the level being collected (a string, as given to `--level`; e.g. "0.2" or
+"careful"), `rng` a seeded `numpy.random.Generator` for any randomness (use it, not a global one, so a seed
+reproduces the data). The action must belong to the environment's action space (an int for Discrete). Every
+level's episodes are one goal's data, so a level should behave the same way for a whole episode. An optional
+`start_episode(level)` attribute of the function is called before each episode (per-episode state).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from importlib import import_module
+from typing import Any
+
+import numpy as np
+
+
+class UserPolicy:
+    """One level of a user's policy function, with the `act(obs, rng)` interface `rollout` steps."""
+
+    def __init__(self, fn: Callable[[Any, str, np.random.Generator | None], Any], level: str, name: str = ""):
+        self.fn, self.level, self.name = fn, level, name or getattr(fn, "__name__", "policy")
+        self.noise_scale = 1.0  # unused: the function draws its own noise from rng
+
+    def start_episode(self) -> None:
+        """Tell the function a new episode starts, when it asks to be told."""
+        start = getattr(self.fn, "start_episode", None)
+        if start is not None:
+            start(self.level)
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> Any:
+        """The function's action at this level."""
+        return self.fn(obs, self.level, rng if rng is not None else np.random.default_rng(0))
+
+
+def load_policy_function(spec: str) -> Callable:
+    """The function named by "module:function" (the module importable from the current directory or the path).
+
+    Raises:
+        ValueError: `spec` is not module:function, or it cannot be imported or is not callable.
+    """
+    import sys
+    from pathlib import Path
+
+    module, sep, name = spec.partition(":")
+    if not (sep and module and name.isidentifier()):
+        raise ValueError(f"--policy must be module:function (e.g. my_policies:cartpole), got {spec!r}")
+    cwd = str(Path.cwd())
+    if cwd not in sys.path:  # `python -m`'s rule: a module beside the user is importable
+        sys.path.insert(0, cwd)
+    try:
+        fn = getattr(import_module(module), name)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"--policy {spec}: cannot import it ({e})") from None
+    if not callable(fn):
+        raise ValueError(f"--policy {spec}: {fn!r} is not a function")
+    return fn
