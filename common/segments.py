@@ -58,9 +58,14 @@ def measured_spans(goals: Sequence[int]) -> list[tuple[int, int, int]]:
 
 
 def tolerance(goal: GoalLike, goals: Sequence[GoalLike]) -> float:
-    """max(10% of |goal mean|, 5% of the span of goal means)."""
+    """max(10% of |goal mean|, 5% of the span of goal means, the goal's own std across its data's episodes).
+
+    The std keeps a goal from being held to less than its own trajectories vary by (a small statistic, e.g.
+    Swimmer's speed, whose 10% is narrower than its episodes' spread); a goal without one (0) adds nothing.
+    """
     means = [g.mean for g in goals]
-    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)))
+    spread = float(getattr(goal, "std", 0.0) or 0.0)
+    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)), spread)
 
 
 def achieved(signal: np.ndarray | Sequence[float], start: int, end: int) -> np.ndarray | float:

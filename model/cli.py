@@ -180,13 +180,14 @@ def eval_command(
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
 
-    A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`gmt.model.evaluate_return`):
+    A checkpoint whose statistic sums (`return`, any sum(...)) gets the paper's game protocol instead (`gmt.model.evaluate_return`):
     hold every goal, switch at step 300 between the low, middle and high goals, against the expected return.
     A Decision Transformer (`--conditioning return` at training) plays the same protocol steered by
     returns-to-go (`gmt.model.evaluate_dt`).
     """
     import torch
 
+    from gmt.common.statistics import is_sum
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.engine import PolicyEngine
     from gmt.model.evaluate import evaluate
@@ -208,7 +209,7 @@ def eval_command(
         from gmt.model.evaluate_dt import evaluate_dt
 
         result = evaluate_dt(ckpt, seeds=seed_list, steps=steps)
-    elif ckpt.statistic == "return":
+    elif is_sum(ckpt.statistic):  # e.g. `return`: goals of whole episodes
         from gmt.model.evaluate_return import evaluate_returns, plot_returns
 
         result = evaluate_returns(ckpt, seeds=seed_list, steps=steps, action_mode=action_mode)

@@ -12,7 +12,7 @@ JSON schema (`EvalResult.to_dict`):
     conditions: [{
         name ("hold 0", "switch 0->2", "every 200"), kind ("hold" | "switch" | "multi_switch"),
         schedule: [[step, goal], ...],
-        episodes, successes, terminated_early,
+        episodes, successes, terminated_early, never_switched (episodes that ended before a goal change: failures),
         segments: [{goal, start, end (the measured steps [start, end)), target, tolerance, achieved_mean,
                     achieved_std, within (count)}],
     }]
@@ -101,6 +101,15 @@ class ConditionResult:
     success: np.ndarray  # [E] bool
     segments: list[dict] = field(default_factory=list)
 
+    @property
+    def never_switched(self) -> int:
+        """Episodes that ended before one of the condition's goal changes: a switch that never happened (and a
+        failure, as every early end is)."""
+        changes = [s for s, _ in self.condition.schedule[1:] if s < self.signal.shape[1]]
+        if not changes:
+            return 0
+        return int(np.isnan(self.signal[:, changes]).any(axis=1).sum())
+
     def to_dict(self) -> dict:
         """JSON-ready summary (without the per-step signal)."""
         c = self.condition
@@ -111,6 +120,7 @@ class ConditionResult:
             "episodes": int(len(self.success)),
             "successes": int(self.success.sum()),
             "terminated_early": int(self.terminated.sum()),
+            "never_switched": self.never_switched,
             "segments": self.segments,
         }
 
@@ -151,7 +161,8 @@ class EvalResult:
         rows = [
             (
                 r.condition.name,
-                f"{int(r.success.sum())}/{n}",
+                f"{int(r.success.sum())}/{n}"
+                + (f" ({r.never_switched} never switched)" if r.never_switched else ""),
                 "; ".join(
                     f"{s['goal']}: {s['target']:.2f}±{s['tolerance']:.2f} -> {s['achieved_mean']:.2f} "
                     f"({s['achieved_std']:.2f})"
