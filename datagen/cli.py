@@ -633,6 +633,37 @@ def relabel(
     typer.echo(f"\nwrote {out}")
 
 
+@app.command("import")
+@needs("data", "gmt data import")
+def import_command(
+    src: Path = typer.Argument(
+        ...,
+        help="A folder of .npz episode files (docs/your-own-data.md), a Minari dataset (id or folder), or a "
+        "folder of served sessions' recordings.",
+    ),
+    dataset_id: str = typer.Option(..., "--id", help="The new dataset's id, namespace/name-vN."),
+    env: str = typer.Option(
+        None, help="Gymnasium id whose spaces the data must fit (default: spaces inferred from the data)."
+    ),
+    overwrite: bool = typer.Option(False, help="Replace an existing dataset with this id."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Check your own episodes (lengths, shapes, NaN) and write them as a Minari dataset."""
+    from gmt.common.recording import RecordingError
+    from gmt.model.data.importer import import_data
+
+    try:
+        rep = import_data(src, dataset_id, env, data_dir, overwrite)
+    except (FileNotFoundError, FileExistsError, RecordingError, ValueError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(
+        f"wrote {rep.path} ({rep.kind}): {rep.episodes} episodes, {rep.transitions} transitions; environment "
+        f"{rep.env_id}, observations {rep.observation_space}, actions {rep.action_space}; per-step infos: "
+        f"{', '.join(rep.info_keys) or 'none'}"
+    )
+
+
 @app.command("import-sessions")
 @needs("data", "gmt data import-sessions")
 def import_sessions(
@@ -648,7 +679,8 @@ def import_sessions(
     overwrite: bool = typer.Option(False, help="Replace an existing dataset with this id."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
 ) -> None:
-    """Turn served sessions' recordings into a Minari dataset with per-step goal labels from their timelines."""
+    """Turn served sessions' recordings into a Minari dataset with per-step goal labels from their timelines
+    (`gmt data import RECORDINGS --id ID` does the same without --include)."""
     from gmt.common.recording import RecordingError
     from gmt.model.data.served import import_sessions as run_import
 
