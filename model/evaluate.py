@@ -21,6 +21,7 @@ JSON schema (`EvalResult.to_dict`):
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -314,7 +315,9 @@ def judge(
             tol = tolerance(goal, ckpt.goals)
             hit = within(seg_means[:, si], goal.mean, tol)
             ok &= hit
-            mean, std = float(np.nanmean(seg_means[:, si])), float(np.nanstd(seg_means[:, si]))
+            with warnings.catch_warnings():  # a segment no episode reached: NaN, reported as such
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean, std = float(np.nanmean(seg_means[:, si])), float(np.nanstd(seg_means[:, si]))
             seg_info.append(
                 {
                     "goal": g,
