@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from gmt.common.statistics import canonical
 from gmt.datagen.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
 from gmt.datagen.plan import PlanConfig, PlannedPolicy
 from gmt.datagen.rollout import rollout, stuck_step
@@ -68,7 +69,8 @@ class CollectConfig:
             blur the level's speed. Also replaces pool-started episodes that end standing still (a start
             pose the level cannot leave). Counted per level; the random policy is never filtered. None: on
             for the shipped locomotion tasks (HalfCheetah, Hopper, Walker2d, Ant: its thresholds are in their
-            m/s), off for any other environment.
+            m/s), off for any other environment; turned on elsewhere, its thresholds are relative to each
+            episode's own speed (`stuck_step(relative=True)`).
         stuck_window: Steps averaged by the standstill test.
         drop_falls: Replace snapshot episodes that end in a fall (termination). A level's policy that falls
             shows a failure, not its goal (a level started from another's states may fall while changing
@@ -217,7 +219,8 @@ def collect_level(
             filtered
             and v is not None
             and (
-                stuck_step(v, cfg.stuck_window) is not None
+                stuck_step(v, cfg.stuck_window, relative=env_slug(cfg.env_id) not in DEFAULT_EPISODES)
+                is not None
                 or (start is not None and abs(np.mean(v[-cfg.stuck_window :])) < 0.1)
             )
         ):
@@ -254,7 +257,7 @@ def checkpoint_sources(
     from gmt.model.engine import PolicyEngine
 
     ckpt = load_checkpoint(path)
-    if ckpt.statistic != "mean_x_velocity":
+    if canonical(ckpt.statistic) != canonical("mean_x_velocity"):
         raise ValueError(f"{path}: a pool checkpoint must have x-velocity goals, not {ckpt.statistic!r}")
     engine = PolicyEngine(ckpt)
     if cycle_every is not None:

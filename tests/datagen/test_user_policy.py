@@ -52,3 +52,15 @@ def test_the_collect_command_takes_a_policy_and_refuses_a_bad_one(tmp_path, monk
     assert r.exit_code == 2 and "cannot import" in r.output
     r = run(app, [*args, "--policy", POLICY])
     assert r.exit_code == 2 and "--level" in r.output
+
+
+def test_the_standstill_test_is_relative_to_the_episodes_own_speed_outside_the_shipped_tasks():
+    from gmt.datagen.rollout import stuck_step
+
+    rng = np.random.default_rng(0)
+    # Swimmer-like: a jolt at the start, then a steady few cm/s.
+    swims = np.r_[np.full(20, 2.0), np.full(980, 0.04)] + rng.normal(0, 0.01, 1000)
+    assert stuck_step(swims, 100) is not None  # HalfCheetah's m/s thresholds: a normal episode looks stuck
+    assert stuck_step(swims, 100, relative=True) is None
+    stalls = np.concatenate([np.full(400, 0.05), np.full(600, 0.001)]) + rng.normal(0, 0.001, 1000)
+    assert 400 <= stuck_step(stalls, 100, relative=True) < 520  # the same scale, but it stopped
