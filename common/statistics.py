@@ -310,8 +310,17 @@ def register_statistic(
     return deco
 
 
+def statistic_names(name: str) -> list[str]:
+    """The statistics of a comma-separated list ("mean(info.x_velocity), mean(abs(action[0]))"): goals over
+    several statistics at once (`gmt.model.data.relabel`). One name gives a list of one."""
+    return [part.strip() for part in name.split(",")]
+
+
 def get_statistic(name: str, plugins: bool = True) -> Statistic:
     """The statistic `name`: an expression, a registered or entry-point name, or a `module:function` plug-in.
+
+    A comma-separated list names goals over several statistics; each is checked, and the first is returned: the
+    one a model's goals are ordered, evaluated and measured by (their table keeps every goal's vector).
 
     Args:
         name: What the user wrote (module docstring).
@@ -322,6 +331,11 @@ def get_statistic(name: str, plugins: bool = True) -> Statistic:
     """
     if name in _REGISTRY:
         return _REGISTRY[name]
+    if "," in name:
+        first, *rest = statistic_names(name)
+        for other in rest:
+            get_statistic(other, plugins)
+        return get_statistic(first, plugins)
     stat = parse_expression(name)
     if stat is not None:
         return stat
@@ -349,6 +363,8 @@ def canonical(name: str) -> str:
     """The expression a registered alias stands for (`return` -> `sum(reward)`), else `name` itself."""
     if name in ALIASES:
         return ALIASES[name]
+    if "," in name:
+        return ", ".join(canonical(n) for n in statistic_names(name))
     stat = parse_expression(name)
     return stat.expression if stat is not None else name
 

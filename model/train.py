@@ -360,7 +360,7 @@ def train(
         action_space=space_to_dict(dataset.action_space),
         obs_norm=norm,
         action_codec=codec,
-        statistic=tc.statistic or default_statistic(dataset.info_keys)[0],
+        statistic=tc.statistic or default_statistic(set(getattr(dataset, "info_keys", ())))[0],
         goals=goals,
         meta=meta,
         action_noise=noise,

@@ -17,6 +17,7 @@ from gmt.common.statistics import (
     register,
     register_statistic,
     signal_from_step,
+    statistic_names,
 )
 from gmt.model.data.minari_io import OfflineDataset
 
@@ -55,7 +56,11 @@ def check_dataset(name: str, dataset: OfflineDataset) -> Statistic:
 
 
 def per_trajectory(name: str, dataset: OfflineDataset) -> np.ndarray:
-    """The statistic of every episode of `dataset`, shape [N]."""
+    """The statistic of every episode of `dataset`, shape [N]; for a comma-separated list of statistics
+    (`statistic_names`), [N, d], one column each."""
+    names = statistic_names(name)
+    if len(names) > 1:
+        return np.stack([per_trajectory(n, dataset) for n in names], axis=1)
     stat = check_dataset(name, dataset)
     return np.asarray([stat.of_episode(ep) for ep in dataset.episodes], dtype=np.float64)
 
