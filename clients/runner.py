@@ -350,9 +350,7 @@ def run(
     spec = resolve_model(client, cfg.model, cfg.env_id)
     if cfg.statistic is not None:  # measured here instead of the model's own statistic
         spec = dataclasses.replace(spec, statistic=cfg.statistic)
-    get_statistic(
-        spec.statistic, plugins=cfg.statistic is not None
-    )  # one that cannot be measured: say so first
+    get_statistic(spec.statistic, plugins=cfg.statistic is not None)  # unmeasurable: said before stepping
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)
     env = make_env(spec, env_id, max_steps=cfg.steps, render=cfg.video or cfg.live)

@@ -20,13 +20,14 @@ Evaluation needs the value over step ranges (e.g. steps [100, 1000)), so every s
 
 from __future__ import annotations
 
-import importlib
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+
+from gmt.common.plugins import load_attribute
 
 Signal = Callable[[float, Mapping[str, float]], float]
 Aggregation = Callable[[np.ndarray], float]
@@ -275,7 +276,7 @@ def _from_object(name: str, obj: Any, agg: str = "mean") -> Statistic:
 
 def _plugin(name: str, module: str, func: str, agg: str) -> Statistic:
     try:
-        obj = getattr(importlib.import_module(module), func)
+        obj = load_attribute(module, func)
     except (ImportError, AttributeError) as e:
         raise StatisticError(f"statistic {name!r}: cannot import {module}:{func} ({e})") from None
     return _from_object(name, obj, agg)

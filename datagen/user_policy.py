@@ -11,10 +11,11 @@ level's episodes are one goal's data, so a level should behave the same way for 
 from __future__ import annotations
 
 from collections.abc import Callable
-from importlib import import_module
 from typing import Any
 
 import numpy as np
+
+from gmt.common.plugins import load_attribute
 
 
 class UserPolicy:
@@ -36,22 +37,16 @@ class UserPolicy:
 
 
 def load_policy_function(spec: str) -> Callable:
-    """The function named by "module:function" (the module importable from the current directory or the path).
+    """The function named by "module:function" (`gmt.common.plugins.load_attribute`).
 
     Raises:
         ValueError: `spec` is not module:function, or it cannot be imported or is not callable.
     """
-    import sys
-    from pathlib import Path
-
     module, sep, name = spec.partition(":")
     if not (sep and module and name.isidentifier()):
         raise ValueError(f"--policy must be module:function (e.g. my_policies:cartpole), got {spec!r}")
-    cwd = str(Path.cwd())
-    if cwd not in sys.path:  # `python -m`'s rule: a module beside the user is importable
-        sys.path.insert(0, cwd)
     try:
-        fn = getattr(import_module(module), name)
+        fn = load_attribute(module, name)
     except (ImportError, AttributeError) as e:
         raise ValueError(f"--policy {spec}: cannot import it ({e})") from None
     if not callable(fn):

@@ -124,3 +124,14 @@ def test_the_default_follows_the_data():
 
 def test_the_statistics_stay_torch_free(imports_of):
     assert "torch" not in imports_of("gmt.common.statistics")
+
+
+def test_a_plugin_beside_the_user_is_found_as_python_m_would(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my_stats_56.py").write_text(
+        "def reward_twice(reward, info, obs, action):\n    return 2 * reward\n"
+    )
+    assert get_statistic("sum(my_stats_56:reward_twice)").of_episode(episode()) == pytest.approx(4.0)
