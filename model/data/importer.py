@@ -46,13 +46,14 @@ class ImportReport:
 
 
 def source_kind(src: Path) -> str:
-    """npz (a folder of episode files), minari (a dataset folder) or sessions (recordings)."""
+    """npz (a folder of episode files), minari (a dataset folder) or sessions (recordings: `gmt.common.recording`,
+    whose .npz files hold a `meta` array)."""
     if (src / "metadata.json").is_file() or (src / "data" / "metadata.json").is_file():
         return "minari"
     if src.is_dir():
         for f in sorted(src.glob("*.npz"))[:1]:
             with np.load(f) as z:
-                if "actions" in z.files:
+                if "actions" in z.files and "meta" not in z.files:  # a recording's .npz holds its `meta`
                     return "npz"
         return "sessions"
     raise ImportProblem(f"{src}: not a folder of .npz episodes, a Minari dataset or a folder of recordings")
