@@ -377,7 +377,11 @@ def collect(
         help="module:function, your policy: function(obs, level, rng) -> action, collected at each --level "
         "instead of the behaviour snapshots (docs/your-own-data.md).",
     ),
-    level: list[str] = typer.Option(None, help="A level name passed to --policy; repeat (two or more)."),
+    level: list[str] = typer.Option(
+        None,
+        help="A level name passed to --policy, or NAME=FILE.zip: a level acted by a Stable-Baselines3 model "
+        "(the train extra); repeat (two or more).",
+    ),
     pool_start: list[str] = typer.Option(
         None,
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "

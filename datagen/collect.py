@@ -19,7 +19,7 @@ from gmt.datagen.behaviour import RandomPolicy, env_slug, list_snapshots, load_b
 from gmt.datagen.plan import PlanConfig, PlannedPolicy
 from gmt.datagen.rollout import rollout, stuck_step
 from gmt.datagen.start_states import CheckpointPolicy, StatePool, build_pool
-from gmt.datagen.user_policy import UserPolicy, load_policy_function
+from gmt.datagen.user_policy import level_policies
 from gmt.model.data.minari_io import Episode, check_dataset_id, write_dataset
 
 RANDOM = "random"
@@ -91,7 +91,8 @@ class CollectConfig:
         overwrite: Replace an existing dataset with the same id.
         policy: A user's policy function "module:function" (`gmt.datagen.user_policy`) collected at `levels`,
             instead of the behaviour snapshots.
-        levels: The level names passed to `policy`, one level (and its episodes) each.
+        levels: The level names passed to `policy`, one level (and its episodes) each; "NAME=FILE.zip" makes
+            a level of a Stable-Baselines3 model instead (no `policy` needed).
     """
 
     env_id: str
@@ -124,10 +125,11 @@ class CollectConfig:
             self.drop_falls = locomotion
         if self.policy is not None and not self.levels:
             raise ValueError("a --policy is collected at named levels: give --level NAME at least twice")
-        if self.levels and self.policy is None:
-            raise ValueError("--level names levels of a --policy module:function")
-        if self.levels and (len(set(self.levels)) != len(self.levels) or RANDOM in self.levels):
-            raise ValueError(f"levels must be distinct and not {RANDOM!r}, got {self.levels}")
+        if self.levels and self.policy is None and not all("=" in lv for lv in self.levels):
+            raise ValueError("--level NAME names a level of a --policy module:function (or NAME=FILE.zip)")
+        names = [lv.partition("=")[0] for lv in self.levels or []]
+        if len(set(names)) != len(names) or RANDOM in names:
+            raise ValueError(f"levels must be distinct and not {RANDOM!r}, got {names}")
         self.episodes_per_level = self.episodes_per_level or DEFAULT_EPISODES.get(slug, 50)
         self.dataset_id = self.dataset_id or default_dataset_id(self.env_id)
         check_dataset_id(self.dataset_id)  # before minutes of collection, not after
@@ -285,9 +287,8 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     start = time.time()
     env = gym.make(cfg.env_id)
     policies = {RANDOM: RandomPolicy(env.action_space)} if cfg.include_random else {}
-    if cfg.policy is not None:
-        fn = load_policy_function(cfg.policy)
-        policies.update({level: UserPolicy(fn, level, cfg.policy) for level in cfg.levels})
+    if cfg.levels:
+        policies.update(level_policies(cfg.policy, cfg.levels, cfg.seed))
     else:
         for path in list_snapshots(cfg.env_id, cfg.behaviour_dir):
             policies[path.stem] = load_behaviour(path, env.action_space)
@@ -330,8 +331,9 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     fell = ", ".join(f"{k} {v['falls_dropped']}" for k, v in levels.items())
     source = (
         f"behaviour snapshots rolled out with {cfg.noise_scale:g} x their Gaussian noise"
-        if cfg.policy is None
-        else f"the user's policy {cfg.policy} at its levels"
+        if not cfg.levels
+        else f"the user's policies at levels {', '.join(cfg.levels)}"
+        + (f" ({cfg.policy})" if cfg.policy else "")
     )
     description = (
         f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} ({source}"
@@ -365,7 +367,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         cfg.data_dir,
         episode_metadata=metadata,
         description=description,
-        algorithm_name="gmt-mixed-ppo-snapshots" if cfg.policy is None else f"gmt-user-policy:{cfg.policy}",
+        algorithm_name="gmt-mixed-ppo-snapshots" if not cfg.levels else "gmt-user-policy",
         overwrite=cfg.overwrite,
     )
     return CollectResult(

@@ -64,3 +64,25 @@ def test_the_standstill_test_is_relative_to_the_episodes_own_speed_outside_the_s
     assert stuck_step(swims, 100, relative=True) is None
     stalls = np.concatenate([np.full(400, 0.05), np.full(600, 0.001)]) + rng.normal(0, 0.001, 1000)
     assert 400 <= stuck_step(stalls, 100, relative=True) < 520  # the same scale, but it stopped
+
+
+def test_stable_baselines3_models_are_levels_too(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3 import PPO
+
+    for i in range(2):
+        model = PPO("MlpPolicy", "CartPole-v1", n_steps=32, batch_size=32, n_epochs=1, seed=i, device="cpu")
+        model.save(tmp_path / f"ppo{i}.zip")
+    levels = [f"first={tmp_path / 'ppo0.zip'}", f"second={tmp_path / 'ppo1.zip'}", "0.6"]
+    prints = []
+    for out_id in ("t/cp/sb3-v0", "t/cp/sb3-v1"):
+        cfg = CollectConfig("CartPole-v1", episodes_per_level=2, seed=5, dataset_id=out_id, data_dir=tmp_path,
+                            policy=POLICY, levels=levels, include_random=False)  # fmt: skip
+        res = collect(cfg, progress=False)
+        assert list(res.levels) == ["first", "second", "0.6"]
+        prints.append(load_dataset(out_id, tmp_path).fingerprint)
+    assert prints[0] == prints[1]  # the models' noise is seeded from the collection's seed
+    with pytest.raises(ValueError, match="not a Stable-Baselines3 model"):
+        (tmp_path / "bad.zip").write_bytes(b"not a zip")
+        collect(CollectConfig("CartPole-v1", 1, 0, "t/cp/bad-v0", tmp_path, levels=[f"x={tmp_path / 'bad.zip'}", "y=z.zip"]),
+                progress=False)  # fmt: skip
