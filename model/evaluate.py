@@ -307,7 +307,7 @@ def judge(
         rows = slice(ci * len(seed_list), (ci + 1) * len(seed_list))
         sig, term = signal[rows], terminated[rows]
         spans = c.segments
-        seg_means = np.stack([achieved(sig, a, b) for _, a, b in spans], axis=1)
+        seg_means = np.stack([achieved(sig, a, b, ckpt.statistic) for _, a, b in spans], axis=1)
         ok = ~term
         seg_info = []
         for si, (g, a, b) in enumerate(spans):
