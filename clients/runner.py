@@ -7,6 +7,7 @@ changes made by other clients (e.g. `curl -X PUT .../goal`) in the middle of the
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,7 +20,7 @@ from gmt.client.base import ModelInfo, PolicyClient, Session, report_info
 from gmt.client.trace import Trace
 from gmt.common.extras import require_module
 from gmt.common.segments import MOVING_AVERAGE, Segment, measure, moving_average, table
-from gmt.common.statistics import signal_from_step
+from gmt.common.statistics import get_statistic, signal_from_step
 
 if TYPE_CHECKING:
     import gymnasium as gym
@@ -118,6 +119,10 @@ class RunConfig:
             against the goal bands, and goal buttons that change the goal through the policy server.
         live_port: Port of the --live page (0: any free port).
         live_host: Address the --live page listens on.
+        statistic: Measure this statistic (an expression such as mean(abs(obs[2])), a name, or a module:function
+            plug-in) instead of the one the model's goals cluster (its spec's).
+        action_mode: How the server picks actions (mean/sample for continuous, argmax/sample/expert for
+            discrete; default: the model's default).
     """
 
     env_id: str | None = None
@@ -136,6 +141,8 @@ class RunConfig:
     live: bool = False
     live_port: int = 8765
     live_host: str = "127.0.0.1"
+    statistic: str | None = None
+    action_mode: str | None = None
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or self.steps < 1:
@@ -252,6 +259,7 @@ def run_episode(
             if on_step is not None:
                 on_step(t, session)
             res = session.act(obs, **report)
+            before = obs
             obs, reward, terminated, truncated, info = env.step(res.action)
             if recorded:
                 report = {
@@ -260,7 +268,9 @@ def run_episode(
                     "truncated": bool(truncated) or t == cfg.steps - 1,
                     "info": report_info(info),
                 }
-            sig = signal_from_step(spec.statistic, reward, info)
+            sig = signal_from_step(
+                spec.statistic, reward, info, before, res.action, plugins=cfg.statistic is not None
+            )
             trace.append(t, res.step, res.goal, sig, reward, res.action)
             frame = env.render() if video is not None or (live is not None and live.wants_frame()) else None
             if video is not None:
@@ -338,6 +348,9 @@ def run(
     if cfg.out is not None:
         require_module("matplotlib", "run", "the episode plots (out)")
     spec = resolve_model(client, cfg.model, cfg.env_id)
+    if cfg.statistic is not None:  # measured here instead of the model's own statistic
+        spec = dataclasses.replace(spec, statistic=cfg.statistic)
+    get_statistic(spec.statistic, plugins=cfg.statistic is not None)  # unmeasurable: said before stepping
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)
     env = make_env(spec, env_id, max_steps=cfg.steps, render=cfg.video or cfg.live)
@@ -363,7 +376,9 @@ def run(
             if cfg.random_schedule is not None:
                 goal = random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, seed)[0]
             record = True if cfg.record else None
-            with client.create_session(spec.name, goal, seed=seed, record=record) as session:
+            with client.create_session(
+                spec.name, goal, seed=seed, record=record, action_mode=cfg.action_mode
+            ) as session:
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
                 if live is not None:
                     live.episode(ep, session.id)

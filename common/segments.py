@@ -21,7 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
-from gmt.common.statistics import is_sum
+from gmt.common.statistics import AGGREGATIONS, get_statistic, is_sum
 from gmt.common.tables import text_table
 
 SETTLE_MAX = 100
@@ -58,21 +58,46 @@ def measured_spans(goals: Sequence[int]) -> list[tuple[int, int, int]]:
 
 
 def tolerance(goal: GoalLike, goals: Sequence[GoalLike]) -> float:
-    """max(10% of |goal mean|, 5% of the span of goal means)."""
+    """max(10% of |goal mean|, 5% of the span of goal means, the goal's own std across its data's episodes).
+
+    The std keeps a goal from being held to less than its own trajectories vary by (a small statistic, e.g.
+    Swimmer's speed, whose 10% is narrower than its episodes' spread); a goal without one (0) adds nothing.
+    """
     means = [g.mean for g in goals]
-    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)))
+    spread = float(getattr(goal, "std", 0.0) or 0.0)
+    return max(0.1 * abs(goal.mean), 0.05 * (max(means) - min(means)), spread)
 
 
-def achieved(signal: np.ndarray | Sequence[float], start: int, end: int) -> np.ndarray | float:
+def achieved(
+    signal: np.ndarray | Sequence[float], start: int, end: int, statistic: str = ""
+) -> np.ndarray | float:
     """Mean signal over steps [start, end) along the last axis, ignoring NaN (steps after an early end).
 
+    A statistic that aggregates otherwise than by mean or sum (`max(info.height)`, `std(reward)`, ...) is
+    measured by its own aggregation over those steps instead, as its goals were over whole episodes.
     A 1-D signal gives a float, an [E, T] array one value per episode; NaN where nothing was measured.
     """
     x = np.asarray(signal, dtype=np.float64)[..., start:end]
+    agg = own_aggregation(statistic)
+    if agg is not None:
+        rows = x.reshape(-1, x.shape[-1])
+        out = np.asarray([agg(r[~np.isnan(r)]) if (~np.isnan(r)).any() else np.nan for r in rows])
+        return float(out[0]) if x.ndim == 1 else out.reshape(x.shape[:-1])
     n = np.sum(~np.isnan(x), axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         m = np.nansum(x, axis=-1) / n
     return float(m) if np.ndim(m) == 0 else m
+
+
+def own_aggregation(statistic: str):
+    """The aggregation of `statistic` when it is neither a mean nor a sum (else None: segments take the mean)."""
+    if not statistic:
+        return None
+    try:
+        agg = get_statistic(statistic, plugins=False).aggregate
+    except KeyError:
+        return None
+    return None if agg in (AGGREGATIONS["mean"], AGGREGATIONS["sum"], np.mean) else agg
 
 
 def within(value: np.ndarray | float, target: float, tol: float) -> np.ndarray | bool:
@@ -162,7 +187,7 @@ def measure(
             total = float(np.nansum(summed[a:b]))
             segs.append(Segment(g, goal.name, a, b, a, goal.mean, None, total, None))
             continue
-        value, tol = achieved(signal, m, b), tolerance(goal, table)
+        value, tol = achieved(signal, m, b, statistic), tolerance(goal, table)
         segs.append(Segment(g, goal.name, a, b, m, goal.mean, tol, value, within(value, goal.mean, tol)))
     return segs
 

@@ -228,14 +228,24 @@ def list_snapshots(env_id: str, behaviour_dir: str | Path | None = None) -> list
 
 
 class RandomPolicy:
-    """Uniform-random actions over a Box space, drawn from the given generator."""
+    """Uniform-random actions over a Box or Discrete space, drawn from the given generator."""
 
     def __init__(self, action_space):
-        self.low = np.asarray(action_space.low, dtype=np.float32)
-        self.high = np.asarray(action_space.high, dtype=np.float32)
+        import gymnasium as gym
+
+        self.discrete = isinstance(action_space, gym.spaces.Discrete)
+        if self.discrete:
+            self.start, self.n = int(action_space.start), int(action_space.n)
+        elif isinstance(action_space, gym.spaces.Box):
+            self.low = np.asarray(action_space.low, dtype=np.float32)
+            self.high = np.asarray(action_space.high, dtype=np.float32)
+        else:
+            raise ValueError(f"a random policy needs a Box or Discrete action space, got {action_space}")
 
     def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
-        """A uniform sample (the midpoint of the box when `rng` is None)."""
+        """A uniform sample (the midpoint of the box, or the first action, when `rng` is None)."""
+        if self.discrete:
+            return np.int64(self.start + (0 if rng is None else int(rng.integers(self.n))))
         if rng is None:
             return (self.low + self.high) / 2
         return rng.uniform(self.low, self.high).astype(np.float32)

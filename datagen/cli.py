@@ -358,8 +358,30 @@ def collect(
         help="Multiplier of the snapshots' action-noise std (default per env: HalfCheetah 0.35, else 1).",
     ),
     no_random: bool = typer.Option(False, help="Leave out the uniform-random policy."),
-    keep_stuck: bool = typer.Option(False, help="Keep episodes in which a running agent stopped for good."),
-    keep_falls: bool = typer.Option(False, help="Keep snapshot episodes that end in a fall (termination)."),
+    keep_stuck: bool = typer.Option(
+        None,
+        "--keep-stuck/--drop-stuck",
+        help="Keep (or replace) episodes in which a running agent stopped for good; default: replaced on the "
+        "shipped locomotion tasks, kept elsewhere.",
+        show_default=False,
+    ),
+    keep_falls: bool = typer.Option(
+        None,
+        "--keep-falls/--drop-falls",
+        help="Keep (or replace) episodes that end in a termination; default: replaced on the shipped locomotion "
+        "tasks (a fall), kept elsewhere (how an episode ends).",
+        show_default=False,
+    ),
+    policy: str = typer.Option(
+        None,
+        help="module:function, your policy: function(obs, level, rng) -> action, collected at each --level "
+        "instead of the behaviour snapshots (docs/your-own-data.md).",
+    ),
+    level: list[str] = typer.Option(
+        None,
+        help="A level name passed to --policy, or NAME=FILE.zip: a level acted by a Stable-Baselines3 model "
+        "(the train extra); repeat (two or more).",
+    ),
     pool_start: list[str] = typer.Option(
         None,
         help="LEVEL=SHARE: that share of LEVEL's episodes starts from states the other policies visited; "
@@ -472,6 +494,13 @@ def collect(
                 f"{unknown} have no --plan: give LEVEL=C1,C2,... for each", param_hint=option
             )
     shares = _level_values(pool_start, "SHARE", "--pool-start") if pool_start else None
+    if policy is not None:
+        from gmt.datagen.user_policy import load_policy_function
+
+        try:
+            load_policy_function(policy)  # a name that cannot be imported: said before the environment starts
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--policy") from None
 
     try:
         cfg = CollectConfig(
@@ -484,8 +513,10 @@ def collect(
             max_steps=max_steps,
             noise_scale=noise_scale,
             include_random=not no_random,
-            drop_stuck=not keep_stuck,
-            drop_falls=not keep_falls,
+            drop_stuck=None if keep_stuck is None else not keep_stuck,
+            drop_falls=None if keep_falls is None else not keep_falls,
+            policy=policy,
+            levels=level or None,
             pool_start=shares,
             pool_checkpoint=pool_checkpoint,
             pool_cycle=pool_cycle,
@@ -508,12 +539,20 @@ def collect(
         )
 
 
-def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: Path | None, ds=None):
+STATISTIC_HELP = (
+    "Per-trajectory statistic: AGG(SOURCE) (AGG mean, sum, min, max, first, last, std; SOURCE reward, info.KEY, "
+    "obs[i], action[i], optionally abs(...)), a name (mean_x_velocity, return) or module:function; default: "
+    "inferred from the data (mean_x_velocity where infos record x_velocity, else return) and printed."
+)
+
+
+def _relabel(dataset: str, statistic: str | None, k: int | None, seed: int, data_dir: Path | None, ds=None):
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import relabel
-    from gmt.model.data.statistics import MissingInfoError, per_trajectory
+    from gmt.model.data.statistics import MissingInfoError, chosen_statistic, per_trajectory
 
     ds = ds or load_dataset(dataset, data_dir)
+    statistic = statistic or chosen_statistic(ds, typer.echo)
     try:
         values = per_trajectory(statistic, ds)
     except (MissingInfoError, KeyError) as e:
@@ -526,7 +565,7 @@ def _relabel(dataset: str, statistic: str, k: int | None, seed: int, data_dir: P
 @needs("data", "gmt data describe")
 def describe(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    statistic: str = typer.Option(None, help=STATISTIC_HELP),
     k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
     seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
@@ -557,8 +596,9 @@ def describe(
         )
     if served is not None:  # relabelling by the statistic is for comparison only: it may not apply
         from gmt.model.data.relabel import relabel
-        from gmt.model.data.statistics import MissingInfoError, per_trajectory
+        from gmt.model.data.statistics import MissingInfoError, chosen_statistic, per_trajectory
 
+        statistic = statistic or chosen_statistic(ds, typer.echo)
         try:
             table = relabel(per_trajectory(statistic, ds), statistic=statistic, k=k, seed=seed)
         except (MissingInfoError, ValueError) as e:
@@ -567,6 +607,7 @@ def describe(
         typer.echo(f"for comparison, relabelled per trajectory by {statistic}:")
     else:
         ds, table = _relabel(dataset, statistic, k, seed, data_dir, ds)
+        statistic = table.statistic
     typer.echo(table.format())
     seps = separation(table)
     if seps:
@@ -584,7 +625,7 @@ def describe(
 def relabel(
     dataset: str = typer.Argument(..., help="Dataset id or path."),
     out: Path = typer.Option(..., help="Where to write the goal table (JSON)."),
-    statistic: str = typer.Option("mean_x_velocity", help="Per-trajectory statistic."),
+    statistic: str = typer.Option(None, help=STATISTIC_HELP),
     k: int = typer.Option(None, help="Fix the number of goals instead of sampling it."),
     seed: int = typer.Option(0, help="Seed of k-means and of the sampling of k."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
@@ -594,6 +635,37 @@ def relabel(
     table.save(out)
     typer.echo(table.format())
     typer.echo(f"\nwrote {out}")
+
+
+@app.command("import")
+@needs("data", "gmt data import")
+def import_command(
+    src: Path = typer.Argument(
+        ...,
+        help="A folder of .npz episode files (docs/your-own-data.md), a Minari dataset (id or folder), or a "
+        "folder of served sessions' recordings.",
+    ),
+    dataset_id: str = typer.Option(..., "--id", help="The new dataset's id, namespace/name-vN."),
+    env: str = typer.Option(
+        None, help="Gymnasium id whose spaces the data must fit (default: spaces inferred from the data)."
+    ),
+    overwrite: bool = typer.Option(False, help="Replace an existing dataset with this id."),
+    data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
+) -> None:
+    """Check your own episodes (lengths, shapes, NaN) and write them as a Minari dataset."""
+    from gmt.common.recording import RecordingError
+    from gmt.model.data.importer import import_data
+
+    try:
+        rep = import_data(src, dataset_id, env, data_dir, overwrite)
+    except (FileNotFoundError, FileExistsError, RecordingError, ValueError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(
+        f"wrote {rep.path} ({rep.kind}): {rep.episodes} episodes, {rep.transitions} transitions; environment "
+        f"{rep.env_id}, observations {rep.observation_space}, actions {rep.action_space}; per-step infos: "
+        f"{', '.join(rep.info_keys) or 'none'}"
+    )
 
 
 @app.command("import-sessions")
@@ -611,7 +683,8 @@ def import_sessions(
     overwrite: bool = typer.Option(False, help="Replace an existing dataset with this id."),
     data_dir: Path = typer.Option(None, help="Datasets root (default $GMT_DATA_DIR, else data/minari)."),
 ) -> None:
-    """Turn served sessions' recordings into a Minari dataset with per-step goal labels from their timelines."""
+    """Turn served sessions' recordings into a Minari dataset with per-step goal labels from their timelines
+    (`gmt data import RECORDINGS --id ID` does the same without --include)."""
     from gmt.common.recording import RecordingError
     from gmt.model.data.served import import_sessions as run_import
 
@@ -633,10 +706,15 @@ def import_sessions(
 
 @app.command()
 def statistics() -> None:
-    """List the registered per-trajectory statistics."""
-    from gmt.common.statistics import get_statistic, list_statistics
+    """List the registered per-trajectory statistics and how to write any other."""
+    from gmt.common.statistics import AGGREGATIONS, canonical, get_statistic, list_statistics
 
     for name in list_statistics():
         s = get_statistic(name)
         needs = f" (needs info {sorted(s.requires)})" if s.requires else ""
-        typer.echo(f"{name:<18} {s.description}{needs}")
+        same = f" = {canonical(name)}" if canonical(name) != name else ""
+        typer.echo(f"{name:<18} {s.description}{same}{needs}")
+    typer.echo(
+        f"any other: AGG(SOURCE), AGG one of {', '.join(AGGREGATIONS)}, SOURCE reward, info.KEY, obs[i] or "
+        "action[i], optionally abs(...), e.g. mean(abs(obs[2])); or module:function (docs/your-own-data.md)"
+    )

@@ -14,10 +14,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from gmt.common.statistics import canonical
 from gmt.datagen.behaviour import RandomPolicy, env_slug, list_snapshots, load_behaviour
 from gmt.datagen.plan import PlanConfig, PlannedPolicy
 from gmt.datagen.rollout import rollout, stuck_step
 from gmt.datagen.start_states import CheckpointPolicy, StatePool, build_pool
+from gmt.datagen.user_policy import level_policies
 from gmt.model.data.minari_io import Episode, check_dataset_id, write_dataset
 
 RANDOM = "random"
@@ -65,12 +67,16 @@ class CollectConfig:
         drop_stuck: Replace snapshot episodes in which the agent, after running, came to a standstill
             (`rollout.stuck_step` over `stuck_window` steps): the behaviour changed mid-episode, which would
             blur the level's speed. Also replaces pool-started episodes that end standing still (a start
-            pose the level cannot leave). Counted per level; the random policy is never filtered.
+            pose the level cannot leave). Counted per level; the random policy is never filtered. None: on
+            for the shipped locomotion tasks (HalfCheetah, Hopper, Walker2d, Ant: its thresholds are in their
+            m/s), off for any other environment; turned on elsewhere, its thresholds are relative to each
+            episode's own speed (`stuck_step(relative=True)`).
         stuck_window: Steps averaged by the standstill test.
         drop_falls: Replace snapshot episodes that end in a fall (termination). A level's policy that falls
             shows a failure, not its goal (a level started from another's states may fall while changing
             speed), and such episodes would teach the model that braking means falling. Counted per level;
-            the random policy is never filtered.
+            the random policy is never filtered. None: on for the shipped locomotion tasks, off elsewhere
+            (where a termination is how an episode ends, e.g. CartPole's pole falling).
         max_attempts: Episodes tried per level at most, as a multiple of `episodes_per_level`.
         pool_start: Level -> share of its episodes that start from a state visited by the other policies
             (None: per-env default; {} for none).
@@ -83,6 +89,10 @@ class CollectConfig:
             rest where the plan says `from_rest` (`plan.PlannedPolicy`: the commanded level picks, in the
             simulator, the continuation that reaches its speed soonest); None or {} for no planning.
         overwrite: Replace an existing dataset with the same id.
+        policy: A user's policy function "module:function" (`gmt.datagen.user_policy`) collected at `levels`,
+            instead of the behaviour snapshots.
+        levels: The level names passed to `policy`, one level (and its episodes) each; "NAME=FILE.zip" makes
+            a level of a Stable-Baselines3 model instead (no `policy` needed).
     """
 
     env_id: str
@@ -94,18 +104,32 @@ class CollectConfig:
     max_steps: int | None = None
     noise_scale: float | None = None
     include_random: bool = True
-    drop_stuck: bool = True
+    drop_stuck: bool | None = None
     stuck_window: int = 100
-    drop_falls: bool = True
+    drop_falls: bool | None = None
     max_attempts: int = 3
     pool_start: dict[str, float] | None = None
     pool_checkpoint: Path | None = None
     pool_cycle: int | None = None
     plan: dict[str, PlanConfig] | None = None
     overwrite: bool = True
+    policy: str | None = None
+    levels: list[str] | None = None
 
     def __post_init__(self) -> None:
         slug = env_slug(self.env_id)
+        locomotion = slug in DEFAULT_EPISODES  # the shipped locomotion tasks: the m/s thresholds fit them
+        if self.drop_stuck is None:
+            self.drop_stuck = locomotion
+        if self.drop_falls is None:
+            self.drop_falls = locomotion
+        if self.policy is not None and not self.levels:
+            raise ValueError("a --policy is collected at named levels: give --level NAME at least twice")
+        if self.levels and self.policy is None and not all("=" in lv for lv in self.levels):
+            raise ValueError("--level NAME names a level of a --policy module:function (or NAME=FILE.zip)")
+        names = [lv.partition("=")[0] for lv in self.levels or []]
+        if len(set(names)) != len(names) or RANDOM in names:
+            raise ValueError(f"levels must be distinct and not {RANDOM!r}, got {names}")
         self.episodes_per_level = self.episodes_per_level or DEFAULT_EPISODES.get(slug, 50)
         self.dataset_id = self.dataset_id or default_dataset_id(self.env_id)
         check_dataset_id(self.dataset_id)  # before minutes of collection, not after
@@ -197,7 +221,8 @@ def collect_level(
             filtered
             and v is not None
             and (
-                stuck_step(v, cfg.stuck_window) is not None
+                stuck_step(v, cfg.stuck_window, relative=env_slug(cfg.env_id) not in DEFAULT_EPISODES)
+                is not None
                 or (start is not None and abs(np.mean(v[-cfg.stuck_window :])) < 0.1)
             )
         ):
@@ -234,7 +259,7 @@ def checkpoint_sources(
     from gmt.model.engine import PolicyEngine
 
     ckpt = load_checkpoint(path)
-    if ckpt.statistic != "mean_x_velocity":
+    if canonical(ckpt.statistic) != canonical("mean_x_velocity"):
         raise ValueError(f"{path}: a pool checkpoint must have x-velocity goals, not {ckpt.statistic!r}")
     engine = PolicyEngine(ckpt)
     if cycle_every is not None:
@@ -262,9 +287,12 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
     start = time.time()
     env = gym.make(cfg.env_id)
     policies = {RANDOM: RandomPolicy(env.action_space)} if cfg.include_random else {}
-    for path in list_snapshots(cfg.env_id, cfg.behaviour_dir):
-        policies[path.stem] = load_behaviour(path, env.action_space)
-        policies[path.stem].noise_scale = cfg.noise_scale
+    if cfg.levels:
+        policies.update(level_policies(cfg.policy, cfg.levels, cfg.seed))
+    else:
+        for path in list_snapshots(cfg.env_id, cfg.behaviour_dir):
+            policies[path.stem] = load_behaviour(path, env.action_space)
+            policies[path.stem].noise_scale = cfg.noise_scale
     children = np.random.SeedSequence(cfg.seed).spawn(len(policies))
     unknown = sorted((set(cfg.pool_start) | set(cfg.plan)) - set(policies))
     if unknown:
@@ -301,9 +329,15 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
             metadata += meta
     dropped = ", ".join(f"{k} {v['stuck_dropped']}" for k, v in levels.items())
     fell = ", ".join(f"{k} {v['falls_dropped']}" for k, v in levels.items())
+    source = (
+        f"behaviour snapshots rolled out with {cfg.noise_scale:g} x their Gaussian noise"
+        if not cfg.levels
+        else f"the user's policies at levels {', '.join(cfg.levels)}"
+        + (f" ({cfg.policy})" if cfg.policy else "")
+    )
     description = (
-        f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} (behaviour snapshots rolled out with "
-        f"{cfg.noise_scale:g} x their Gaussian noise{', and a uniform-random policy' * cfg.include_random}), {cfg.episodes_per_level} "
+        f"Mixed-skill {cfg.env_id} data from policies {', '.join(policies)} ({source}"
+        f"{', and a uniform-random policy' * cfg.include_random}), {cfg.episodes_per_level} "
         f"episodes each, seed {cfg.seed}. "
         + f"Snapshot episodes where a running agent came to a standstill were replaced ({dropped}). "
         * cfg.drop_stuck
@@ -333,7 +367,7 @@ def collect(cfg: CollectConfig, progress: bool = True) -> CollectResult:
         cfg.data_dir,
         episode_metadata=metadata,
         description=description,
-        algorithm_name="gmt-mixed-ppo-snapshots",
+        algorithm_name="gmt-mixed-ppo-snapshots" if not cfg.levels else "gmt-user-policy",
         overwrite=cfg.overwrite,
     )
     return CollectResult(

@@ -109,13 +109,24 @@ def stuck_step(
     run_speed: float = 1.0,
     stop_speed: float = 0.1,
     run_window: int = 20,
+    relative: bool = False,
 ) -> int | None:
     """First step at which an agent that was running has come to a standstill, else None.
 
     "Running" means a `run_window`-step mean x-velocity above `run_speed` at some earlier point; "standstill"
-    means a later `window`-step mean |x-velocity| below `stop_speed`.
+    means a later `window`-step mean |x-velocity| below `stop_speed`. With `relative` the thresholds come from
+    the episode itself, for tasks of any speed scale (the defaults are HalfCheetah's m/s): both windows are
+    `window` steps, and with `peak` the 90th percentile of the episode's window means (a start-up transient does
+    not set it), running is above half of it and standing still below a tenth of it.
     """
     v = np.asarray(x_velocity, dtype=np.float64)
+    if relative:
+        if len(v) < window:
+            return None
+        peak = float(np.quantile(np.convolve(v, np.ones(window) / window, mode="valid"), 0.9))
+        if not peak > 0:
+            return None
+        return stuck_step(v, window, 0.5 * peak, 0.1 * peak, window)
     if len(v) < max(window, run_window):
         return None
     run_means = np.convolve(

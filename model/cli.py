@@ -37,7 +37,7 @@ def train_command(
     from gmt.model.data.minari_io import load_dataset
     from gmt.model.data.relabel import GoalTable, relabel
     from gmt.model.data.served import step_labels, switch_count
-    from gmt.model.data.statistics import per_trajectory
+    from gmt.model.data.statistics import chosen_statistic, per_trajectory
     from gmt.model.train import train
 
     _check_train_flags(flags, out)
@@ -55,7 +55,7 @@ def train_command(
             f"{len(ds.episodes)} episodes with per-step goal labels ({n_switches} goal switches in {n_eps} "
             f"episodes), k = {len(goals)} goals: " + ", ".join(f"{g.name}={g.mean:.2f}" for g in goals)
         )
-        stat = ds.goal_labels.get("statistic") or flags["statistic"]
+        stat = ds.goal_labels.get("statistic") or flags["statistic"] or chosen_statistic(ds, typer.echo)
         tc = TrainConfig(**{**pick(flags, TRAIN_FLAGS), "statistic": stat, "k": len(goals)})
         command = "gmt train " + " ".join(shlex.quote(a) for a in sys.argv[2:])
         ckpt = train(
@@ -77,8 +77,12 @@ def train_command(
                 f"{labels} labels {len(rel.labels)} episodes, the dataset has {len(ds.episodes)}"
             )
     else:
-        stat, k, seed = flags["statistic"], flags["k"], flags["seed"]
-        rel = relabel(per_trajectory(stat, ds), statistic=stat, k=k, seed=seed)
+        stat, k, seed = flags["statistic"] or chosen_statistic(ds, typer.echo), flags["k"], flags["seed"]
+        try:
+            values = per_trajectory(stat, ds)
+        except KeyError as e:  # MissingInfoError: the data lacks what the statistic reads
+            raise typer.BadParameter(str(e), param_hint="--statistic") from None
+        rel = relabel(values, statistic=stat, k=k, seed=seed)
     goals = [Goal(**g.__dict__) for g in rel.goals]
     typer.echo(
         f"{len(ds.episodes)} episodes, k = {len(goals)} goals: "
@@ -116,7 +120,8 @@ def _check_train_flags(flags: dict[str, Any], out: Path) -> None:
     try:
         TrainConfig(**pick(flags, TRAIN_FLAGS))
         GMTConfig((1,), 1, False, 2, **pick(flags, MODEL_FLAGS))  # the spaces and goals: placeholders
-        get_statistic(flags["statistic"])
+        if flags["statistic"] is not None:
+            get_statistic(flags["statistic"])
     except (ValueError, KeyError) as e:
         raise typer.BadParameter(str(e.args[0]) if e.args else str(e)) from None
     if flags["k"] is not None and flags["k"] < 2:
@@ -131,6 +136,9 @@ def _trained(ckpt, out: Path) -> None:
     if ckpt is None:  # a torchrun process other than rank 0: rank 0 wrote the checkpoint
         return
     info = ckpt.meta["training"]
+    note = (ckpt.meta.get("goal_spread") or {}).get("note")
+    if note:
+        typer.echo(note, err=note.startswith("warning"))
     typer.echo(
         f"wrote {out} ({info['wall_time_s']} s, {info['steps_per_s']} steps/s, final loss {info['final']['loss']:.4f})"
     )
@@ -172,13 +180,14 @@ def eval_command(
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
 
-    A checkpoint with `return` goals (Atari) gets the paper's game protocol instead (`gmt.model.evaluate_return`):
+    A checkpoint whose statistic sums (`return`, any sum(...)) gets the paper's game protocol instead (`gmt.model.evaluate_return`):
     hold every goal, switch at step 300 between the low, middle and high goals, against the expected return.
     A Decision Transformer (`--conditioning return` at training) plays the same protocol steered by
     returns-to-go (`gmt.model.evaluate_dt`).
     """
     import torch
 
+    from gmt.common.statistics import is_sum
     from gmt.model.checkpoint import load_checkpoint
     from gmt.model.engine import PolicyEngine
     from gmt.model.evaluate import evaluate
@@ -200,7 +209,7 @@ def eval_command(
         from gmt.model.evaluate_dt import evaluate_dt
 
         result = evaluate_dt(ckpt, seeds=seed_list, steps=steps)
-    elif ckpt.statistic == "return":
+    elif is_sum(ckpt.statistic):  # e.g. `return`: goals of whole episodes
         from gmt.model.evaluate_return import evaluate_returns, plot_returns
 
         result = evaluate_returns(ckpt, seeds=seed_list, steps=steps, action_mode=action_mode)

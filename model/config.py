@@ -147,7 +147,9 @@ class TrainConfig:
         threads: torch intra-op threads (0 = leave torch's default).
         log_every: Steps between TensorBoard scalars and progress-bar updates.
         save_every: Steps between resumable checkpoints.
-        statistic: Per-trajectory statistic the goals cluster.
+        statistic: Per-trajectory statistic the goals cluster: an expression AGG(SOURCE) such as
+            mean(info.x_velocity), sum(reward) or mean(abs(obs[2])), a name (mean_x_velocity, return), or a
+            module:function plug-in (docs/your-own-data.md); default: inferred from the data and printed.
         k: Number of goals; None picks k by silhouette score.
         calibration_batches: Batches of windows scored after training to measure the per-goal action noise
             of continuous-action models (`gmt.model.calibrate`).
@@ -189,7 +191,7 @@ class TrainConfig:
     threads: int = 0
     log_every: int = 100
     save_every: int = 2000
-    statistic: str = "mean_x_velocity"
+    statistic: str | None = None
     k: int | None = None
     calibration_batches: int = 200
     bf16: bool = False

@@ -12,7 +12,7 @@ JSON schema (`EvalResult.to_dict`):
     conditions: [{
         name ("hold 0", "switch 0->2", "every 200"), kind ("hold" | "switch" | "multi_switch"),
         schedule: [[step, goal], ...],
-        episodes, successes, terminated_early,
+        episodes, successes, terminated_early, never_switched (episodes that ended before a goal change: failures),
         segments: [{goal, start, end (the measured steps [start, end)), target, tolerance, achieved_mean,
                     achieved_std, within (count)}],
     }]
@@ -21,6 +21,7 @@ JSON schema (`EvalResult.to_dict`):
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -101,6 +102,15 @@ class ConditionResult:
     success: np.ndarray  # [E] bool
     segments: list[dict] = field(default_factory=list)
 
+    @property
+    def never_switched(self) -> int:
+        """Episodes that ended before one of the condition's goal changes: a switch that never happened (and a
+        failure, as every early end is)."""
+        changes = [s for s, _ in self.condition.schedule[1:] if s < self.signal.shape[1]]
+        if not changes:
+            return 0
+        return int(np.isnan(self.signal[:, changes]).any(axis=1).sum())
+
     def to_dict(self) -> dict:
         """JSON-ready summary (without the per-step signal)."""
         c = self.condition
@@ -111,6 +121,7 @@ class ConditionResult:
             "episodes": int(len(self.success)),
             "successes": int(self.success.sum()),
             "terminated_early": int(self.terminated.sum()),
+            "never_switched": self.never_switched,
             "segments": self.segments,
         }
 
@@ -151,7 +162,8 @@ class EvalResult:
         rows = [
             (
                 r.condition.name,
-                f"{int(r.success.sum())}/{n}",
+                f"{int(r.success.sum())}/{n}"
+                + (f" ({r.never_switched} never switched)" if r.never_switched else ""),
                 "; ".join(
                     f"{s['goal']}: {s['target']:.2f}±{s['tolerance']:.2f} -> {s['achieved_mean']:.2f} "
                     f"({s['achieved_std']:.2f})"
@@ -174,7 +186,7 @@ def play_lockstep(
     ctxs: list,
     goal_at: list[Callable[[int], int]],
     steps: int,
-    record: Callable[[int, int, float, dict], None],
+    record: Callable[[int, int, float, dict, object, object], None],
     progress: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step every episode together through one engine until each ends or `steps` steps are played.
@@ -186,7 +198,8 @@ def play_lockstep(
         ctxs: One engine context per episode.
         goal_at: Per episode, the goal to pursue at a step (set before acting when it changes).
         steps: Most steps per episode.
-        record: Called with (episode, step, reward, info) after every environment step.
+        record: Called with (episode, step, reward, info, the observation acted on, the action) after every
+            environment step.
         progress: Show a progress bar.
 
     Returns:
@@ -209,8 +222,9 @@ def play_lockstep(
         if failed:
             raise failed[0]
         for i, a in zip(idx, actions, strict=True):
+            before = obs[i]
             obs[i], r, term, trunc, info = envs[i].step(a)
-            record(i, t, r, info)
+            record(i, t, r, info, before, a)
             if term or trunc:
                 terminated[i] = term
                 alive[i], lengths[i] = False, t + 1
@@ -253,8 +267,8 @@ def evaluate(
     ctxs = [engine.new_context(c.goal_at(0), mode, seed=s) for c, s in runs]
     signal = np.full((len(runs), steps), np.nan)
 
-    def record(i: int, t: int, reward: float, info: dict) -> None:
-        signal[i, t] = signal_from_step(ckpt.statistic, reward, info)
+    def record(i: int, t: int, reward: float, info: dict, ob: object, action: object) -> None:
+        signal[i, t] = signal_from_step(ckpt.statistic, reward, info, ob, action)
 
     terminated, _ = play_lockstep(
         engine, envs, obs, ctxs, [c.goal_at for c, _ in runs], steps, record, progress
@@ -293,7 +307,7 @@ def judge(
         rows = slice(ci * len(seed_list), (ci + 1) * len(seed_list))
         sig, term = signal[rows], terminated[rows]
         spans = c.segments
-        seg_means = np.stack([achieved(sig, a, b) for _, a, b in spans], axis=1)
+        seg_means = np.stack([achieved(sig, a, b, ckpt.statistic) for _, a, b in spans], axis=1)
         ok = ~term
         seg_info = []
         for si, (g, a, b) in enumerate(spans):
@@ -301,7 +315,9 @@ def judge(
             tol = tolerance(goal, ckpt.goals)
             hit = within(seg_means[:, si], goal.mean, tol)
             ok &= hit
-            mean, std = float(np.nanmean(seg_means[:, si])), float(np.nanstd(seg_means[:, si]))
+            with warnings.catch_warnings():  # a segment no episode reached: NaN, reported as such
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean, std = float(np.nanmean(seg_means[:, si])), float(np.nanstd(seg_means[:, si]))
             seg_info.append(
                 {
                     "goal": g,

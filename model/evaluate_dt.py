@@ -98,6 +98,7 @@ def evaluate_dt(
     terminated = np.zeros(n, dtype=bool)
     alive = np.ones(n, dtype=bool)
     states[:, 0] = ckpt.obs_norm(np.stack(first))
+    current = list(first)  # the raw observation each episode acts on (what obs[i] statistics read)
     for t in tqdm(range(steps), disable=not progress, desc="eval dt"):
         idx = np.flatnonzero(alive)
         if len(idx) == 0:
@@ -121,7 +122,8 @@ def evaluate_dt(
             actions[i, t] = act[j]
             obs, r, term, trunc, info = envs[i].step(env_act[j])
             rewards[i, t] = r
-            signal[i, t] = signal_from_step(ckpt.statistic, r, info)
+            signal[i, t] = signal_from_step(ckpt.statistic, r, info, current[i], env_act[j])
+            current[i] = obs
             if term or trunc:
                 terminated[i] = term
                 alive[i] = False

@@ -15,8 +15,9 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from gmt.common.spaces import space_to_dict
+from gmt.common.statistics import default_statistic
 from gmt.model.augment import augment_frames
-from gmt.model.calibrate import action_noise
+from gmt.model.calibrate import action_noise, goal_spread, mode_for_goals
 from gmt.model.checkpoint import Checkpoint, Goal, code_revision, save_checkpoint
 from gmt.model.config import GMTConfig, TrainConfig
 from gmt.model.distributed import Parallel
@@ -320,6 +321,11 @@ def train(
         if cfg.discrete_actions or dt  # a Decision Transformer acts with its mean action
         else action_noise(model, sampler, len(goals), batches=tc.calibration_batches, seed=tc.seed)
     )
+    default_mode, spread = tc.default_action_mode, None
+    if cfg.discrete_actions and not dt:  # do the goals change the actions of the mode sessions get?
+        spread = goal_spread(model, sampler, len(goals), seed=tc.seed)
+        default_mode, note = mode_for_goals(spread, tc.default_action_mode)
+        spread = {"total_variation": spread, "default_action_mode": default_mode, "note": note}
     meta = {
         **(extra_meta or {}),
         **(
@@ -327,6 +333,7 @@ def train(
             if dt
             else {}
         ),
+        **({"goal_spread": spread} if spread is not None else {}),
         "training": {
             **asdict(replace(tc)),
             "final": last,
@@ -353,12 +360,12 @@ def train(
         action_space=space_to_dict(dataset.action_space),
         obs_norm=norm,
         action_codec=codec,
-        statistic=tc.statistic,
+        statistic=tc.statistic or default_statistic(set(getattr(dataset, "info_keys", ())))[0],
         goals=goals,
         meta=meta,
         action_noise=noise,
         preprocessing=dataset.preprocessing,
-        default_action_mode=tc.default_action_mode,
+        default_action_mode=default_mode,
         switch_relabel_steps=tc.switch_relabel_steps,
     )
     save_checkpoint(ckpt, out)

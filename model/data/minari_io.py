@@ -274,7 +274,7 @@ def write_dataset(
     Args:
         dataset_id: Minari id, "namespace/name-vN".
         episodes: The trajectories; a missing final observation is written as a copy of the last one.
-        env_id: Gymnasium id recorded as the dataset's environment.
+        env_id: Gymnasium id recorded as the dataset's environment ("unknown" for data of none).
         observation_space: Observation space recorded in the dataset.
         action_space: Action space recorded in the dataset.
         data_dir: Datasets root (default: $GMT_DATA_DIR, else data/minari).
@@ -319,8 +319,8 @@ def write_dataset(
         ds = minari.create_dataset_from_buffers(
             dataset_id=dataset_id,
             buffer=buffers,
-            env=env_id,
-            eval_env=env_id,
+            env=None if env_id in (None, "unknown") else env_id,  # data of no Gymnasium environment
+            eval_env=None if env_id in (None, "unknown") else env_id,
             author="gmt-service",
             observation_space=observation_space,
             action_space=action_space,

@@ -17,8 +17,9 @@ def plot_goals(table: GoalTable, path: str | Path, title: str = "") -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 4))
-    bins = np.histogram_bin_edges(table.values, bins=60)
-    data = [table.values[table.labels == g.id] for g in table.goals]
+    values = table.values if table.values.ndim == 1 else table.values[:, 0]  # several statistics: the first
+    bins = np.histogram_bin_edges(values, bins=60)
+    data = [values[table.labels == g.id] for g in table.goals]
     labels = [f"{g.id} {g.name} ({g.mean:.2f} ± {g.std:.2f}, n={g.count})" for g in table.goals]
     ax.hist(data, bins=bins, stacked=True, label=labels)
     for g in table.goals:

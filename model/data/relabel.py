@@ -1,5 +1,9 @@
 """Unsupervised goals: k-means over a 1-D per-trajectory statistic, k chosen by silhouette score (paper 2.1).
 
+Goals over several statistics at once (e.g. speed and energy): k-means and the silhouette run on the vectors
+standardised per statistic (z-scores), goals are ordered by the first statistic, and each goal records its vector
+of per-statistic means (`GoalTable.vectors`); a goal's mean, std, min and max are the first statistic's.
+
 For every k in a range, k-means is fitted and scored by silhouette; the scores are min-max normalised to
 [0, 1]; the candidates are the k scoring at least `threshold` (0.85), and one is drawn with probability
 proportional to its normalised score (seeded) unless k is given. Goal 0 has the lowest mean statistic.
@@ -45,6 +49,8 @@ class GoalTable:
         labels: Goal id of every episode, in dataset order.
         values: The statistic of every episode, in dataset order.
         goals: Per-goal summary, ordered by id (ascending mean).
+        vectors: With several statistics, each goal's mean of every statistic (in the order named), by id;
+            None for one statistic.
     """
 
     statistic: str
@@ -57,12 +63,13 @@ class GoalTable:
     labels: np.ndarray
     values: np.ndarray
     goals: list[Goal]
+    vectors: list[list[float]] | None = None
 
     def to_dict(self) -> dict:
         """A JSON-ready dict (inverse of `from_dict`)."""
         d = asdict(self)
         d["labels"] = [int(x) for x in self.labels]
-        d["values"] = [float(x) for x in self.values]
+        d["values"] = np.asarray(self.values, dtype=np.float64).tolist()
         d["silhouette"] = {str(k): v for k, v in self.silhouette.items()}
         d["normalised"] = {str(k): v for k, v in self.normalised.items()}
         return d
@@ -81,6 +88,7 @@ class GoalTable:
             labels=np.asarray(d["labels"], dtype=np.int64),
             values=np.asarray(d["values"], dtype=np.float64),
             goals=[Goal(**g) for g in d["goals"]],
+            vectors=d.get("vectors"),
         )
 
     def save(self, path: str | Path) -> None:
@@ -104,13 +112,15 @@ class GoalTable:
             rule=False,
         )
         how = "given" if self.k_given else f"sampled from candidates {self.candidates}, seed {self.seed}"
+        vec = ["(" + ", ".join(f"{x:.3f}" for x in v) + ")" for v in self.vectors] if self.vectors else None
         goals = text_table(
-            ("id", "name", "count", "mean", "std", "min", "max"),
+            ("id", "name", "count", "mean", "std", "min", "max") + (("vector",) if vec else ()),
             [
                 (g.id, g.name, g.count, f"{g.mean:.3f}", f"{g.std:.3f}", f"{g.min:.3f}", f"{g.max:.3f}")
+                + ((vec[g.id],) if vec else ())
                 for g in self.goals
             ],
-            align="><>>>>>",
+            align="><>>>>>" + (">" if vec else ""),
             rule=False,
         )
         lines = [scores, "", f"chosen k = {self.k} ({how}); statistic: {self.statistic}", "", goals]
@@ -124,8 +134,9 @@ def silhouette_scores(
     from sklearn.cluster import KMeans
     from sklearn.metrics import silhouette_score
 
-    x = np.asarray(values, dtype=np.float64).reshape(-1, 1)
-    n_distinct = len(np.unique(x))
+    x = np.asarray(values, dtype=np.float64)
+    x = x.reshape(-1, 1) if x.ndim == 1 else x
+    n_distinct = len(np.unique(x, axis=0))
     scores, labels = {}, {}
     for k in ks:
         if k >= n_distinct:  # silhouette needs 2 <= k <= n_distinct - 1
@@ -147,7 +158,8 @@ def relabel(
     """Cluster per-trajectory statistic values into goals.
 
     Args:
-        values: The statistic of each trajectory, shape [N].
+        values: The statistic of each trajectory, shape [N]; or [N, d] for d statistics (clustered as z-scores,
+            ordered by the first).
         statistic: Name recorded in the table.
         k: Fix the number of goals (it is still scored); None samples it from the candidates.
         k_range: Inclusive range of k to score.
@@ -158,11 +170,19 @@ def relabel(
         The goal table; goal ids are ordered by ascending mean value.
     """
     values = np.asarray(values, dtype=np.float64)
+    if values.ndim == 2 and values.shape[1] == 1:
+        values = values[:, 0]
+    if values.ndim == 2:  # several statistics: each standardised, so none outweighs the others by its unit
+        spread = values.std(axis=0)
+        features = (values - values.mean(axis=0)) / np.where(spread > 0, spread, 1.0)
+    else:
+        features = values
+    first = values if values.ndim == 1 else values[:, 0]
     ks = sorted(set(range(k_range[0], k_range[1] + 1)) | ({k} if k else set()))
-    scores, labels_by_k = silhouette_scores(values, ks, seed)
+    scores, labels_by_k = silhouette_scores(features, ks, seed)
     if not scores:
         raise ValueError(
-            f"cannot cluster {len(values)} trajectories with {len(np.unique(values))} distinct values"
+            f"cannot cluster {len(values)} trajectories with {len(np.unique(values, axis=0))} distinct values"
         )
     lo, hi = min(scores.values()), max(scores.values())
     normalised = {kk: (s - lo) / (hi - lo) if hi > lo else 1.0 for kk, s in scores.items()}
@@ -175,19 +195,24 @@ def relabel(
     else:
         chosen = k
     raw = labels_by_k[chosen]
-    order = np.argsort([values[raw == c].mean() for c in range(chosen)])
+    order = np.argsort([first[raw == c].mean() for c in range(chosen)])
     labels = np.empty_like(raw, dtype=np.int64)
     for new, old in enumerate(order):
         labels[raw == old] = new
     names = goal_names(chosen)
     goals = []
     for g in range(chosen):
-        v = values[labels == g]
+        v = first[labels == g]
         goals.append(
             Goal(g, names[g], float(v.mean()), float(v.std()), float(v.min()), float(v.max()), len(v))
         )
+    vectors = (
+        [[float(x) for x in values[labels == g].mean(axis=0)] for g in range(chosen)]
+        if values.ndim == 2
+        else None
+    )
     return GoalTable(
-        statistic, chosen, scores, normalised, candidates, k is not None, seed, labels, values, goals
+        statistic, chosen, scores, normalised, candidates, k is not None, seed, labels, values, goals, vectors
     )
 
 

@@ -143,7 +143,11 @@ class ModelOut(_Versions):
     observation_space: Space
     action_space: Space
     context_length: int
-    statistic: str
+    statistic: str = Field(
+        description="The per-trajectory statistic the goals cluster, as a client measures it: an expression "
+        "AGG(SOURCE) such as mean(info.x_velocity) or mean(abs(obs[2])), a name (return), or a module:function "
+        "plug-in (docs/your-own-data.md)."
+    )
     goals: list[GoalOut]
     discrete_actions: bool
     action_modes: list[str] = Field(description="Accepted `action_mode` values; the first is the default.")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 
@@ -200,3 +201,35 @@ def test_random_schedules_are_drawn_from_the_seed_within_their_bounds():
     goals = [first] + [g for _, g in changes]
     assert all(a != b for a, b in zip(goals, goals[1:], strict=False)) and set(goals) <= {0, 1, 2, 3}
     assert random_schedule(1, 1000, (5, 10), seed=0) == (0, [])
+
+
+def test_a_statistic_and_an_action_mode_of_the_users_choosing(live_server):
+    from gmt.client.errors import InvalidArgument
+
+    cfg = RunConfig(model="tiny-gmt", steps=12, seed=3, statistic="mean(abs(action[1]))", action_mode="mean")
+    modes = set()
+    with RestClient(live_server.rest_url) as c:
+        res = run(
+            c, cfg, on_step=lambda t, s: modes.add(c.get_session(s.id).action_mode), echo=lambda _: None
+        )[0]
+        with pytest.raises(
+            InvalidArgument, match="action_mode 'sample'"
+        ):  # asked of the server: uncalibrated
+            run(c, dataclasses.replace(cfg, action_mode="sample"), echo=lambda _: None)
+    assert modes == {"mean"}
+    actions = np.asarray(res.trace.action, dtype=np.float64)
+    np.testing.assert_allclose(res.trace.signal, np.abs(actions[:, 1]), rtol=1e-6)
+    assert res.segments[0].achieved == pytest.approx(np.abs(actions[:, 1])[settle_in(12) :].mean())
+
+
+def test_a_plugin_named_by_the_server_is_not_imported_unless_the_user_names_it(start_server, tmp_path):
+    from gmt.model.fixtures import tiny_checkpoint
+
+    plugin = "tests.common.statistic_plugin:speed_squared"
+    tiny_checkpoint(tmp_path / "plug-gmt", name="plug-gmt", statistic=plugin)
+    server = start_server(tmp_path)
+    with RestClient(server.rest_url) as c:
+        with pytest.raises(KeyError, match="is a plug-in; pass it yourself"):
+            run(c, RunConfig(model="plug-gmt", steps=5), echo=lambda _: None)
+        res = run(c, RunConfig(model="plug-gmt", steps=5, statistic=plugin), echo=lambda _: None)[0]
+    assert len(res.trace.signal) == 5 and all(s >= 0 for s in res.trace.signal)

@@ -103,3 +103,13 @@ def test_held_windows_cover_the_episode_and_fail_a_window_with_a_fall():
     )  # windows from 600 on reach past step 700, though most steps are before
     assert not within(w[-5, 1], 650.0, 1000.0)  # a partly measured window is not within
     assert held_windows(signal[0], first=0, length=500, every=500).tolist() == [249.5, 749.5]
+
+
+def test_a_statistic_of_another_aggregation_is_measured_by_it_per_segment():
+    sig = np.array([[1.0, 5.0, 2.0, 3.0], [4.0, 1.0, np.nan, np.nan]])
+    np.testing.assert_allclose(achieved(sig, 0, 4, "max(info.height)"), [5.0, 4.0])
+    np.testing.assert_allclose(achieved(sig, 1, 4, "mean(info.height)"), [10 / 3, 1.0])  # the mean, as before
+    assert achieved(sig[0], 0, 4, "std(reward)") == pytest.approx(np.std([1.0, 5.0, 2.0, 3.0]))
+    table = [GoalInfo(0, "low", 2.0, 0.5, 1, 3, 5), GoalInfo(1, "high", 5.0, 0.5, 4, 6, 5)]
+    segs = measure([1, 1, 1, 1], sig[0], table, "max(info.height)")
+    assert segs[0].achieved == 5.0 and segs[0].within

@@ -47,3 +47,16 @@ def test_missing_goal_and_discrete_models_are_refused():
     cartpole = tiny_checkpoint(env_id="CartPole-v1", context_length=4)
     with pytest.raises(ValueError, match="continuous actions only"):
         action_noise(cartpole.model, sampler, n_goals=3, batches=1)
+
+
+def test_a_mode_in_which_the_goals_act_alike_gives_way_to_sample():
+    from gmt.model.calibrate import mode_for_goals
+
+    alike = {"argmax": 0.004, "expert": 0.004, "sample": 0.3}
+    mode, note = mode_for_goals(alike, None)
+    assert mode == "sample" and "sessions default to sample" in note
+    mode, note = mode_for_goals(alike, "argmax")  # chosen by the user: kept, with a warning
+    assert mode == "argmax" and note.startswith("warning") and "argmax" in note
+    assert mode_for_goals({"argmax": 0.2, "expert": 0.2, "sample": 0.3}, None) == (None, None)
+    mode, note = mode_for_goals({"argmax": 0.0, "expert": 0.0, "sample": 0.001}, None)
+    assert mode is None and note.startswith("warning")

@@ -29,6 +29,13 @@ def test_tolerance_is_the_larger_of_relative_and_span():
     assert tolerance(goals[2], goals) == pytest.approx(0.5)
 
 
+def test_tolerance_is_never_narrower_than_the_goals_own_spread():
+    # Swimmer-like: speeds of a few cm/s whose episodes vary more than 10% of the mean.
+    goals = [Goal(0, "low", 0.03, 0.012, 0.0, 0.06, 9), Goal(1, "high", 0.08, 0.015, 0.05, 0.1, 9)]
+    assert tolerance(goals[0], goals) == pytest.approx(0.012)
+    assert tolerance(goals[1], goals) == pytest.approx(0.015)
+
+
 def test_evaluate_runs_lockstep_and_judges_segments(tmp_path):
     ckpt = tiny_checkpoint(n_goals=2)
     conds = protocol(2, steps=40, multi_every=(20,))
@@ -56,3 +63,22 @@ def test_evaluate_runs_lockstep_and_judges_segments(tmp_path):
 
     png = plot_eval(result, tmp_path / "eval.png")
     assert png.stat().st_size > 10_000
+
+
+def test_an_episode_over_before_its_switch_is_reported_as_never_switched():
+    from gmt.model.evaluate import judge
+
+    ckpt = tiny_checkpoint(n_goals=2)
+    conds = protocol(2, steps=40, multi_every=())  # hold 0, hold 1, switch 0->1 at 20, switch 1->0 at 20
+    signal = np.stack([np.full((2, 40), ckpt.goals[c.goal_at(0)].mean) for c in conds])
+    for ci, c in enumerate(conds):
+        for t in range(40):
+            signal[ci, :, t] = ckpt.goals[c.goal_at(t)].mean  # every episode right on its targets
+    signal[2, 0, 15:] = np.nan  # episode 0 of switch 0->1 ended at step 15, before its switch at 20
+    terminated = np.zeros(8, dtype=bool)  # truncated, not terminated: the early end alone must fail it
+    res = judge(ckpt, conds, [0, 1], signal.reshape(8, 40), terminated, "mean", 40, 0.0)
+    sw = res.results[2]
+    assert sw.never_switched == 1 and sw.to_dict()["never_switched"] == 1
+    assert list(sw.success) == [False, True]
+    assert res.results[3].never_switched == 0 and all(res.results[3].success)
+    assert "1/2 (1 never switched)" in res.markdown()

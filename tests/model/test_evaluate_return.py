@@ -60,11 +60,12 @@ def test_switch_returns_add_up_and_are_judged_against_the_share_weighted_holds()
         assert s["alive_at_switch"] == int((n > 20).sum())  # only these games were still running to switch
         assert s["share_first"] == pytest.approx(share)
         assert s["expected"] == pytest.approx(share * means[s["first"]] + (1 - share) * means[s["second"]])
-        assert s["within_20pct"] == (abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))
+        switched = s["alive_at_switch"] == len(n)  # an episode over before the switch fails it
+        assert s["within_20pct"] == (switched and abs(s["mean"] - s["expected"]) <= 0.2 * abs(s["expected"]))
         per_step = np.mean([min(k, 20) * rates[s["first"]] + max(k - 20, 0) * rates[s["second"]] for k in n])
         assert s["expected_per_step"] == pytest.approx(per_step)
         assert s["within_20pct_per_step"] == (
-            abs(s["mean"] - s["expected_per_step"]) <= 0.2 * abs(s["expected_per_step"])
+            switched and abs(s["mean"] - s["expected_per_step"]) <= 0.2 * abs(s["expected_per_step"])
         )
     assert d["summary"]["switches_within_20pct"] == sum(s["within_20pct"] for s in d["switches"])
     assert expected_return(10.0, 40.0, 0.3) == pytest.approx(31.0)  # the paper's 0.3 / 0.7 example
@@ -100,3 +101,26 @@ def test_gmt_eval_uses_the_game_protocol_for_return_goals(tmp_path):
     assert doc["statistic"] == "return" and doc["action_mode"] == "expert" and "switches" in doc
     assert (tmp_path / "eval.png").stat().st_size > 1000
     assert "switch" in r.output and "within 20%" in r.output
+
+
+def test_a_switch_whose_episodes_ended_before_it_is_reported_and_not_a_pass():
+    from gmt.model.checkpoint import Goal
+    from gmt.model.evaluate_return import ReturnCondition, ReturnEvalResult
+
+    conds = [ReturnCondition(0), ReturnCondition(1), ReturnCondition(0, 1, 20), ReturnCondition(1, 0, 20)]
+    rewards = np.zeros((4, 3, 40))
+    lengths = np.array([[10] * 3, [40] * 3, [10] * 3, [40] * 3])  # goal 0's games end at step 10, before 20
+    rewards[0, :, :10] = 1.0  # hold 0: return 10
+    rewards[1, :, :40] = 1.0  # hold 1: return 40
+    rewards[2, :, :10] = 1.0  # switch 0->1: over at step 10, never switched; its return is the expected 10
+    rewards[3, :, :25] = 1.0  # switch 1->0: half the steps at each goal, 0.5 x 40 + 0.5 x 10
+    goals = [Goal(0, "low", 10.0, 1.0, 9, 11, 3), Goal(1, "high", 40.0, 1.0, 39, 41, 3)]
+    res = ReturnEvalResult(
+        "m", "E", "return", "expert", [0, 1, 2], 40, 20, goals, conds, rewards, lengths, 0.0
+    )
+    d = res.to_dict()
+    never = next(s for s in d["switches"] if s["first"] == 0)
+    assert never["alive_at_switch"] == 0 and never["relative_error"] == pytest.approx(0.0)
+    assert not never["within_20pct"] and not never["within_20pct_per_step"]  # was a pass: 0 error
+    assert d["summary"]["switches_unreached"] == 1 and d["summary"]["switches_within_20pct"] == 1
+    assert "ended before the switch" in res.markdown()

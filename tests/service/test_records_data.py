@@ -210,3 +210,19 @@ def test_a_file_that_is_not_a_recording_is_named_and_refused(tmp_path, name, con
     with pytest.raises(RecordingError, match=words) as e:
         read_recording(tmp_path / name)
     assert name in str(e.value) and "pickle" not in str(e.value)
+
+
+def test_gmt_data_import_takes_a_folder_of_recordings_as_import_sessions_does(served, tmp_path):
+    from gmt.model.data.importer import import_data
+    from gmt.model.data.minari_io import load_dataset
+    from gmt.model.data.served import import_sessions
+
+    rec_dir = served[0]
+    rep = import_data(rec_dir, "test/cheetah/imported-v0", None, tmp_path)
+    import_sessions([rec_dir], "test/cheetah/sessions-v0", tmp_path)
+    assert rep.kind == "sessions" and rep.episodes == EPISODES and "x_velocity" in rep.info_keys
+    a, b = (
+        load_dataset("test/cheetah/imported-v0", tmp_path),
+        load_dataset("test/cheetah/sessions-v0", tmp_path),
+    )
+    assert a.fingerprint == b.fingerprint and a.goal_labels == b.goal_labels

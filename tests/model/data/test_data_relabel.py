@@ -77,3 +77,43 @@ def test_names_and_errors():
     assert goal_names(7)[6] == "goal-6"
     with pytest.raises(ValueError, match="distinct"):
         relabel([1.0, 1.0, 1.0])
+
+
+def test_goals_over_two_statistics_cluster_the_standardised_vectors():
+    rng = np.random.default_rng(0)
+    # Four behaviours: two speeds x two energies. Speed alone (m/s) would find two goals; energy is in the
+    # thousands, so unstandardised it would drown the speed.
+    speed = np.repeat([1.0, 1.0, 3.0, 3.0], 30) + rng.normal(0, 0.05, 120)
+    energy = np.repeat([1000.0, 5000.0, 1000.0, 5000.0], 30) + rng.normal(0, 100, 120)
+    table = relabel(
+        np.stack([speed, energy], axis=1), statistic="mean(info.speed), sum(info.energy)", k=4, seed=0
+    )
+    assert sorted(np.bincount(table.labels).tolist()) == [30, 30, 30, 30]
+    truth = np.repeat([0, 1, 2, 3], 30)
+    for g in range(4):  # every cluster is one behaviour
+        assert len(set(truth[table.labels == g])) == 1
+    means = [g.mean for g in table.goals]
+    assert means == sorted(means) and table.goals[0].mean == pytest.approx(1.0, abs=0.05)  # ordered by speed
+    energies = [round(v[1], -3) for v in table.vectors]
+    assert sorted(energies[:2]) == sorted(energies[2:]) == [1000, 5000]  # both energies at each speed
+    again = GoalTable.from_dict(table.to_dict())
+    assert again.vectors == table.vectors and again.values.shape == (120, 2)
+    assert "vector" in table.format() and "(1.0" in table.format()
+
+
+def test_a_list_of_statistics_measures_each_and_is_judged_by_the_first():
+    from gmt.common.statistics import canonical, get_statistic, statistic_names
+    from gmt.model.data.minari_io import Episode, OfflineDataset
+    from gmt.model.data.statistics import per_trajectory
+
+    name = "return, mean(abs(obs[1]))"
+    assert statistic_names(name) == ["return", "mean(abs(obs[1]))"]
+    assert canonical(name) == "sum(reward), mean(abs(obs[1]))"
+    assert get_statistic(name).name == "return"
+    with pytest.raises(KeyError, match="median"):
+        get_statistic("return, median(reward)")  # every one is checked
+    eps = [Episode(np.full((3, 2), -float(i)), np.zeros((3, 1), np.float32), np.full(3, i, np.float32), False, True, {}, None, i)
+           for i in range(3)]  # fmt: skip
+    box = __import__("gymnasium").spaces.Box(-9, 9, (2,))
+    values = per_trajectory(name, OfflineDataset("t/x-v0", "X", box, box, eps, ""))
+    np.testing.assert_allclose(values, [[0, 0], [3, 1], [6, 2]])
