@@ -118,6 +118,11 @@ class ModelList(BaseModel):
     """`GET /models`."""
 
     models: list[ModelSummary]
+    model_state: Literal["file", "redis", "off"] = Field(
+        "off",
+        description="Where each model's default version and canary are kept across restarts: a file beside the "
+        "checkpoint roots, the shared Redis store, or nowhere (docs/models.md).",
+    )
 
 
 class ExampleObservation(BaseModel):
