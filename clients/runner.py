@@ -337,6 +337,8 @@ def run(
         raise ValueError("video needs an output folder (out)")
     if cfg.out is not None:
         require_module("matplotlib", "run", "the episode plots (out)")
+    if cfg.transport:
+        echo(f"server: {cfg.transport}")
     spec = resolve_model(client, cfg.model, cfg.env_id)
     env_id = cfg.env_id or spec.env_id
     _check_goals(spec, cfg)
