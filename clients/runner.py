@@ -8,6 +8,7 @@ changes made by other clients (e.g. `curl -X PUT .../goal`) in the middle of the
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,6 +119,8 @@ class RunConfig:
             against the goal bands, and goal buttons that change the goal through the policy server.
         live_port: Port of the --live page (0: any free port).
         live_host: Address the --live page listens on.
+        realtime: Steps per second at most (0: as fast as the server answers). Unset: with `live`, the
+            environment's own rate (its render fps, 20 for HalfCheetah) once a page watches; else 0.
     """
 
     env_id: str | None = None
@@ -136,10 +139,15 @@ class RunConfig:
     live: bool = False
     live_port: int = 8765
     live_host: str = "127.0.0.1"
+    realtime: float | None = None
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or self.steps < 1:
             raise ValueError(f"episodes and steps must be at least 1, got {self.episodes} and {self.steps}")
+        if self.realtime is not None and not (self.realtime >= 0 and self.realtime < float("inf")):
+            raise ValueError(
+                f"--realtime must be a finite number of steps per second >= 0, got {self.realtime}"
+            )
 
 
 @dataclass
@@ -239,6 +247,10 @@ def run_episode(
     if cfg.random_schedule is not None:
         schedule = dict(random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, seed)[1])
     recorded = session.info.recording
+    rate = cfg.realtime
+    if rate is None:
+        rate = float(env.metadata.get("render_fps") or 30) if live is not None else 0.0
+    start = time.monotonic()
     trace = Trace()
     obs, _ = env.reset(seed=seed)
     terminated = truncated = False
@@ -267,6 +279,8 @@ def run_episode(
                 video.append(frame, f"step {t}  goal {spec.goal(res.goal).name}")
             if live is not None:
                 live.step(t, res.goal, float(moving_average(trace.signal[-MOVING_AVERAGE:])[-1]), frame)
+            if rate > 0:  # the pace a person can watch
+                time.sleep(max(0.0, start + (t + 1) / rate - time.monotonic()))
             if status is not None:
                 g, recent = spec.goal(res.goal), trace.signal[-MOVING_AVERAGE:]
                 status.update(
@@ -369,6 +383,9 @@ def run(
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
                 if live is not None:
                     live.episode(ep, session.id)
+                    if ep == 0 and cfg.realtime is None:
+                        echo(f"waiting for a page to open {live.url} (Ctrl-C to stop)")
+                        live.wait_for_viewer()
                 try:
                     trace, terminated = run_episode(
                         session, env, spec, cfg, seed, on_step, status, video, live
@@ -392,6 +409,10 @@ def run(
             for f in res.files:
                 echo(f"wrote {f}")
             results.append(res)
+        if live is not None:
+            live.finish()
+            echo(f"the run has ended; its page stays at {live.url} until Ctrl-C")
+            live.hold()
     finally:
         env.close()
         if live is not None:

@@ -85,7 +85,8 @@ def test_schedule_gives_the_segment_table(episodes, kind):
     assert (out / "episode-0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     lines = text.splitlines()
-    assert lines[0].startswith("episode 1/1: session " + res.session_id)
+    assert lines[0] == f"server: {kind}"  # the server it acts on (RunConfig.transport) first
+    assert lines[1].startswith("episode 1/1: session " + res.session_id)
     table = [line.split() for line in lines if line[:1].isdigit()]
     assert [row[:4] for row in table] == [
         ["0", "(low)", "0-19", "5-19"],
