@@ -79,14 +79,15 @@ def random_schedule(
     """A random goal and its changes for one episode: (first goal, [(step, goal), ...]).
 
     The first goal is drawn uniformly; each next change comes after a uniform LO..HI steps and picks uniformly
-    among the other goals. A function of `seed`.
+    among the other goals. No change is made fewer than LO steps before the end, so every segment the report judges
+    (after its settle-in) is at least LO steps long. A function of `seed`.
     """
     rng = np.random.default_rng([seed, 39])
     goal = int(rng.integers(n_goals))
     first, changes, t = goal, [], 0
     while n_goals > 1:
         t += int(rng.integers(every[0], every[1] + 1))
-        if t >= steps:
+        if t > steps - every[0]:  # the last segment would be shorter than LO steps: keep the goal to the end
             break
         goal = int(rng.choice([g for g in range(n_goals) if g != goal]))
         changes.append((t, goal))

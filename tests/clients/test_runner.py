@@ -201,3 +201,8 @@ def test_random_schedules_are_drawn_from_the_seed_within_their_bounds():
     goals = [first] + [g for _, g in changes]
     assert all(a != b for a, b in zip(goals, goals[1:], strict=False)) and set(goals) <= {0, 1, 2, 3}
     assert random_schedule(1, 1000, (5, 10), seed=0) == (0, [])
+    # No segment shorter than LO: the last change leaves at least LO steps (a 1- or 14-step end was judged a
+    # failure: its settle-in left nothing to measure).
+    for seed in range(200):
+        _, changes = random_schedule(4, 1000, (50, 250), seed=seed)
+        assert all(1000 - s >= 50 for s, _ in changes), (seed, changes)
