@@ -136,7 +136,8 @@ def _run(server: str, token: str | None, call) -> dict | list:
 KEPT = {
     "file": "defaults and canaries are kept across restarts (in a file beside the server's checkpoint roots)",
     "redis": "defaults and canaries are kept across restarts (in the shared Redis store)",
-    "off": "defaults and canaries are NOT kept across restarts (a server built in memory)",
+    "off": "defaults and canaries are NOT kept across restarts (the server's checkpoint roots hold no folder of "
+    "checkpoints to keep them in)",
 }
 
 

@@ -4,8 +4,8 @@ The core writes a model's entry after every management call that changes it (loa
 reads them all at start, after the checkpoints found under the roots are loaded: a saved default or canary that is
 not loaded yet is loaded from its saved path (or found under the roots by its fingerprint) and promoted again.
 
-One server keeps them in a JSON file beside its checkpoint roots (`gmt-models.json` in the first root, written
-atomically); replicas sharing a Redis store keep them in the store (`RedisSessionStore.model_states`), so a
+One server keeps them in a JSON file beside its checkpoints (`gmt-models.json` in the first root that is a folder
+of checkpoints, written atomically; none when every root is a checkpoint directory itself); replicas sharing a Redis store keep them in the store (`RedisSessionStore.model_states`), so a
 restarted replica serves what the cluster promoted.
 """
 
@@ -56,7 +56,8 @@ class ModelState(abc.ABC):
 
 
 class NoModelState(ModelState):
-    """Nothing is kept (a registry built in memory, with no checkpoint root to write beside)."""
+    """Nothing is kept: a registry built in memory, or checkpoint roots that are all checkpoint directories
+    themselves (such a server loads versions only from inside them)."""
 
     where = "off"
 
@@ -130,12 +131,12 @@ class StoreModelState(ModelState):
 
 
 def state_file(roots: list[Path]) -> Path | None:
-    """The state file of a server with checkpoint roots `roots`: in the first root, or beside it when the root is
-    itself a checkpoint directory; None without roots."""
-    if not roots:
-        return None
-    root = roots[0]
-    return (root.parent if (root / META).is_file() else root) / STATE_FILE
+    """The state file of a server with checkpoint roots `roots`: in the first root that is a folder of checkpoints
+    (not itself a checkpoint directory, which is never written to); None when there is none."""
+    for root in roots:
+        if root.is_dir() and not (root / META).is_file():
+            return root / STATE_FILE
+    return None
 
 
 def model_state_for(roots: list[Path], store) -> ModelState:

@@ -120,8 +120,8 @@ class ModelList(BaseModel):
     models: list[ModelSummary]
     model_state: Literal["file", "redis", "off"] = Field(
         "off",
-        description="Where each model's default version and canary are kept across restarts: a file beside the "
-        "checkpoint roots, the shared Redis store, or nowhere (docs/models.md).",
+        description="Where each model's default version and canary are kept across restarts: a file in the "
+        "folder of checkpoints, the shared Redis store, or nowhere (docs/models.md).",
     )
 
 

@@ -127,3 +127,15 @@ def test_a_restarted_replica_serves_what_the_cluster_promoted(make_server, roots
     m, where = model(b.url)
     assert where == "redis"
     assert (m["default_version"], m["canary"]) == (v2, {"version": v3, "share": 0.25})
+
+
+def test_a_server_on_one_checkpoint_directory_keeps_no_state(make_server, roots):
+    """A root that is itself a checkpoint directory is never written to: nothing is kept, and `GET /models` says so."""
+    server = make_server(checkpoints=[roots / MODEL])
+    assert model(server.url)[1] == "off"
+    r = httpx.put(f"{server.url}/models/{MODEL}/default", json={"version": version(roots, MODEL)}, timeout=30)
+    assert (
+        r.status_code == 200
+        and not (roots / STATE_FILE).exists()
+        and not (roots / MODEL / STATE_FILE).exists()
+    )
