@@ -147,20 +147,34 @@ def _target(server: str) -> None:
 
 
 def _versions(server: str, token: str | None, name: str) -> dict:
-    """Model `name`'s entry of `GET /models` ({} when the server does not serve it)."""
-    for m in _run(server, token, lambda c: c.models()):
-        if m["name"] == name:
-            return m
-    return {}
+    """Model `name`'s entry of `GET /models` ({} when the server does not serve it, or when it cannot be read: with
+    an admin token that is not the auth token, `GET /models` refuses it, and the management call goes on)."""
+    try:
+        with AdminClient(server, token) as c:
+            models = c.models()
+    except ServiceError as e:
+        typer.echo(f"(cannot list the server's versions first: {e})", err=True)
+        return {}
+    return next((m for m in models if m["name"] == name), {})
 
 
 def _sessions(model: dict, version: str) -> str:
     n = next((v["sessions"] for v in model.get("versions", []) if v["version"] == version), None)
-    return "not loaded" if n is None else f"{n} session(s)"
+    return "sessions unknown" if n is None else f"{n} session(s)"
 
 
-def _show(server: str, token: str | None) -> None:
-    body = _run(server, token, lambda c: c.listing())
+def _show(server: str, token: str | None, done: str = "") -> None:
+    """Print the version table; after a management call (`done` says what it did), a table that cannot be read
+    (an admin token that is not the auth token) is noted, not an error."""
+    if done:
+        try:
+            with AdminClient(server, token) as c:
+                body = c.listing()
+        except ServiceError as e:
+            typer.echo(f"{done}; cannot list the versions with this token: {e}", err=True)
+            return
+    else:
+        body = _run(server, token, lambda c: c.listing())
     typer.echo(version_table(body["models"]))
     if body.get("model_state") in KEPT:
         typer.echo(KEPT[body["model_state"]])
@@ -207,13 +221,13 @@ def promote_command(
 ) -> None:
     """Make a version the default of new sessions, or a canary with --share of them."""
     _target(server)
-    was = _versions(server, token, name).get("default_version") or "none"
+    was = _versions(server, token, name).get("default_version") or "unknown"
     role = "the default" if share >= 1 else f"a canary with share {share:g}"
     typer.echo(
         f"promoting {name} {version} to {role} on {rest_base_url(server)} (default was {was})", err=True
     )
     _run(server, token, lambda c: c.promote(name, version, share))
-    _show(server, token)
+    _show(server, token, done=f"{name} {version} promoted")
 
 
 @app.command("drain")
@@ -228,7 +242,7 @@ def drain_command(
     n = _sessions(_versions(server, token, name), version)
     typer.echo(f"draining {name} {version} ({n}) on {rest_base_url(server)}", err=True)
     _run(server, token, lambda c: c.drain(name, version))
-    _show(server, token)
+    _show(server, token, done=f"{name} {version} draining")
 
 
 @app.command("unload")
@@ -245,7 +259,7 @@ def unload_command(
     how = ", forced: their next calls fail" if force else ""
     typer.echo(f"unloading {name} {version} ({n}{how}) on {rest_base_url(server)}", err=True)
     _run(server, token, lambda c: c.unload(name, version, force))
-    _show(server, token)
+    _show(server, token, done=f"{name} {version} unloaded")
 
 
 @app.command("copy")

@@ -83,3 +83,18 @@ def test_gmt_models_copy_makes_a_second_version(make_server, tmp_path):
         "models", "copy", str(root / "tiny-gmt"), str(root / "releases" / "tiny-gmt-v2"), "--version", "v2"
     )
     assert again.returncode == 1 and "exists" in again.stderr
+
+
+def test_gmt_models_with_an_admin_token_that_is_not_the_auth_token(make_server, tmp_path):
+    """GET /models takes the auth token only: with the admin token, `promote` still acts (it says it could not list
+    the versions before and after) instead of failing before acting."""
+    root = tmp_path / "checkpoints"
+    tiny_checkpoint(root / "tiny-gmt")
+    v1 = load_checkpoint(root / "tiny-gmt").version
+    server = make_server(checkpoints=[root], auth_token="user", admin_token="root")
+    out = gmt("models", "promote", "tiny-gmt", v1, "--server", server.url, "--token", "root")
+    assert out.returncode == 0, out.stderr
+    assert (
+        "cannot list the server's versions first" in out.stderr
+        and f"tiny-gmt {v1} promoted; cannot list" in out.stderr
+    )
