@@ -6,7 +6,7 @@ is produced again by running COMMAND (a shell line; `python-above` runs the doc'
 one server with the shipped halfcheetah-gmt on free ports (`$REST_PORT`, `$GRPC_PORT`; `localhost:8000` in a
 Python block), and each of the block's lines must appear, in order, among the lines printed: words equal, numbers
 within TOL. Outputs go under a temporary folder (`runs/` in a command is rewritten there, and back in what it
-prints). A stale number in a doc fails here."""
+prints). A stale number in a doc fails here. Blocks too long for CI are marked as such (`LONG_MARKER`)."""
 
 from __future__ import annotations
 
@@ -25,6 +25,11 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 VENV = Path(sys.prefix)
 MARKER = re.compile(r"<!-- docs-test output: (.*?) \| within ([0-9.]+) -->\n```[a-z]*\n(.*?)```", re.S)
 NUMBER = re.compile(r"[-+]?\d+\.\d+")
+LONG_MARKER = "<!-- docs-test: long, not run in CI (its gmt lines are parsed by tests/test_cli.py) -->"
+# Commands too long for CI: collecting data, training, full evaluations, benchmarks.
+LONG = re.compile(
+    r"(^|\s|/)(gmt (train|eval|bench|data (collect|gait|commanded|plan|refine|ppo|dagger))|make (train|eval|data|bench)[\w-]*)\b"
+)
 
 
 def marked() -> list[tuple[Path, str, float, str, str]]:
@@ -75,6 +80,18 @@ def test_the_markers_are_found():
     assert {"README.md", "clients.md"} <= docs, docs
     assert compare("a 1.20 b\nc 2.00", "x\na 1.21 b\ny\nc 1.99\n", 0.02) == []
     assert compare("a 1.20 b", "a 1.25 b", 0.02) == ["a 1.20 b"]
+
+
+def test_every_long_block_is_marked_as_not_run():
+    """A shell block that collects data, trains, evaluates in full or benchmarks says so right above it (its command
+    lines are still parsed, flags included, by tests/test_cli.py)."""
+    unmarked = []
+    for doc in DOCS:
+        text = doc.read_text()
+        for m in re.finditer(r"```bash\n(.*?)```", text, flags=re.S):
+            if LONG.search(m.group(1)) and not text[: m.start()].rstrip("\n").endswith(LONG_MARKER):
+                unmarked.append(f"{doc.name}:{text[: m.start()].count(chr(10)) + 1}")
+    assert not unmarked, f"long blocks without {LONG_MARKER}: {unmarked}"
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
