@@ -20,8 +20,10 @@ $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 
 venv: $(VENV)/.installed-dev
 
+# More `gmt serve` flags: make serve SERVE_ARGS='--record-dir runs/recordings --auth-token T' (gmt serve --help).
+SERVE_ARGS ?=
 serve: $(VENV)/.installed-serve
-	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT)
+	$(BIN)/gmt serve --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT) $(SERVE_ARGS)
 
 # With `make serve` running (another terminal, same REST_PORT / GRPC_PORT): install the `run` extra (MuJoCo,
 # matplotlib) into .venv and drive HalfCheetah-v5 with halfcheetah-gmt through the server, goal `low`, `high` from

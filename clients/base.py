@@ -277,6 +277,11 @@ class Session:
         """The session id."""
         return self.info.session_id
 
+    @property
+    def session_id(self) -> str:
+        """The session id (`id`, spelled as the server's answers spell it)."""
+        return self.info.session_id
+
     def act(self, observation: Any, **report: Any) -> ActResult:
         """Send one observation; get the action, the step and the goal it was chosen for.
 

@@ -25,7 +25,7 @@ RUN_FLAGS = dataclass_flags(
 
 @with_flags(RUN_FLAGS)
 def run_command(
-    server: str = typer.Option("http://localhost:8000", help="REST base URL."),
+    server: str = typer.Option("http://localhost:8000", envvar="GMT_SERVER", help="REST base URL."),
     grpc: str = typer.Option(
         None,
         "--grpc",

@@ -128,6 +128,7 @@ class LiveView:
         self._last_frame_t = -float("inf")
         self._viewers = 0
         self._finished = False
+        self._closed = threading.Event()
         self._goals: queue.SimpleQueue[GoalRequest] = queue.SimpleQueue()
         self._server = ThreadingHTTPServer((host, port), _handler(self))
         self._server.daemon_threads = True
@@ -181,8 +182,14 @@ class LiveView:
                 req.error = str(e)
             req.done.set()
 
-    def close(self) -> None:
-        """Tell the pages the run ended, refuse goal requests left, stop serving (idempotent)."""
+    def wait_for_viewer(self) -> None:
+        """Block until a page watches (Ctrl-C interrupts)."""
+        with self._cond:
+            while not self._cond.wait_for(lambda: self._viewers > 0, timeout=0.5):
+                pass
+
+    def finish(self) -> None:
+        """Tell the pages the run ended and refuse goal requests left; the page stays served (idempotent)."""
         with self._cond:
             if self._finished:
                 return
@@ -196,6 +203,18 @@ class LiveView:
                 break
             req.error = "the run has ended"
             req.done.set()
+
+    def hold(self) -> None:
+        """Keep serving the finished run's page until Ctrl-C (KeyboardInterrupt) or `close`."""
+        while not self._closed.wait(0.5):
+            pass
+
+    def close(self) -> None:
+        """Tell the pages the run ended, refuse goal requests left, stop serving (idempotent)."""
+        self.finish()
+        if self._closed.is_set():
+            return
+        self._closed.set()
         self._server.shutdown()
         self._server.server_close()
 
@@ -224,6 +243,7 @@ class LiveView:
         """Write the page's event stream with `write(bytes)` until the run ends, `stop` is set or a write fails."""
         with self._cond:
             self._viewers += 1
+            self._cond.notify_all()  # `wait_for_viewer`
         try:
             write(_event("intro", self.intro()))
             seen, index, episode, frame_no = -1, 0, None, 0

@@ -241,6 +241,12 @@ class RestClient(PolicyClient):
         except httpx.TimeoutException as e:
             raise DeadlineExceeded(f"{method} {self.base_url}{path} timed out: {e!r}") from e
         except httpx.TransportError as e:  # sent, then the connection broke: as gRPC reports it
+            if isinstance(e, httpx.RemoteProtocolError) and "illegal" in str(e):  # not HTTP/1.x: a gRPC port
+                raise ProtocolError(
+                    f"{method} {self.base_url}{path}: the answer is not HTTP/1.1 ({e}): {self.base_url} looks like a "
+                    "gRPC port; this REST client needs the server's REST port (gmt serve --rest-port, default 8000), "
+                    "or use GrpcClient (gmt run --grpc HOST:PORT) for this one. The request was not applied"
+                ) from e
             raise Unavailable(
                 f"{method} {self.base_url}{path}: the connection broke before the answer ({e!r}); the request may "
                 "have been applied",

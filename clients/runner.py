@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,14 +80,15 @@ def random_schedule(
     """A random goal and its changes for one episode: (first goal, [(step, goal), ...]).
 
     The first goal is drawn uniformly; each next change comes after a uniform LO..HI steps and picks uniformly
-    among the other goals. A function of `seed`.
+    among the other goals. No change is made fewer than LO steps before the end, so every segment the report judges
+    (after its settle-in) is at least LO steps long. A function of `seed`.
     """
     rng = np.random.default_rng([seed, 39])
     goal = int(rng.integers(n_goals))
     first, changes, t = goal, [], 0
     while n_goals > 1:
         t += int(rng.integers(every[0], every[1] + 1))
-        if t >= steps:
+        if t > steps - every[0]:  # the last segment would be shorter than LO steps: keep the goal to the end
             break
         goal = int(rng.choice([g for g in range(n_goals) if g != goal]))
         changes.append((t, goal))
@@ -123,6 +125,8 @@ class RunConfig:
             plug-in) instead of the one the model's goals cluster (its spec's).
         action_mode: How the server picks actions (mean/sample for continuous, argmax/sample/expert for
             discrete; default: the model's default).
+        realtime: Steps per second at most (0: as fast as the server answers). Unset: with `live`, the
+            environment's own rate (its render fps, 20 for HalfCheetah) once a page watches; else 0.
     """
 
     env_id: str | None = None
@@ -143,10 +147,15 @@ class RunConfig:
     live_host: str = "127.0.0.1"
     statistic: str | None = None
     action_mode: str | None = None
+    realtime: float | None = None
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or self.steps < 1:
             raise ValueError(f"episodes and steps must be at least 1, got {self.episodes} and {self.steps}")
+        if self.realtime is not None and not (self.realtime >= 0 and self.realtime < float("inf")):
+            raise ValueError(
+                f"--realtime must be a finite number of steps per second >= 0, got {self.realtime}"
+            )
 
 
 @dataclass
@@ -246,6 +255,10 @@ def run_episode(
     if cfg.random_schedule is not None:
         schedule = dict(random_schedule(len(spec.goals), cfg.steps, cfg.random_schedule, seed)[1])
     recorded = session.info.recording
+    rate = cfg.realtime
+    if rate is None:
+        rate = float(env.metadata.get("render_fps") or 30) if live is not None else 0.0
+    start = time.monotonic()
     trace = Trace()
     obs, _ = env.reset(seed=seed)
     terminated = truncated = False
@@ -277,6 +290,8 @@ def run_episode(
                 video.append(frame, f"step {t}  goal {spec.goal(res.goal).name}")
             if live is not None:
                 live.step(t, res.goal, float(moving_average(trace.signal[-MOVING_AVERAGE:])[-1]), frame)
+            if rate > 0:  # the pace a person can watch
+                time.sleep(max(0.0, start + (t + 1) / rate - time.monotonic()))
             if status is not None:
                 g, recent = spec.goal(res.goal), trace.signal[-MOVING_AVERAGE:]
                 status.update(
@@ -347,6 +362,8 @@ def run(
         raise ValueError("video needs an output folder (out)")
     if cfg.out is not None:
         require_module("matplotlib", "run", "the episode plots (out)")
+    if cfg.transport:
+        echo(f"server: {cfg.transport}")
     spec = resolve_model(client, cfg.model, cfg.env_id)
     if cfg.statistic is not None:  # measured here instead of the model's own statistic
         spec = dataclasses.replace(spec, statistic=cfg.statistic)
@@ -382,6 +399,9 @@ def run(
                 echo(f"episode {ep + 1}/{cfg.episodes}: session {session.id} on {spec.name}, seed {seed}")
                 if live is not None:
                     live.episode(ep, session.id)
+                    if ep == 0 and cfg.realtime is None:
+                        echo(f"waiting for a page to open {live.url} (Ctrl-C to stop)")
+                        live.wait_for_viewer()
                 try:
                     trace, terminated = run_episode(
                         session, env, spec, cfg, seed, on_step, status, video, live
@@ -405,6 +425,10 @@ def run(
             for f in res.files:
                 echo(f"wrote {f}")
             results.append(res)
+        if live is not None:
+            live.finish()
+            echo(f"the run has ended; its page stays at {live.url} until Ctrl-C")
+            live.hold()
     finally:
         env.close()
         if live is not None:

@@ -131,6 +131,30 @@ EnvMaker = Callable[[ModelInfo, str, "int | None", bool], gym.Env]
 MAKERS: list[tuple[Callable[[str], bool], EnvMaker]] = [(is_atari, _make_atari)]
 
 
+# MuJoCo warnings known to be noise: Gymnasium's v5 model files still use a compiler attribute MuJoCo 3.3+ deprecates
+# (printed by MuJoCo's C code on every environment made, and appended to MUJOCO_LOG.TXT).
+KNOWN_MUJOCO_NOISE = ("compiler attribute 'settotalmass' is deprecated",)
+
+
+def quiet_known_mujoco_warnings() -> None:
+    """Route MuJoCo's warnings through Python's `warnings` (MuJoCo's `mju_user_warning` callback), dropping
+    `KNOWN_MUJOCO_NOISE`; a callback someone else installed is left alone. No-op without MuJoCo."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+    if mujoco.get_mju_user_warning() is not None:
+        return
+
+    def on_warning(message: str) -> None:
+        if not any(noise in message for noise in KNOWN_MUJOCO_NOISE):
+            import warnings
+
+            warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(on_warning)
+
+
 def make_env(
     spec: ModelInfo, env_id: str | None = None, max_steps: int | None = None, render: bool = False
 ) -> gym.Env:
@@ -140,6 +164,7 @@ def make_env(
         SpaceMismatch: its spaces are not the model's.
     """
     env_id = env_id or spec.env_id
+    quiet_known_mujoco_warnings()
     maker = next((m for pred, m in MAKERS if pred(env_id)), _make_plain)
     env = maker(spec, env_id, max_steps, render)
     try:

@@ -22,7 +22,8 @@ class MissingExtra(RuntimeError):
         self.extra, self.missing = extra, missing
         super().__init__(
             f"{what} needs the `{extra}` extra ({', '.join(missing)} not installed): "
-            f"pip install '{DIST}[{extra}]'"
+            f"pip install '{DIST}[{extra}]' (in a checkout, at the tested versions: pip install -c constraints.txt "
+            f"-e '.[{extra}]')"
         )
 
 

@@ -640,6 +640,12 @@ def load_cluster(run_dir: Path = DEFAULT_RUN_DIR) -> Cluster:
     return Cluster(**d)
 
 
+def replica_urls(c: Cluster) -> dict[str, str]:
+    """Each replica's own REST base URL (not through nginx), by replica name."""
+    h = f"[{c.host}]" if ":" in c.host else c.host
+    return {r.name: f"http://{h}:{r.rest_port}" for r in c.replicas}
+
+
 @dataclass
 class UpgradeReport:
     """What `upgrade` did.
@@ -686,8 +692,7 @@ def upgrade(
 
     c = load_cluster(run_dir)
     path = str(Path(checkpoint).resolve())
-    h = f"[{c.host}]" if ":" in c.host else c.host
-    clients = {r.name: AdminClient(f"http://{h}:{r.rest_port}", token) for r in c.replicas}
+    clients = {n: AdminClient(u, token) for n, u in replica_urls(c).items()}
     report = UpgradeReport(model or "")
     live: list[str] = []
     try:
@@ -828,6 +833,9 @@ def upgrade_command(
     """Roll a new model version through the replicas: load it on each, promote it on each, drain the old one on
     each. Live sessions finish on the version they started with."""
     try:
+        where = ", ".join(f"{n} {u}" for n, u in replica_urls(load_cluster(run_dir)).items())
+        typer.echo(f"cluster {run_dir}: {where}")
+        typer.echo(f"upgrading {model or 'the one model the replicas serve'} to {checkpoint}")
         r = upgrade(
             checkpoint,
             run_dir,

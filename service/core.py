@@ -38,6 +38,7 @@ from gmt.service.errors import (
     Unavailable,
 )
 from gmt.service.metrics import Metrics
+from gmt.service.model_state import ModelState, NoModelState, entry_of, model_state_for, restore
 from gmt.service.observations import MAX_ABS_VALUE, to_array
 from gmt.service.records import BY, Layout, Report, assemble, decode_timeline, record_drawn
 from gmt.service.registry import (
@@ -270,6 +271,7 @@ class Core:
         self._sweeper: asyncio.Task | None = None
         self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
         self._archives: set[asyncio.Task] = set()  # recordings being written (expired sessions)
+        self.model_state: ModelState = NoModelState()  # where each model's default and canary are kept
 
     # ----- lifecycle ----------------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -278,6 +280,7 @@ class Core:
 
         s = self.settings
         torch.set_num_threads(s.inference_threads)
+        from_roots = self.registry is None  # a registry given in memory keeps no state across restarts
         if self.registry is None:
             missing = [str(p) for p in s.checkpoints if not p.exists()]
             if missing:
@@ -301,6 +304,8 @@ class Core:
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
         self.store.on_remove = self._dropped
         self.store.on_expire = self._expiring
+        if from_roots:
+            await self._restore_model_state()
         # The naive server is the reference: one request at a time, computed on the event loop.
         self._executor = (
             None if s.naive else ThreadPoolExecutor(s.inference_threads, thread_name_prefix="gmt-infer")
@@ -309,6 +314,30 @@ class Core:
             self._start_batcher(m)
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever(), name="session-sweeper")
         self.started = True
+
+    async def _restore_model_state(self) -> None:
+        """Serve the defaults and canaries saved before a restart (`gmt.service.model_state`)."""
+        self.model_state = model_state_for(list(self.settings.checkpoints), self.store)
+        try:
+            saved = await self.model_state.read()
+        except (OSError, ValueError, ServiceError) as e:
+            log.error(
+                "saved model state unreadable", extra={"where": self.model_state.where, "error": str(e)}
+            )
+            return
+        roots = list(self.settings.checkpoints)
+        await restore(self.registry, saved, roots, self.settings.naive, self.checkpoint_path)
+
+    async def _save_model_state(self, name: str) -> None:
+        """Keep model `name`'s default and canary for the next start (a failure is logged: the change stands)."""
+        mv = self.registry.names.get(name)
+        try:
+            await self.model_state.write(name, entry_of(mv) if mv is not None else None)
+        except (OSError, ServiceError) as e:
+            log.error(
+                "model state not saved: a restart serves the previous default",
+                extra={"model": name, "where": self.model_state.where, "error": str(e)},
+            )
 
     async def close(self) -> None:
         """Stop batching and sweeping and release the store (sessions in memory are dropped); idempotent."""
@@ -541,6 +570,8 @@ class Core:
             if have is m:
                 self._start_batcher(m)
                 log.info("model version added", extra={"model": name, "version": m.version, "path": str(d)})
+                if self.registry.names[name].default == m.version:
+                    await self._save_model_state(name)  # a new model: its first version is its default
         return self._view_version(have)
 
     def _view_version(self, m: LoadedModel) -> VersionView:
@@ -557,6 +588,7 @@ class Core:
         self._check_serving()
         async with self._admin:
             self.registry.promote(name, check_version(version), share)
+            await self._save_model_state(name)
         log.info("model version promoted", extra={"model": name, "version": version, "share": share})
         return self.get_model(name)
 
@@ -571,6 +603,7 @@ class Core:
         async with self._admin:
             m = self.registry.drain(name, check_version(version))
             log.info("model version draining", extra={"model": name, "version": version})
+            await self._save_model_state(name)  # a drained canary is no longer one
             self._unload_if_drained(m)
         return self.get_model(name) if name in self.registry.names else self._gone(name)
 
@@ -593,6 +626,7 @@ class Core:
                     "unloaded when they end), or unload with force=true (their next calls fail)"
                 )
             self.registry.remove(name, version)
+            await self._save_model_state(name)
             if n:
                 self._unloaded.add(m.key)
             await self._stop(m, wait_s=UNLOAD_WAIT_S)

@@ -76,6 +76,9 @@ def _first_observation(env_id: str, shape: tuple[int, ...], seed: int) -> list |
     try:
         import gymnasium as gym
 
+        from gmt.common.envs import quiet_known_mujoco_warnings
+
+        quiet_known_mujoco_warnings()
         env = gym.make(env_id)
         try:
             obs, _ = env.reset(seed=seed)

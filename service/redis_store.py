@@ -5,7 +5,8 @@ Keys (prefix `gmt:` by default), each session's hash-tagged so that Redis Cluste
 `{<id>}:x` marks an expired (`1`) or closed (`closed`) session for a day, so that it answers that rather than "not
 found"; `live` is the index of live sessions (the maximum-sessions count, the expiry sweep), written only by
 creates, closes and sweeps, never by an act; `epoch` is a random marker written once: when it is gone or changed,
-the store lost its data.
+the store lost its data; `models` is a hash of each model's default version and canary (`model_state`), written by
+management calls and read by a replica at start.
 
 The hot path costs one write and no read: a replica keeps the sessions it serves (their live contexts and the
 version it last stored) and acts on them without reading the store; every write is a compare-and-set on the
@@ -175,6 +176,7 @@ class RedisSessionStore(SessionStore):
         self.prefix = prefix
         self._live = f"{prefix}live"
         self._epoch_key = f"{prefix}epoch"
+        self._models_key = f"{prefix}models"
         self._epoch: bytes | None = None  # the store's epoch when this replica last checked (None: not yet)
         self._held: dict[str, _Held] = {}
         # id -> (`Session.key`, last use) of every session created or read here: what this replica may soon serve (the
@@ -765,6 +767,17 @@ class RedisSessionStore(SessionStore):
             if owner is not None and visible(str(owner)):
                 out.append(sid)
         return out
+    async def model_states(self) -> dict[str, dict]:
+        """Each model's saved default version and canary (`gmt.service.model_state`), by model name."""
+        raw = await self._call(self.redis.hgetall(self._models_key))
+        return {k.decode(): orjson.loads(v) for k, v in raw.items()}
+
+    async def save_model_state(self, name: str, entry: dict | None) -> None:
+        """Save model `name`'s default version and canary (None: forget the model)."""
+        if entry is None:
+            await self._call(self.redis.hdel(self._models_key, name))
+        else:
+            await self._call(self.redis.hset(self._models_key, name, orjson.dumps(entry)))
 
     async def close(self) -> None:
         if self._fast is not None:

@@ -197,7 +197,15 @@ class Server:
                 "ready": self.core.ready,
                 "auth": bool(s.keys),
                 "keys": sorted(s.keys),  # their names: a token is never logged
+                "admin_auth": "admin token"
+                if s.admin_token
+                else "auth token"
+                if s.token
+                else "this machine only",
                 "session_store": "redis" if s.redis_url else "memory",
+                "model_state": self.core.model_state.where,
+                "recording": str(s.record_dir) if s.record_dir is not None else "off (no --record-dir)",
+                "record_share": s.record_share,
                 "descriptors": caps.descriptors,
                 "rest_max_connections": caps.rest,
                 "grpc_max_connections": caps.grpc,

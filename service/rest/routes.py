@@ -80,7 +80,9 @@ async def metrics(core: CoreDep) -> Response:
 @api.get("/models", response_model=S.ModelList, tags=["models"])
 async def list_models(core: CoreDep) -> S.ModelList:
     """Every loaded model."""
-    return S.ModelList(models=[S.summary(v) for v in core.list_models()])
+    return S.ModelList(
+        models=[S.summary(v) for v in core.list_models()], model_state=core.model_state.where.split()[0]
+    )
 
 
 @api.get("/models/{name}", response_model=S.ModelOut, tags=["models"], responses=errors(404))

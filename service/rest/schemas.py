@@ -119,6 +119,11 @@ class ModelList(BaseModel):
     """`GET /models`."""
 
     models: list[ModelSummary]
+    model_state: Literal["file", "redis", "off"] = Field(
+        "off",
+        description="Where each model's default version and canary are kept across restarts: a file in the "
+        "folder of checkpoints, the shared Redis store, or nowhere (docs/models.md).",
+    )
 
 
 class ExampleObservation(BaseModel):

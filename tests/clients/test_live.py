@@ -31,8 +31,8 @@ GMT = Path(sys.executable).parent / "gmt"
 class LiveRun:
     """`gmt run --live --port 0` in a subprocess; its output is read in a thread."""
 
-    def __init__(self, *args: str) -> None:
-        cmd = [str(GMT), "run", "--live", "--port", "0", "--steps", "1000000", "--goal", "low", *args]
+    def __init__(self, *args: str, steps: str = "1000000", started: bool = True) -> None:
+        cmd = [str(GMT), "run", "--live", "--port", "0", "--steps", steps, "--goal", "low", *args]
         # As in a terminal: a test run started in the background (`cmd &`) inherits an ignored SIGINT, and a Python
         # started with SIGINT ignored never raises KeyboardInterrupt, so Ctrl-C below would do nothing.
         cmd = exec_after("import signal; signal.signal(signal.SIGINT, signal.SIG_DFL)", cmd)
@@ -40,8 +40,9 @@ class LiveRun:
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
-        self.url = self.expect(r"live view at (\S+)")
-        self.session_id = self.expect(r"episode 1/1: session (\w+)")
+        if started:
+            self.url = self.expect(r"live view at (\S+)")
+            self.session_id = self.expect(r"episode 1/1: session (\w+)")
 
     def _read(self) -> None:
         for line in self.proc.stdout:
@@ -213,3 +214,22 @@ def test_frames_encode_as_jpeg_or_standard_library_png():
     decoded = np.asarray(Image.open(io.BytesIO(png(rgb))))
     assert decoded.shape == (20, 30, 3) and np.array_equal(decoded, rgb)
     assert encode_frame(rgb[:, :, 0]).startswith("data:image/jpeg;base64,")  # grey frames too
+
+
+def test_a_live_run_waits_for_a_page_and_keeps_it_after_the_end(live_server):
+    """Unpaced, 30 steps end in well under a second: `--live` waits for a page before stepping, paces the episode at
+    the environment's rate, and keeps serving the finished page until Ctrl-C."""
+    run = LiveRun("--server", live_server.rest_url, steps="30", started=False)
+    try:
+        url = run.expect(r"waiting for a page to open (\S+)")
+        assert not any(re.match(r"0 \(low\)", line) for line in run.output)  # not stepped: no segment yet
+        with httpx.stream("GET", f"{url}events", timeout=TIMEOUT_S) as events:
+            kinds = [line for line in events.iter_lines() if line.startswith("event: ")]
+        assert kinds[0] == "event: intro" and kinds[-1] == "event: end"  # the stream ends with the run
+        kept = run.expect(r"the run has ended; its page stays at (\S+) until Ctrl-C")
+        assert kept == url and run.proc.poll() is None
+        assert httpx.get(url, timeout=TIMEOUT_S).status_code == 200  # still served after the run
+        assert any(re.match(r"0 \(low\)\s+0-29", line) for line in run.output), "".join(run.output)
+    finally:
+        status = run.stop()
+    assert status == 130, "".join(run.output)[-2000:]

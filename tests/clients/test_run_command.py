@@ -73,7 +73,8 @@ def test_refused_connection_is_one_line_naming_the_target_and_what_to_check(tran
         args = ["run", transport[0], address, *transport[1:], "--retries", "0", "--steps", "5"]
         r = runner.invoke(app, args)
     assert r.exit_code == 1
-    (line,) = r.output.strip().splitlines()
+    server, line = r.output.strip().splitlines()  # the server it acts on, then one line of error
+    assert server.startswith("server: ") and server.endswith(address)
     assert line.startswith(f"error: unavailable: could not connect to {address} after 1 attempt(s): ")
     assert "Rpc" not in line and "check that the server is running" in line
     flag = "--grpc HOST:PORT" if transport[0] == "--grpc" else "--server URL"

@@ -86,7 +86,8 @@ def test_schedule_gives_the_segment_table(episodes, kind):
     assert (out / "episode-0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     lines = text.splitlines()
-    assert lines[0].startswith("episode 1/1: session " + res.session_id)
+    assert lines[0] == f"server: {kind}"  # the server it acts on (RunConfig.transport) first
+    assert lines[1].startswith("episode 1/1: session " + res.session_id)
     table = [line.split() for line in lines if line[:1].isdigit()]
     assert [row[:4] for row in table] == [
         ["0", "(low)", "0-19", "5-19"],
@@ -201,6 +202,11 @@ def test_random_schedules_are_drawn_from_the_seed_within_their_bounds():
     goals = [first] + [g for _, g in changes]
     assert all(a != b for a, b in zip(goals, goals[1:], strict=False)) and set(goals) <= {0, 1, 2, 3}
     assert random_schedule(1, 1000, (5, 10), seed=0) == (0, [])
+    # No segment shorter than LO: the last change leaves at least LO steps (a 1- or 14-step end was judged a
+    # failure: its settle-in left nothing to measure).
+    for seed in range(200):
+        _, changes = random_schedule(4, 1000, (50, 250), seed=seed)
+        assert all(1000 - s >= 50 for s, _ in changes), (seed, changes)
 
 
 def test_a_statistic_and_an_action_mode_of_the_users_choosing(live_server):

@@ -18,6 +18,7 @@ from gmt.client.errors import (
     DeadlineExceeded,
     InvalidArgument,
     NotFound,
+    ProtocolError,
     ResourceExhausted,
     ServiceError,
     Unavailable,
@@ -627,3 +628,18 @@ def test_many_session_calls_carry_one_routing_key_whatever_the_order(live_server
             client.act_many([(s, obs) for s in reversed(ids)])
             keys = [key for what, key in seen if what in ("/act", "ActBatch")]
             assert keys == [min(ids), min(ids)]
+
+
+def test_a_rest_client_aimed_at_the_grpc_port_says_so(live_server):
+    """The gRPC port answers an HTTP/1.1 request with HTTP/2 frames: named as a gRPC port, not as a broken
+    connection whose request 'may have been applied'."""
+    with RestClient(f"http://{live_server.grpc_target}", retries=0) as c:
+        with pytest.raises(
+            ProtocolError, match="looks like a gRPC port; this REST client needs the server's REST"
+        ):
+            c.create_session("tiny-gmt", 0)
+
+
+def test_session_id_is_an_alias_of_id(live_server):
+    with RestClient(live_server.rest_url) as c, c.create_session("tiny-gmt", 0) as s:
+        assert s.session_id == s.id == s.info.session_id and len(s.id) == 32

@@ -101,3 +101,29 @@ def test_videos_follow_the_agent_where_a_fixed_camera_loses_it(env_id):
     finally:
         tracked.close()
         fixed.close()
+
+
+def test_mujocos_settotalmass_notice_is_not_printed_and_other_warnings_still_surface(tmp_path):
+    """MuJoCo prints (from C, to stderr and MUJOCO_LOG.TXT) a deprecation notice for Gymnasium's v5 model files on
+    every environment made: known noise, dropped; any other MuJoCo warning becomes a Python RuntimeWarning."""
+    import subprocess
+    import sys
+
+    code = """
+import warnings, mujoco
+from gmt.common.envs import make_env
+from gmt.common.spec import ModelInfo
+obs = {"type": "box", "shape": [17], "dtype": "float64"}
+act = {"type": "box", "shape": [6], "dtype": "float32"}
+make_env(ModelInfo("m", "HalfCheetah-v5", obs, act, context_length=5, statistic="return"), max_steps=3).close()
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    mujoco.get_mju_user_warning()("something else")
+print([str(w.message) for w in seen])
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert "settotalmass" not in out.stderr + out.stdout and not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert out.stdout.strip() == "['MuJoCo: something else']"

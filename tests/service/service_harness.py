@@ -122,7 +122,7 @@ def exec_after(prelude: str, cmd: list[str]) -> list[str]:
 class ServeProcess:
     """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
 
-    def __init__(self, *args: str, nofile: int | None = None) -> None:
+    def __init__(self, *args: str, nofile: int | None = None, cwd: Path | None = None) -> None:
         exe = Path(sys.executable).parent / "gmt"
         env = clean_env()
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
@@ -132,7 +132,7 @@ class ServeProcess:
                 f"import resource; resource.setrlimit(resource.RLIMIT_NOFILE, ({nofile}, {nofile}))", cmd
             )
         self.proc = subprocess.Popen(
-            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+            cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env, cwd=cwd
         )
         self.lines: list[dict] = []
         self.serving: dict | None = None

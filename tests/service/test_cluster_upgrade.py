@@ -122,4 +122,7 @@ def test_rolling_upgrade_with_a_replica_killed_midway(running):
     )
     assert out.returncode == 1, out.stderr
     assert f"gmt-1: load {v2}" in out.stdout and "gmt-1: drain nothing to drain" in out.stdout
+    assert out.stdout.startswith(f"cluster {c.run_dir}: gmt-1 http://127.0.0.1:"), (
+        out.stdout
+    )  # what it acts on
     assert "error: gmt-2 not upgraded: unavailable: cannot reach" in out.stderr

@@ -23,6 +23,7 @@ from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
 from gmt.service import core as core_module
+from gmt.service.model_state import STATE_FILE
 from gmt.v1 import admin_pb2 as apb
 from gmt.v1 import admin_pb2_grpc, policy_pb2_grpc
 from gmt.v1 import policy_pb2 as pb
@@ -40,6 +41,13 @@ def roots(tmp_path_factory):
     tiny_checkpoint(root / "releases" / "v2", calibrated=True, seed=1)
     tiny_checkpoint(root / "releases" / "v3", calibrated=True, seed=2)
     return root
+
+
+@pytest.fixture(autouse=True)
+def fresh_state(roots):
+    """Each test starts from the versions under the roots: forget what an earlier test promoted (a restart keeps
+    it: test_model_state.py)."""
+    (roots / STATE_FILE).unlink(missing_ok=True)
 
 
 @pytest.fixture(scope="module")
@@ -280,9 +288,10 @@ def test_bad_checkpoints_are_refused_and_leave_the_served_versions_alone(
         r = http.post(f"/models/{MODEL}/versions", json={"path": "releases/nope"})  # nowhere at all
         assert r.status_code == 400 and "no checkpoint 'releases/nope' under" in r.json()["error"]["message"]
         assert http.get("/models").json() == {
+            **before,
             "models": [
                 {**m, "versions": [{**v, "sessions": 1} for v in m["versions"]]} for m in before["models"]
-            ]
+            ],
         }
         with grpc.insecure_channel(server.target) as ch:
             admin = admin_pb2_grpc.ModelAdminStub(ch)
