@@ -767,6 +767,7 @@ class RedisSessionStore(SessionStore):
             if owner is not None and visible(str(owner)):
                 out.append(sid)
         return out
+
     async def model_states(self) -> dict[str, dict]:
         """Each model's saved default version and canary (`gmt.service.model_state`), by model name."""
         raw = await self._call(self.redis.hgetall(self._models_key))
