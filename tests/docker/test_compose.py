@@ -1,7 +1,7 @@
 """The containers for real (docs/cluster.md): the gmt image built by docker/image.sh on the local Debian base
 (docker/local-images.sh: no registry is needed), docker/compose.yaml brought up by docker/compose.sh on free
 loopback ports with Debian-built Redis and nginx images, a session driven through nginx, the gmt container serving
-it killed mid-episode, and the episode checked against an uninterrupted twin; then everything is removed.
+it killed mid-episode (and a gRPC Control stream's on the same replica), and each episode checked against an uninterrupted twin; then everything is removed.
 
 Runs with docker or podman (podman-compose from the `dev` extra); skipped only where neither can run. Cheap when
 warm: the base image is reused whenever present and the gmt image whenever its inputs are unchanged."""
@@ -18,13 +18,17 @@ import tempfile
 import time
 from pathlib import Path
 
+import grpc
 import httpx
 import numpy as np
 import pytest
 
+from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
 from gmt.model.fixtures import tiny_checkpoint
 from gmt.service.cluster import free_port
+from gmt.v1 import policy_pb2 as pb
+from gmt.v1 import policy_pb2_grpc
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / "docker"
@@ -66,6 +70,7 @@ class Topology:
         self.env = env
         self.project = env["COMPOSE_PROJECT"]
         self.rest_url = f"http://127.0.0.1:{env['GMT_REST_PORT']}"
+        self.grpc_target = f"127.0.0.1:{env['GMT_GRPC_PORT']}"
         self.token = env["GMT_AUTH_TOKEN"]
 
     def container(self, service: str) -> str:
@@ -131,8 +136,14 @@ def topology():
     assert topology.containers() == []  # compose down left nothing, running or stopped
 
 
-def served_by(http: httpx.Client, sid: str) -> str:
+def rest_replica(http: httpx.Client, sid: str) -> str:
     return http.get(f"/sessions/{sid}").headers["x-served-by"]
+
+
+def grpc_replica(stub, sid: str, token: str) -> str:
+    metadata = (("x-session-id", sid), ("authorization", f"Bearer {token}"))
+    _, call = stub.GetSession.with_call(pb.GetSessionRequest(session_id=sid), metadata=metadata)
+    return dict(call.initial_metadata())["x-served-by"]
 
 
 def test_the_stack_is_up_behind_nginx(topology):
@@ -149,27 +160,52 @@ def test_the_stack_is_up_behind_nginx(topology):
     assert user != "0"  # the replicas do not run as root
 
 
-def test_the_gmt_container_serving_a_session_killed_mid_episode(topology):
+def test_the_gmt_container_serving_sessions_killed_mid_episode(topology):
+    """A REST session and a gRPC Control stream on one replica; its container is killed (SIGKILL) after step
+    KILL_AT - 1 and both episodes finish on the other replica, every action equal to an uninterrupted twin's."""
     rng = np.random.default_rng(7)
-    obs = rng.normal(size=(STEPS, 17))
+    obs = {"rest": rng.normal(size=(STEPS, 17)), "grpc": rng.normal(size=(STEPS, 17))}
+    seeds = {"rest": 5, "grpc": 6}
+    kw = dict(token=topology.token, retries=6, backoff_s=0.2)
     with (
-        RestClient(topology.rest_url, token=topology.token, retries=6, backoff_s=0.2) as client,
+        RestClient(topology.rest_url, **kw) as rest,
+        GrpcClient(topology.grpc_target, stream=True, **kw) as streams,
         httpx.Client(
             base_url=topology.rest_url, timeout=30, headers={"Authorization": f"Bearer {topology.token}"}
         ) as http,
+        grpc.insecure_channel(topology.grpc_target) as channel,
     ):
-        with client.create_session(MODEL, 1, seed=5) as twin:  # uninterrupted, same seed and observations
-            want = [twin.act(o).action for o in obs]
-        with client.create_session(MODEL, 1, seed=5) as session:
-            got = [session.act(o) for o in obs[:KILL_AT]]
-            victim = served_by(http, session.id)
-            container = topology.container(victim)
-            _run(ENGINE, "kill", container, env=topology.env)  # SIGKILL, mid-episode
-            got += [session.act(o) for o in obs[KILL_AT:]]
-            survivor = served_by(http, session.id)
-            assert session.refresh().step == STEPS
-    assert {victim, survivor} == {"gmt-1", "gmt-2"}  # the rest of the episode ran on the other replica
-    assert [r.step for r in got] == list(range(STEPS))
-    for t, (g, w) in enumerate(zip(got, want, strict=True)):
-        np.testing.assert_array_equal(g.action, w, err_msg=f"step {t}")
-    assert len({tuple(w) for w in want}) == STEPS  # sampled actions: the seed mattered
+        stub = policy_pb2_grpc.PolicyServiceStub(channel)
+        clients = {"rest": rest, "grpc": streams}
+        want = {}
+        for kind, client in clients.items():  # the twins: the same seeds and observations, nothing killed
+            with client.create_session(MODEL, 1, seed=seeds[kind]) as twin:
+                want[kind] = [twin.act(o).action for o in obs[kind]]
+        sessions = {"rest": rest.create_session(MODEL, 1, seed=seeds["rest"])}
+        victim = rest_replica(http, sessions["rest"].id)
+        for _ in range(20):  # a gRPC session on the same replica (nginx hashes its id)
+            s = streams.create_session(MODEL, 1, seed=seeds["grpc"])
+            if grpc_replica(stub, s.id, topology.token) == victim:
+                sessions["grpc"] = s
+                break
+            s.close()
+        assert "grpc" in sessions, f"no gRPC session was routed to {victim}"
+        got = {kind: [s.act(o) for o in obs[kind][:KILL_AT]] for kind, s in sessions.items()}
+        _run(ENGINE, "kill", topology.container(victim), env=topology.env)  # SIGKILL, mid-episode
+        for kind, s in sessions.items():
+            got[kind] += [s.act(o) for o in obs[kind][KILL_AT:]]
+        where = {
+            "rest": rest_replica(http, sessions["rest"].id),
+            "grpc": grpc_replica(stub, sessions["grpc"].id, topology.token),
+        }
+        steps = {kind: s.refresh().step for kind, s in sessions.items()}
+        for s in sessions.values():
+            s.close()
+    survivor = ({"gmt-1", "gmt-2"} - {victim}).pop()
+    assert where == {"rest": survivor, "grpc": survivor}  # the rest of each episode ran on the other replica
+    assert steps == {"rest": STEPS, "grpc": STEPS}
+    for kind in sessions:
+        assert [r.step for r in got[kind]] == list(range(STEPS)), kind
+        for t, (g, w) in enumerate(zip(got[kind], want[kind], strict=True)):
+            np.testing.assert_array_equal(g.action, w, err_msg=f"{kind} step {t}")
+        assert len({tuple(w) for w in want[kind]}) == STEPS  # sampled actions: the seed mattered
