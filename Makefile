@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve demo cluster cluster-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-breakout-dagger train-breakout-dagger eval-breakout-dagger data-hopper-pool train-hopper-pool data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
+.PHONY: venv serve demo cluster cluster-down image compose-up compose-down test lint proto data train eval train-breakout eval-breakout data-breakout5 train-breakout5 eval-breakout5 data-breakout-dagger train-breakout-dagger eval-breakout-dagger data-hopper-pool train-hopper-pool data-hopper train-hopper eval-hopper data-walker2d train-walker2d eval-walker2d data-ant train-ant eval-ant bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -56,6 +56,31 @@ cluster: $(VENV)/.installed-serve
 # Stops exactly the processes whose pids are in run/cluster/*.pid (nginx, gmt-*, sentinel-*, then the Redis servers).
 cluster-down:
 	$(BIN)/gmt cluster down
+
+# Containers (docs/cluster.md), with docker or podman (ENGINE=docker|podman; default docker if its daemon answers).
+# `make image`: the gmt image IMAGE on BASE (docker/image.sh: rebuilt only when its inputs changed; on the local
+# Debian base of docker/local-images.sh where BASE can be neither found nor pulled). `make compose-up`: the topology
+# of `make cluster` in containers (docker/compose.yaml): REST :$(REST_PORT) and gRPC :$(GRPC_PORT) on 127.0.0.1
+# through nginx, once every stage is healthy; needs GMT_AUTH_TOKEN. `make compose-down` removes its containers,
+# network and volumes. With podman, podman-compose (pinned in constraints.txt) is installed into .venv.
+IMAGE ?= gmt-service
+BASE ?= python:3.11-slim
+COMPOSE_PROJECT ?= gmt
+CONTAINER_ENV = ENGINE=$(ENGINE) COMPOSE_PROJECT=$(COMPOSE_PROJECT) PODMAN_COMPOSE=$(BIN)/podman-compose
+
+image:
+	$(CONTAINER_ENV) IMAGE=$(IMAGE) BASE=$(BASE) docker/image.sh
+
+$(VENV)/.installed-podman-compose: $(CONSTRAINTS)
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet -c $(CONSTRAINTS) podman-compose
+	@touch $@
+
+compose-up: $(VENV)/.installed-podman-compose
+	$(CONTAINER_ENV) GMT_IMAGE=$(IMAGE) GMT_REST_PORT=$(REST_PORT) GMT_GRPC_PORT=$(GRPC_PORT) docker/compose.sh up
+
+compose-down:
+	$(CONTAINER_ENV) docker/compose.sh down
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check .
