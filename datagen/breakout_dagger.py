@@ -22,7 +22,7 @@ goal whose centre is nearest its return, as k-means assigns.
     python -m gmt.datagen.breakout_dagger merge gmt/breakout/lead-v1 gmt/breakout/lead-dagger-a-v1 \\
         --out-id gmt/breakout/lead-dagger-v1 --k 5 --labels data/labels/breakout-dagger-1.json
 
-`make data-breakout-dagger` runs the whole chain behind `checkpoints/breakout-dagger-gmt` (its PROVENANCE.md).
+The Remake section of checkpoints/breakout-dagger-gmt/PROVENANCE.md runs the whole chain behind that checkpoint.
 """
 
 from __future__ import annotations
