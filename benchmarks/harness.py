@@ -303,7 +303,7 @@ def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]
     Args:
         unix_socket: Also listen on this Unix socket path (`unix://<path>?db=0` reaches it).
     """
-    from gmt.service.cluster import free_port
+    from gmt.cluster.supervisor import free_port
 
     port = free_port()
     extra = ["--unixsocket", unix_socket, "--unixsocketperm", "700"] if unix_socket else []

@@ -19,9 +19,9 @@ from test_cluster import MODEL, grpc_replica, held_by_victim, rest_replica
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
+from gmt.cluster import supervisor as cluster
 from gmt.common.recording import read_recording
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
