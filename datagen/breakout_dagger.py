@@ -1,7 +1,7 @@
 """One DAgger round for a Breakout GMT: the model plays, the scripted level labels every state it reaches.
 
-`research.breakout_agreement` showed that a Breakout imitator agrees with its teacher on the teacher's own games
-(~83%) far more than on its own (~66%): once it plays, it reaches states the data never showed, with no example of
+A Breakout imitator agrees with its teacher on the teacher's own games (~83%) far more than on its own (~66%;
+docs/breakout.md): once it plays, it reaches states the data never showed, with no example of
 what to do there. DAgger (Ross et al. 2011) closes that loop: play the trained model, record at every state the
 action the teacher would have taken there, and train again on the old data plus these labelled states.
 

@@ -51,8 +51,8 @@ class SpeedCommand(gym.Wrapper):
     before they end the episode.
 
     With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
-    instead of from `commands`: the agent then tracks any speed in between, which a governor
-    (`research.governor`) needs to steer it by a command other than the levels'.
+    instead of from `commands`: the agent then tracks any speed in between, so that it can be commanded a
+    speed other than the levels'.
     """
 
     def __init__(
