@@ -16,7 +16,7 @@ from gmt.bench.harness import ACT_DIM, OBS_DIM, SESSIONS, bench_rest, open_sessi
 
 def start_ray_serve(checkpoint: Path, path: str) -> tuple[subprocess.Popen, str]:
     """`gmt.bench.ray_app` in its own process on a free loopback port; returns (process, base URL)."""
-    from gmt.service.cluster import free_port
+    from gmt.cluster.supervisor import free_port
 
     port = free_port()
     proc = subprocess.Popen(

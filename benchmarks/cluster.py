@@ -31,7 +31,7 @@ def bench_scaleout(
     replica), in one run: acts/s, p50/p99, errors. Every process shares this machine's cores."""
     import httpx
 
-    from gmt.service import cluster
+    from gmt.cluster import supervisor as cluster
 
     out: dict = {"sessions": sessions, "seconds_per_point": seconds, "cores": os.cpu_count(), "points": []}
 
@@ -84,7 +84,7 @@ def bench_cluster(checkpoint: Path, sessions: int = 256, seconds: float = 120.0)
     Memory: each replica's RSS after start, with `sessions` live sessions after the load, after they all
     closed, and after a second wave of as many sessions acted again (slots are reused, so it should not grow).
     """
-    from gmt.service import cluster
+    from gmt.cluster import supervisor as cluster
 
     run_dir = Path(tempfile.mkdtemp(prefix="gmt-cluster-"))
     c = cluster.up(

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gmt.service.cluster import Cluster
+from gmt.cluster.supervisor import Cluster
 
 KINDS = ("rest", "grpc", "stream")
 
@@ -414,7 +414,7 @@ def bench_failover(checkpoint: Path, sessions: int = 64, steps: int = 20) -> dic
     sessions whose actions differ from an uninterrupted twin's (the drill above)."""
     import httpx
 
-    from gmt.service import cluster
+    from gmt.cluster import supervisor as cluster
 
     run_dir = Path(tempfile.mkdtemp(prefix="gmt-failover-"))
     c = cluster.up(

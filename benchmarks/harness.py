@@ -303,7 +303,7 @@ def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]
     Args:
         unix_socket: Also listen on this Unix socket path (`unix://<path>?db=0` reaches it).
     """
-    from gmt.service.cluster import free_port
+    from gmt.cluster.supervisor import free_port
 
     port = free_port()
     extra = ["--unixsocket", unix_socket, "--unixsocketperm", "700"] if unix_socket else []
@@ -334,7 +334,7 @@ def replicated_redis(directory: Path) -> tuple[list[subprocess.Popen], str]:
     """A Redis primary and one replica as `make cluster` runs them (AOF on, `appendfsync everysec`, data under
     `directory`), the replica in sync: (both processes, the primary's URL). A server given
     `--store-min-replicas 1` then has every write acknowledged by the replica (WAIT)."""
-    from gmt.service.cluster import _replica_in_sync, free_port
+    from gmt.cluster.supervisor import _replica_in_sync, free_port
 
     ports = [free_port(), free_port()]
     procs = []

@@ -10,7 +10,7 @@ A snapshot says what kind it is (`BehaviourMeta.kind`), and each kind has a load
   observation with the commanded speed appended (`extra["command"]`), so several levels can share one actor, and
   each level's episodes still have one goal.
 - `gait`: a scripted gait (`gmt.datagen.gait`), whose only tensor is the action noise.
-- other kinds register themselves when their module is imported (e.g. `governed`: research/governor.py).
+- a kind defined outside this package registers its loader with `register_kind` when its module is imported.
 
 A policy may keep per-episode state, so whoever rolls it out calls `start_episode()` at every reset.
 """
@@ -166,14 +166,11 @@ def register_kind(kind: str) -> Callable[[Loader], Loader]:
 
 
 def snapshot_kind(meta: BehaviourMeta) -> str:
-    """The snapshot's kind: `meta.kind`, else (older snapshots) `gait` or `governed` by their `extra`, else
-    `actor`."""
+    """The snapshot's kind: `meta.kind`, else (older snapshots) `gait` by their `extra`, else `actor`."""
     if meta.kind:
         return meta.kind
     if "gait" in meta.extra:
         return "gait"
-    if meta.extra.get("governor") is not None:
-        return "governed"
     return "actor"
 
 

@@ -1,7 +1,7 @@
 """One DAgger round for a Breakout GMT: the model plays, the scripted level labels every state it reaches.
 
-`research.breakout_agreement` showed that a Breakout imitator agrees with its teacher on the teacher's own games
-(~83%) far more than on its own (~66%): once it plays, it reaches states the data never showed, with no example of
+A Breakout imitator agrees with its teacher on the teacher's own games (~83%) far more than on its own (~66%;
+docs/breakout.md): once it plays, it reaches states the data never showed, with no example of
 what to do there. DAgger (Ross et al. 2011) closes that loop: play the trained model, record at every state the
 action the teacher would have taken there, and train again on the old data plus these labelled states.
 
@@ -22,7 +22,7 @@ goal whose centre is nearest its return, as k-means assigns.
     python -m gmt.datagen.breakout_dagger merge gmt/breakout/lead-v1 gmt/breakout/lead-dagger-a-v1 \\
         --out-id gmt/breakout/lead-dagger-v1 --k 5 --labels data/labels/breakout-dagger-1.json
 
-`make data-breakout-dagger` runs the whole chain behind `checkpoints/breakout-dagger-gmt` (its PROVENANCE.md).
+The Remake section of checkpoints/breakout-dagger-gmt/PROVENANCE.md runs the whole chain behind that checkpoint.
 """
 
 from __future__ import annotations

@@ -162,7 +162,7 @@ def commanded(
     snapshot: int = typer.Option(
         None,
         help="With --select-only: export this kept snapshot (its training step) instead of the best-scored one, "
-        "e.g. one chosen with research/screen_commanded.py.",
+        "e.g. one chosen by screening the kept snapshots (docs/data.md).",
     ),
     resume_from: int = typer.Option(
         None,
@@ -240,7 +240,8 @@ def commanded(
 @needs("data", "gmt data gait")
 def gait(
     params: Path = typer.Argument(
-        ..., help="A gait's parameters (JSON): `research/search_gait.py`'s output or a bare GaitConfig."
+        ...,
+        help="A gait's parameters (JSON): a bare GaitConfig or a parameter search's output (docs/data.md).",
     ),
     level: list[str] = typer.Option(
         None, help="LEVEL=HZ, one stride frequency per level; repeat (default: the search's slow and fast)."

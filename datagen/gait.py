@@ -1,7 +1,7 @@
 """A scripted Ant gait: joint targets from a phase oscillator, tracked by PD control, heading held by feedback.
 
 Ant's PPO agents here stalled near 0.5 m/s and bounced out of the healthy z-range (docs/results.md, "Ant"). This
-gait needs no learning beyond a parameter search (`research/search_gait.py`), never bounces, and changes speed by
+gait needs no learning beyond a parameter search (behaviour/ant/TRAINED_WITH.md), never bounces, and changes speed by
 changing its stride frequency alone, so every level shares one stride shape and a level started from another
 level's state picks up the stride where it is. With a `target_speed` a speed loop sets that frequency every step,
 which keeps a level's speed within a few percent over the evaluation protocol's 150-step windows.

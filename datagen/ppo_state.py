@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from gmt.datagen.train_behaviour import actor_linears
+from gmt.datagen.ppo import copy_actor
 
 FORMAT = 1
 
@@ -103,17 +103,7 @@ def warm_start_actor(snapshot: Path, model, venv, step: int) -> int:
     snapshot = Path(snapshot)
     state = load_file(snapshot.with_suffix(".safetensors"))
     meta = json.loads(snapshot.with_suffix(".json").read_text())
-    linears = actor_linears(model.policy)
-    with torch.no_grad():
-        for i, lin in enumerate(linears):
-            weight, bias = state[f"mean_net.{2 * i}.weight"], state[f"mean_net.{2 * i}.bias"]
-            if weight.shape != lin.weight.shape:
-                raise ValueError(
-                    f"{snapshot}: layer {i} is {tuple(weight.shape)}, this learner's {tuple(lin.weight.shape)}"
-                )
-            lin.weight.copy_(weight)
-            lin.bias.copy_(bias)
-        model.policy.log_std.copy_(state["log_std"])
+    copy_actor(model.policy, state, str(snapshot))
     rms = venv.obs_rms
     rms.mean = np.asarray(meta["obs_mean"], dtype=np.float64).reshape(np.shape(rms.mean))
     rms.var = np.asarray(meta["obs_var"], dtype=np.float64).reshape(np.shape(rms.var))

@@ -1,4 +1,5 @@
-"""Refine one behaviour level with PPO so that it reaches its target speed from other levels' states.
+"""Refinement: the PPO trainer (`gmt.datagen.ppo`) configured to fine-tune one behaviour level so that it reaches
+its target speed from other levels' states.
 
 The PPO snapshots of `train_behaviour` are taken from a run that maximises speed; the slow one is simply an
 early, half-trained runner. Started from a state of the fast level (a sprint) it often brakes by pitching
@@ -17,9 +18,8 @@ Needs the optional `train` extra (stable-baselines3).
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -36,9 +36,20 @@ from gmt.datagen.behaviour import (
     save_behaviour,
 )
 from gmt.datagen.collect import DEFAULT_NOISE_SCALE
+from gmt.datagen.ppo import (
+    PRESETS,
+    PPOPreset,
+    actor_state,
+    copy_actor,
+    keep_record,
+    level_state,
+    make_ppo,
+    run_ppo,
+    snapshot_path,
+)
 from gmt.datagen.rollout import rollout
 from gmt.datagen.start_states import PoolStart, StatePool, build_pool
-from gmt.datagen.train_behaviour import PRESETS, PPOPreset, SpeedTent, actor_linears, actor_state
+from gmt.datagen.train_behaviour import SpeedTent
 
 NEVER_TERMINATES = {"halfcheetah", "swimmer"}  # tasks without a healthy-state termination
 
@@ -181,10 +192,7 @@ def refine(cfg: RefineConfig) -> dict:
     Returns:
         The chosen snapshot's measurement (with its step).
     """
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     torch.set_num_threads(1)
     p = cfg.preset
@@ -205,26 +213,10 @@ def refine(cfg: RefineConfig) -> dict:
         e = PoolStart(shaped(e, cfg.target_speed), train_pool, cfg.pool_fraction, cfg.seed)
         return Monitor(FixedObsNorm(e, init))
 
-    venv = VecNormalize(DummyVecEnv([make_env]), norm_obs=False, norm_reward=True, gamma=p.gamma)
-    venv.seed(cfg.seed)
-    act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
-    model = PPO(
-        "MlpPolicy", venv, n_steps=p.n_steps, batch_size=p.batch_size, n_epochs=p.n_epochs,
-        learning_rate=cfg.learning_rate, gamma=p.gamma, gae_lambda=p.gae_lambda, clip_range=p.clip_range,
-        ent_coef=p.ent_coef, vf_coef=p.vf_coef, max_grad_norm=p.max_grad_norm, seed=cfg.seed, device="cpu",
-        policy_kwargs=dict(
-            log_std_init=p.log_std_init, ortho_init=p.ortho_init, activation_fn=act,
-            net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
-        ),
-    )  # fmt: skip
+    # The snapshot's own observation normalisation (FixedObsNorm) and its actor: PPO normalises rewards only.
+    model, _ = make_ppo(make_env, replace(p, learning_rate=cfg.learning_rate), cfg.seed, norm_obs=False)
     policy = model.policy
-    actor = actor_linears(policy)
-    init_linears = [m for m in init.mean_net if isinstance(m, torch.nn.Linear)]
-    with torch.no_grad():
-        for dst, src in zip(actor, init_linears, strict=True):
-            dst.weight.copy_(src.weight)
-            dst.bias.copy_(src.bias)
-        policy.log_std.copy_(init.log_std)
+    copy_actor(policy, init.state_dict(), str(level_path))
     actor_params = [
         *policy.mlp_extractor.policy_net.parameters(),
         *policy.action_net.parameters(),
@@ -236,41 +228,36 @@ def refine(cfg: RefineConfig) -> dict:
     def export(step: int) -> BehaviourPolicy:
         state = actor_state(policy)
         meta = init.meta.__class__(**{**asdict(init.meta), "train_step": step})
-        save_behaviour(cfg.work_dir / f"step_{step:08d}", state, meta)
-        return load_behaviour(cfg.work_dir / f"step_{step:08d}", env.action_space)
+        save_behaviour(snapshot_path(cfg.work_dir, step), state, meta)
+        return load_behaviour(snapshot_path(cfg.work_dir, step), env.action_space)
 
     records: list[dict] = []
     start = time.time()
 
-    def record(step: int) -> None:
+    def record(step: int) -> dict:
         snap = export(step)
         snap.noise_scale = cfg.noise_scale
         rec = {
             "step": step,
             **measure_refined(env, snap, eval_pool, cfg.target_speed, cfg.eval_episodes, 30_000),
         }
-        records.append(rec)
-        (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
         print(
             f"step {step:>7d}  rest {rec['rest_mean']:5.2f} +- {rec['rest_std']:.2f}  pool {rec['pool_mean']:5.2f} "
             f"+- {rec['pool_std']:.2f}  fails {rec['fails']:2d} (falls {rec['falls']:2d})  score {rec['score']:.3f}  "
             f"{step / max(time.time() - start, 1e-9):5.0f} steps/s",
             flush=True,
         )
+        return rec
 
-    class Callback(BaseCallback):
-        def _on_step(self) -> bool:
-            if self.num_timesteps == cfg.critic_warmup:
-                for prm in actor_params:
-                    prm.requires_grad_(True)
-            if self.num_timesteps % cfg.eval_every == 0:
-                record(self.num_timesteps)
-            return True
+    def unfreeze(step: int) -> None:
+        if step == cfg.critic_warmup:
+            for prm in actor_params:
+                prm.requires_grad_(True)
 
-    record(0)
-    model.learn(total_timesteps=cfg.timesteps, callback=Callback())
+    keep_record(records, record(0), cfg.work_dir)
+    run_ppo(model, cfg.timesteps, lambda _: cfg.eval_every, record, records, cfg.work_dir, unfreeze)
     best = min(records, key=lambda r: r["score"])
-    chosen = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
+    chosen = load_behaviour(snapshot_path(cfg.work_dir, best["step"]), env.action_space)
     meta = chosen.meta
     meta.train_step = (init.meta.train_step or 0) + best["step"]
     meta.mean_speed, meta.std_speed = best["rest_mean"], best["rest_std"]
@@ -289,8 +276,7 @@ def refine(cfg: RefineConfig) -> dict:
             "episodes": cfg.eval_episodes,
         },
     }
-    state = {k: v for k, v in chosen.state_dict().items() if k not in ("obs_mean", "obs_var")}
-    save_behaviour(cfg.out_dir / cfg.level, state, meta)
+    save_behaviour(cfg.out_dir / cfg.level, level_state(chosen), meta)
     return best
 
 

@@ -1,4 +1,4 @@
-"""Train PPO behaviour agents (Stable-Baselines3) and export snapshots at several measured speeds.
+"""Behaviour levels: the PPO trainer (`gmt.datagen.ppo`) configured to export snapshots at several measured speeds.
 
 During training the current actor is exported every `eval_every` steps and rolled out with its stochastic
 policy; its per-episode mean x-velocity is recorded. Afterwards, for every target speed the snapshot closest
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -18,60 +18,22 @@ import numpy as np
 import torch
 
 from gmt.common.tables import markdown_table
-from gmt.datagen.behaviour import (
-    BEHAVIOUR_DIR,
-    BehaviourMeta,
-    BehaviourPolicy,
-    env_slug,
-    load_behaviour,
-    save_behaviour,
+from gmt.datagen.behaviour import BEHAVIOUR_DIR, env_slug, load_behaviour, save_behaviour
+from gmt.datagen.ppo import (
+    PRESETS,
+    PPOPreset,
+    export_actor,
+    level_state,
+    make_ppo,
+    run_ppo,
+    snapshot_path,
+    trained_with,
 )
 from gmt.datagen.rollout import measure, stuck_step
 from gmt.datagen.start_states import PoolStart, build_pool
 
 FASTEST = "max"
 
-
-@dataclass
-class PPOPreset:
-    """PPO hyperparameters (rl-zoo style) for one environment.
-
-    `stuck_penalty` > 0 wraps the training env in `StuckTermination` (training only; collection and
-    measurements use the plain environment).
-    """
-
-    n_steps: int = 512
-    batch_size: int = 64
-    n_epochs: int = 10
-    learning_rate: float = 3e-4
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_range: float = 0.2
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    hidden_sizes: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "relu"
-    log_std_init: float = -2.0
-    ortho_init: bool = False
-    stuck_penalty: float = 0.0
-
-
-PRESETS: dict[str, PPOPreset] = {
-    # rl-zoo's tuned HalfCheetah settings.
-    "halfcheetah": PPOPreset(
-        n_steps=512, batch_size=64, n_epochs=20, learning_rate=2.0633e-05, gamma=0.98, gae_lambda=0.92,
-        clip_range=0.1, ent_coef=0.000401762, vf_coef=0.58096, max_grad_norm=0.8, stuck_penalty=200.0,
-    ),
-    # SB3's default PPO: its unit initial noise keeps Hopper and Walker2d from settling on standing still
-    # for the healthy reward (rl-zoo's Hopper settings with log-std -2 did, for 460k steps).
-    "hopper": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=0.0, ortho_init=True),
-    "walker2d": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=0.0, ortho_init=True),
-    # Ant: with unit noise the control cost (0.5 |a|^2, about 2 per step) outweighs the healthy reward (1 per
-    # step), so default PPO learnt to flip over early; a tenth of the cost in training left it flailing in
-    # place. A smaller initial noise (std 0.37, cost about 0.5 per step) keeps staying up worthwhile.
-    "ant": PPOPreset(n_steps=2048, hidden_sizes=[64, 64], activation="tanh", log_std_init=-1.0, ortho_init=True),
-}  # fmt: skip
 
 # Target mean x-velocities (m/s) per level; "max" keeps the fastest consistent snapshot.
 DEFAULT_TARGETS: dict[str, dict[str, float | str]] = {
@@ -212,48 +174,6 @@ def make_train_env(
     return Monitor(env)
 
 
-def actor_linears(policy) -> list[torch.nn.Linear]:
-    """The Linear layers of an SB3 actor's mean network, in order (they map to `mean_net.0, .2, ...`)."""
-    linears = [m for m in policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)]
-    return [*linears, policy.action_net]
-
-
-def actor_state(policy) -> dict[str, torch.Tensor]:
-    """An SB3 actor's weights under `BehaviourPolicy`'s names: mean network and log-std."""
-    state = {}
-    for i, lin in enumerate(actor_linears(policy)):
-        state[f"mean_net.{2 * i}.weight"] = lin.weight.detach().cpu().clone()
-        state[f"mean_net.{2 * i}.bias"] = lin.bias.detach().cpu().clone()
-    state["log_std"] = policy.log_std.detach().cpu().clone()
-    return state
-
-
-def export_actor(model, vec_normalize, env_id: str, level: str, hidden_sizes: list[int], activation: str):
-    """The SB3 PPO actor as (state dict, meta): mean network, log-std, observation normalisation."""
-    state = actor_state(model.policy)
-    rms = vec_normalize.obs_rms
-    meta = BehaviourMeta(
-        env_id=env_id,
-        level=level,
-        hidden_sizes=list(hidden_sizes),
-        activation=activation,
-        obs_mean=[float(x) for x in rms.mean],
-        obs_var=[float(x) for x in rms.var],
-        obs_clip=float(vec_normalize.clip_obs),
-        obs_epsilon=float(vec_normalize.epsilon),
-    )
-    return state, meta
-
-
-def as_policy(state: dict, meta: BehaviourMeta, action_space) -> BehaviourPolicy:
-    """Build the torch-only behaviour policy from an exported state dict."""
-    policy = BehaviourPolicy(
-        meta, len(meta.obs_mean), action_space.shape[0], action_space.low, action_space.high
-    )
-    policy.load_state_dict(state, strict=False)
-    return policy.eval()
-
-
 def level_score(record: dict, target: float | str, max_len: int) -> float:
     """Lower is better: distance to the target plus the speed spread; early falls are heavily penalised."""
     fell = record["min_length"] < max_len
@@ -264,9 +184,7 @@ def level_score(record: dict, target: float | str, max_len: int) -> float:
 
 def measure_snapshot(cfg: BehaviourTrainConfig, step: int, env, work_dir: Path | None = None) -> dict:
     """The coarse measurement of the snapshot saved at `step` (deterministic: fixed seeds)."""
-    from gmt.datagen.behaviour import load_behaviour
-
-    policy = load_behaviour((work_dir or cfg.work_dir) / f"step_{step:08d}", env.action_space)
+    policy = load_behaviour(snapshot_path(work_dir or cfg.work_dir, step), env.action_space)
     return {**measure(env, policy, cfg.eval_episodes, 10_000), "step": step}
 
 
@@ -315,50 +233,10 @@ def other_levels_pool(cfg: BehaviourTrainConfig, level: str):
     return build_pool(env, others, cfg.pool_episodes, cfg.seed + 777)
 
 
-def make_ppo(make_env, p: PPOPreset, seed: int):
-    """An SB3 PPO learner with preset `p`, on the CPU, over one env from `make_env` with normalised observations.
-
-    Returns:
-        The learner and its `VecNormalize` env (whose statistics a snapshot exports).
-    """
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-    venv = VecNormalize(DummyVecEnv([make_env]), gamma=p.gamma)
-    venv.seed(seed)
-    act = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[p.activation]
-    model = PPO(
-        "MlpPolicy",
-        venv,
-        n_steps=p.n_steps,
-        batch_size=p.batch_size,
-        n_epochs=p.n_epochs,
-        learning_rate=p.learning_rate,
-        gamma=p.gamma,
-        gae_lambda=p.gae_lambda,
-        clip_range=p.clip_range,
-        ent_coef=p.ent_coef,
-        vf_coef=p.vf_coef,
-        max_grad_norm=p.max_grad_norm,
-        policy_kwargs=dict(
-            log_std_init=p.log_std_init,
-            ortho_init=p.ortho_init,
-            activation_fn=act,
-            net_arch=dict(pi=list(p.hidden_sizes), vf=list(p.hidden_sizes)),
-        ),
-        seed=seed,
-        device="cpu",
-        verbose=0,
-    )
-    return model, venv
-
-
 def _train_run(
     cfg: BehaviourTrainConfig, work_dir: Path, track: float | None, level: str | None = None
 ) -> list[dict]:
     """One PPO run (rewarded for speed, or for tracking `track` m/s); its snapshots' coarse measurements."""
-    from stable_baselines3.common.callbacks import BaseCallback
-
     torch.set_num_threads(1)
     p = cfg.preset
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -367,40 +245,34 @@ def _train_run(
         lambda: make_train_env(cfg.env_id, p, track, pool, cfg.pool_start, cfg.seed), p, cfg.seed
     )
     eval_env = gym.make(cfg.env_id)
-    records: list[dict] = []
     start = time.time()
 
-    class Snapshotter(BaseCallback):
-        def _on_step(self) -> bool:
-            every = cfg.eval_every // 4 if self.num_timesteps <= cfg.dense_steps else cfg.eval_every
-            if self.num_timesteps % every == 0:
-                state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
-                save_behaviour(work_dir / f"step_{self.num_timesteps:08d}", state, meta)
-                rec = measure_snapshot(cfg, self.num_timesteps, eval_env, work_dir)
-                records.append(rec)
-                (work_dir / "records.json").write_text(json.dumps(records, indent=1))
-                fps = self.num_timesteps / (time.time() - start)
-                print(
-                    f"step {rec['step']:>8d}  speed {rec['mean_speed']:6.2f} +- {rec['std_speed']:.2f}  "
-                    f"len {rec['mean_length']:6.1f}  return {rec['mean_return']:8.1f}  {fps:6.0f} steps/s",
-                    flush=True,
-                )
-            return True
+    def snapshot(step: int) -> dict:
+        state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
+        save_behaviour(snapshot_path(work_dir, step), state, meta)
+        rec = measure_snapshot(cfg, step, eval_env, work_dir)
+        print(
+            f"step {rec['step']:>8d}  speed {rec['mean_speed']:6.2f} +- {rec['std_speed']:.2f}  "
+            f"len {rec['mean_length']:6.1f}  return {rec['mean_return']:8.1f}  "
+            f"{step / (time.time() - start):6.0f} steps/s",
+            flush=True,
+        )
+        return rec
 
-    model.learn(total_timesteps=cfg.total_timesteps, callback=Snapshotter())
-    return records
+    def every(step: int) -> int:
+        return cfg.eval_every // 4 if step <= cfg.dense_steps else cfg.eval_every
+
+    return run_ppo(model, cfg.total_timesteps, every, snapshot, [], work_dir)
 
 
 def _fine(cfg: BehaviourTrainConfig, work_dir: Path, records: list[dict], env) -> list[dict]:
     """`final_episodes`-episode measurements of the given snapshots, cached in the work dir."""
-    from gmt.datagen.behaviour import load_behaviour
-
     cache_path = work_dir / f"fine_records_{cfg.final_episodes}.json"
     cache = {r["step"]: r for r in json.loads(cache_path.read_text())} if cache_path.exists() else {}
     fine = []
     for rec in records:
         if rec["step"] not in cache:
-            policy = load_behaviour(work_dir / f"step_{rec['step']:08d}", env.action_space)
+            policy = load_behaviour(snapshot_path(work_dir, rec["step"]), env.action_space)
             cache[rec["step"]] = {**measure(env, policy, cfg.final_episodes, 20_000), "step": rec["step"]}
             cache_path.write_text(json.dumps(sorted(cache.values(), key=lambda r: r["step"]), indent=1))
         fine.append(cache[rec["step"]])
@@ -424,8 +296,6 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict] | dict[str, lis
         records: Coarse measurements of the snapshots: one list for the single run, or, with tracking, a list
             per level.
     """
-    from gmt.datagen.behaviour import load_behaviour
-
     torch.set_num_threads(1)
     env = gym.make(cfg.env_id)
     max_len = env.spec.max_episode_steps or 1000
@@ -452,7 +322,7 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict] | dict[str, lis
         )
         if not cfg.track:
             used.add(best["step"])
-        policy = load_behaviour(cfg.level_work_dir(level) / f"step_{best['step']:08d}", env.action_space)
+        policy = load_behaviour(snapshot_path(cfg.level_work_dir(level), best["step"]), env.action_space)
         meta = policy.meta
         meta.level = level
         meta.mean_speed, meta.std_speed, meta.train_step = best["mean_speed"], best["std_speed"], best["step"]
@@ -464,8 +334,7 @@ def select_levels(cfg: BehaviourTrainConfig, records: list[dict] | dict[str, lis
             "min_length": best["min_length"],
             "speed_tracking": cfg.track,
         }
-        state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
-        save_behaviour(cfg.out_dir / level, state, meta)
+        save_behaviour(cfg.out_dir / level, level_state(policy), meta)
         chosen.append({"level": level, "target": target, **best})
         print(
             f"{level:>8s} (target {target}): step {best['step']}, speed {best['mean_speed']:.3f} "
@@ -490,10 +359,6 @@ def command_line(cfg: BehaviourTrainConfig) -> str:
 def write_provenance(cfg: BehaviourTrainConfig, chosen: list[dict]) -> Path:
     """Write `<out_dir>/TRAINED_WITH.md` (with tracking, `TRAINED_WITH-<levels>.md`): the command, package
     versions, hyperparameters and levels."""
-    from dataclasses import asdict
-    from importlib.metadata import version
-
-    pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
     dense = f" (every {cfg.eval_every // 4} during the first {cfg.dense_steps})" if cfg.dense_steps else ""
     levels = markdown_table(
         ("level", "target", "PPO step", "mean speed", "std", "mean length", "mean return"),
@@ -510,16 +375,9 @@ def write_provenance(cfg: BehaviourTrainConfig, chosen: list[dict]) -> Path:
             for c in chosen
         ],
     )
-    text = f"""# Behaviour agents for {cfg.env_id}
-
-Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
-
-```bash
-{command_line(cfg)}
-```
-
-Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
-
+    text = (
+        trained_with(f"Behaviour agents for {cfg.env_id}", command_line(cfg), cfg.preset)
+        + f"""
 Every {cfg.eval_every} steps{dense} the actor was exported
 and measured; afterwards every snapshot was measured again on {cfg.final_episodes} stochastic episodes (reset seeds
 20000+) and, per level in order, the unused snapshot minimising |mean - target| + 2 std was kept (`max`: the
@@ -532,6 +390,7 @@ in `runs/behaviour/<env>/` (not committed); `--select-only` re-chooses from them
 `gmt data collect --env {cfg.env_id}` rolls these out with their Gaussian noise and adds a uniform-random
 policy; it replaces snapshot episodes in which a running agent came to a standstill for good (see its output).
 """
+    )
     if cfg.track:
         text = text.replace(
             "Every ",

@@ -1,4 +1,5 @@
-"""One speed-commanded PPO agent whose levels differ only in the commanded speed, trained to switch between them.
+"""Commanded agents: the PPO trainer (`gmt.datagen.ppo`) configured for one speed-commanded actor whose levels
+differ only in the commanded speed, trained to switch between them.
 
 Separately trained agents per level (`train_behaviour --track`) each know one gait; asked to start from another
 level's states (a sprint, for a slow Hopper) they fall most of the time, so the data shows few transitions and a
@@ -17,7 +18,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -26,8 +27,17 @@ import torch
 
 from gmt.common.tables import markdown_table
 from gmt.datagen.behaviour import BEHAVIOUR_DIR, BehaviourPolicy, env_slug, load_behaviour, save_behaviour
+from gmt.datagen.ppo import (
+    PRESETS,
+    PPOPreset,
+    export_actor,
+    level_state,
+    make_ppo,
+    run_ppo,
+    snapshot_path,
+    trained_with,
+)
 from gmt.datagen.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
-from gmt.datagen.train_behaviour import PRESETS, PPOPreset, export_actor, make_ppo
 
 
 class SpeedCommand(gym.Wrapper):
@@ -51,8 +61,8 @@ class SpeedCommand(gym.Wrapper):
     before they end the episode.
 
     With `command_range` (lo, hi) the command is drawn uniformly from that interval at every reset and change
-    instead of from `commands`: the agent then tracks any speed in between, which a governor
-    (`research.governor`) needs to steer it by a command other than the levels'.
+    instead of from `commands`: the agent then tracks any speed in between, so that it can be commanded a
+    speed other than the levels'.
     """
 
     def __init__(
@@ -309,11 +319,6 @@ def command_score(
     }
 
 
-def snapshot_path(work_dir: Path, step: int) -> Path:
-    """Where the actor snapshot of training step `step` is kept (without suffix)."""
-    return Path(work_dir) / f"step_{step:08d}"
-
-
 def resume_source(work_dir: Path, step: int) -> Path | None:
     """What resuming from `step` loads: its learner file, else its actor-only snapshot; None if neither is kept."""
     for path in (learner_path(work_dir, step), snapshot_path(work_dir, step)):
@@ -347,7 +352,6 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     Returns:
         The chosen snapshot's record (step, fine measurement).
     """
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.monitor import Monitor
 
     torch.set_num_threads(1)
@@ -383,30 +387,29 @@ def train_commanded(cfg: CommandedConfig) -> dict:
     eval_env = gym.make(cfg.env_id)
     start = time.time()
 
-    class Snapshotter(BaseCallback):
-        def _on_step(self) -> bool:
-            if self.num_timesteps % cfg.eval_every == 0:
-                path = snapshot_path(cfg.work_dir, self.num_timesteps)
-                state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
-                meta.extra = {"command": commands[0]}
-                save_behaviour(path, state, meta)
-                save_learner(learner_path(cfg.work_dir, self.num_timesteps), model, venv)
-                m = command_score(eval_env, load_behaviour(path, eval_env.action_space), cfg.targets,
-                                  cfg.switch_at, cfg.eval_seeds, cfg.cycle_every)  # fmt: skip
-                records.append(
-                    {"step": self.num_timesteps, **{k: v for k, v in m.items() if k != "episodes_detail"}}
-                )
-                (cfg.work_dir / "records.json").write_text(json.dumps(records, indent=1))
-                fps = (self.num_timesteps - first) / (time.time() - start)
-                print(
-                    f"step {self.num_timesteps:>8d}  score {m['score']:7.2f}  falls {m['falls']}/{m['episodes']}  "
-                    f"speed error {m['mean_error']:.3f}  {fps:5.0f} steps/s",
-                    flush=True,
-                )
-            return True
+    def snapshot(step: int) -> dict:
+        path = snapshot_path(cfg.work_dir, step)
+        state, meta = export_actor(model, venv, cfg.env_id, "", p.hidden_sizes, p.activation)
+        meta.extra = {"command": commands[0]}
+        save_behaviour(path, state, meta)
+        save_learner(learner_path(cfg.work_dir, step), model, venv)
+        m = command_score(eval_env, load_behaviour(path, eval_env.action_space), cfg.targets, cfg.switch_at,
+                          cfg.eval_seeds, cfg.cycle_every)  # fmt: skip
+        print(
+            f"step {step:>8d}  score {m['score']:7.2f}  falls {m['falls']}/{m['episodes']}  "
+            f"speed error {m['mean_error']:.3f}  {(step - first) / (time.time() - start):5.0f} steps/s",
+            flush=True,
+        )
+        return {"step": step, **{k: v for k, v in m.items() if k != "episodes_detail"}}
 
-    model.learn(
-        total_timesteps=cfg.total_timesteps - first, callback=Snapshotter(), reset_num_timesteps=first == 0
+    run_ppo(
+        model,
+        cfg.total_timesteps - first,
+        lambda _: cfg.eval_every,
+        snapshot,
+        records,
+        cfg.work_dir,
+        reset_num_timesteps=first == 0,
     )
     return select_commanded(cfg, records)
 
@@ -416,7 +419,7 @@ def select_commanded(cfg: CommandedConfig, records: list[dict]) -> dict:
     env = gym.make(cfg.env_id)
     best = None
     for rec in sorted(records, key=lambda r: r["score"])[: cfg.candidates]:
-        policy = load_behaviour(cfg.work_dir / f"step_{rec['step']:08d}", env.action_space)
+        policy = load_behaviour(snapshot_path(cfg.work_dir, rec["step"]), env.action_space)
         fine = {
             "step": rec["step"],
             **command_score(env, policy, cfg.targets, cfg.switch_at, cfg.final_seeds, cfg.cycle_every),
@@ -428,8 +431,8 @@ def select_commanded(cfg: CommandedConfig, records: list[dict]) -> dict:
             best = fine
     if best is None:
         raise ValueError(f"no snapshots in {cfg.work_dir}")
-    policy = load_behaviour(cfg.work_dir / f"step_{best['step']:08d}", env.action_space)
-    state = {k: v for k, v in policy.state_dict().items() if k not in ("obs_mean", "obs_var")}
+    policy = load_behaviour(snapshot_path(cfg.work_dir, best["step"]), env.action_space)
+    state = level_state(policy)
     for old in [*cfg.out_dir.glob("*.safetensors"), *cfg.out_dir.glob("*.json")]:
         old.unlink()  # a level no longer commanded must not be collected
     for level, speed in cfg.targets.items():
@@ -460,9 +463,6 @@ def write_commanded_provenance(
         command: The command line that wrote the levels.
         chosen_by_hand: The snapshot was named (`--snapshot`), not picked by score.
     """
-    from importlib.metadata import version
-
-    pkgs = ", ".join(f"{p} {version(p)}" for p in ("stable-baselines3", "torch", "gymnasium", "mujoco"))
     rows = {}
     for r in best["episodes_detail"]:
         key = " -> ".join(c if isinstance(c, str) else f"{c:g}" for c in r["commands"])
@@ -487,16 +487,10 @@ def write_commanded_provenance(
         else f"the {cfg.candidates} best were measured again on {cfg.final_seeds}\nepisodes each, and step "
         f"{best['step']} was kept"
     )
-    text = f"""# Behaviour agent for {cfg.env_id}: one speed-commanded actor
-
-Trained and chosen with (single process, `torch.set_num_threads(1)`, CPU):
-
-```bash
-{command}
-```
-
-Packages: {pkgs}. PPO hyperparameters: `{asdict(cfg.preset)}`.
-
+    title = f"Behaviour agent for {cfg.env_id}: one speed-commanded actor"
+    text = (
+        trained_with(title, command, cfg.preset)
+        + f"""
 One PPO actor reads the observation with a commanded speed appended; in training the command changes at random
 (on average every {cfg.switch_every} steps) among {cfg.targets}, and the reward tracks the command in force with
 weight {cfg.track_weight:g}, and speed above it with an extra weight {cfg.overspeed_weight:g}, both on the mean
@@ -509,6 +503,7 @@ x-velocity of the last {cfg.track_window} step(s) (`gmt.datagen.train_commanded.
 Speeds: mean x-velocity over the last command's steps after a 100-step transient; a cycle's segments are
 measured after min(100, length // 4) steps, as the GMT protocol does.
 """
+    )
     path = cfg.out_dir / "TRAINED_WITH.md"
     path.write_text(text)
     return path

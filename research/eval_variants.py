@@ -16,7 +16,7 @@ tolerance: how steady the held gait is where a 200-step cycle would measure it, 
 last column of `research/data_transients.py`.
 
 Usage:
-    python -m research.eval_variants runs/exp/hopper-settled-t75 --restart --json docs/results/X.json
+    python -m research.eval_variants runs/exp/hopper-settled-t75 --restart --json results/X.json
     python -m research.eval_variants runs/exp/hopper-settled-t75 --cap 0.25 --first-seed 15
 """
 

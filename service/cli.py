@@ -98,7 +98,7 @@ COMMANDS = (
     ),
     Entry(
         "cluster",
-        "gmt.service.cluster:app",
+        "gmt.cluster.supervisor:app",
         "The scale-out topology on loopback: Redis with Sentinel, two gmt serve replicas and nginx.",
         "serve",
     ),

@@ -334,7 +334,8 @@ def test_the_pool_checkpoints_the_written_command_lines_start_from_exist_for_the
         (where, path, re.search(r"--env (\S+)", line).group(1))
         for where, path, line in _written_checkpoint_args("--pool-checkpoint", "runs/")
     ]
-    assert any(where == "Makefile" for where, _, _ in pools), "no --pool-checkpoint in the Makefile"
+    remake = "checkpoints/hopper-gmt/PROVENANCE.md"
+    assert any(where == remake for where, _, _ in pools), f"no --pool-checkpoint in {remake}"
     for where, path, env_id in pools:
         assert (ROOT / path / "gmt.json").is_file(), f"{where}: {path} is not a checkpoint"
         assert load_checkpoint(ROOT / path).env_id == env_id, f"{where}: {path} is not a {env_id} model"
@@ -349,7 +350,8 @@ def test_the_checkpoints_written_trainings_start_from_are_committed_models_of_on
         (where, path, o.group(1) if (o := re.search(r"--out (\S+)", line)) else None)
         for where, path, line in _written_checkpoint_args("--init-from", "runs/", ".devdata/")
     ]
-    assert any(where == "Makefile" for where, _, _ in inits), "no --init-from in the Makefile"
+    remake = "checkpoints/breakout-dagger-gmt/PROVENANCE.md"
+    assert any(where == remake for where, _, _ in inits), f"no --init-from in {remake}"
     for where, path, out in inits:
         assert (ROOT / path / "gmt.json").is_file(), f"{where}: {path} is not a checkpoint"
         if out and (ROOT / out / "gmt.json").is_file():

@@ -1,6 +1,6 @@
 """The documentation's links lead somewhere: every relative link of the README and docs/*.md (and of the
-checkpoints' PROVENANCE.md, the behaviour folders' TRAINED_WITH.md and research/README.md) names a file of the
-repository and, into a Markdown file, one of its headings; and nothing in the repository points at the design
+checkpoints' PROVENANCE.md, the behaviour folders' TRAINED_WITH.md, research/README.md and results/README.md) names
+a file of the repository and, into a Markdown file, one of its headings; and nothing in the repository points at the design
 sketch outside it, which a clone does not have."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted(
     [ROOT / "README.md", *ROOT.glob("docs/*.md"), *ROOT.glob("checkpoints/*/PROVENANCE.md")]
     + [*ROOT.glob("behaviour/*/TRAINED_WITH.md"), ROOT / "research" / "README.md"]
+    + [ROOT / "results" / "README.md"]
 )
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 FENCE = re.compile(r"^(```|~~~).*?^\1", re.S | re.M)

@@ -4,6 +4,7 @@ the one import package (`gmt`) an install puts into site-packages, and the base 
 
 from __future__ import annotations
 
+import ast
 import glob
 import json
 import re
@@ -95,6 +96,32 @@ def test_the_tests_import_this_checkout():
     for package in SETUPTOOLS["packages"]:
         module = import_module(package)
         assert Path(module.__file__).parent == _folder(package), package
+
+
+def test_nothing_installed_imports_or_points_into_research():
+    """research/ is not installed: no module of the package imports it (statically or by name) or sends its reader
+    there for what the package does."""
+    hits = []
+    for folder in {ROOT / f for f in SETUPTOOLS["package-dir"].values()}:
+        for path in folder.rglob("*.py"):
+            text = path.read_text()
+            for node in ast.walk(ast.parse(text)):
+                names = []
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                    names = [node.module or ""]
+                elif isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant):
+                    if getattr(node.func, "id", getattr(node.func, "attr", "")) in (
+                        "import_module",
+                        "__import__",
+                    ):
+                        names = [str(node.args[0].value)]
+                hits += [
+                    f"{path.relative_to(ROOT)}: imports {n}" for n in names if n.split(".")[0] == "research"
+                ]
+            hits += [f"{path.relative_to(ROOT)}: names {m}" for m in re.findall(r"\bresearch[./]\w+", text)]
+    assert not hits, hits
 
 
 def test_the_image_copies_every_folder_the_package_is_built_from():

@@ -38,8 +38,8 @@ def test_snapshots_without_a_kind_are_read_by_their_extra(tmp_path):
     assert "kind" not in json.loads(hopper.read_text())
     assert isinstance(load_behaviour(ant, gym.make("Ant-v5").action_space), GaitPolicy)
     assert isinstance(load_behaviour(hopper, gym.make("Hopper-v5").action_space), BehaviourPolicy)
-    meta = BehaviourMeta("Hopper-v5", "x", [], "tanh", [], [], extra={"command": 1.0, "governor": {"kp": 1}})
-    assert snapshot_kind(meta) == "governed"
+    meta = BehaviourMeta("Hopper-v5", "x", [], "tanh", [], [], extra={"command": 1.0})
+    assert snapshot_kind(meta) == "actor"
 
 
 def test_a_kind_without_a_loader_is_refused(tmp_path):

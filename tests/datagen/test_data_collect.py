@@ -63,7 +63,7 @@ def test_exported_policy_matches_sb3():
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from gmt.datagen.train_behaviour import as_policy, export_actor
+    from gmt.datagen.ppo import as_policy, export_actor
 
     venv = VecNormalize(DummyVecEnv([lambda: gym.make(ENV)]))
     model = PPO("MlpPolicy", venv, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu",

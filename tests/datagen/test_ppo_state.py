@@ -9,8 +9,8 @@ import torch
 from stable_baselines3.common.monitor import Monitor
 
 from gmt.datagen.behaviour import load_behaviour, save_behaviour
+from gmt.datagen.ppo import PPOPreset, export_actor, make_ppo
 from gmt.datagen.ppo_state import learner_path, load_learner, save_learner, warm_start_actor
-from gmt.datagen.train_behaviour import PPOPreset, export_actor, make_ppo
 from gmt.datagen.train_commanded import CommandedConfig, SpeedCommand, train_commanded
 
 ENV = "Hopper-v5"

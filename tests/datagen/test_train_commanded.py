@@ -78,7 +78,7 @@ def test_a_ceiling_docks_the_reward_per_metre_of_torso_height_above_it():
 def test_an_entropy_bonus_overrides_only_the_presets_entropy():
     from dataclasses import replace
 
-    from gmt.datagen.train_behaviour import PRESETS
+    from gmt.datagen.ppo import PRESETS
 
     cfg = CommandedConfig("Ant-v5", {"slow": 0.5, "fast": 1.0}, ent_coef=0.005)
     assert cfg.preset == replace(PRESETS["ant"], ent_coef=0.005)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from service_harness import OBS_DIM, FakeClock, RunningServer, make_settings
 
+from gmt.cluster.supervisor import free_port
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service.cluster import free_port
 from gmt.v1 import policy_pb2_grpc
 
 

@@ -16,8 +16,8 @@ from service_harness import CLUSTER_ENV, clean_env
 from gmt.bench import failover
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
+from gmt.cluster import supervisor as cluster
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster
 
 MODEL = "tiny-cheetah"
 GOALS = 3

@@ -1,4 +1,4 @@
-"""Recorded sessions survive a replica's kill -9 (the topology of tests/service/test_cluster.py, with
+"""Recorded sessions survive a replica's kill -9 (the topology of tests/cluster/test_cluster.py, with
 --record-dir shared by both replicas): a REST session and a gRPC Control-stream session, each with a goal change made
 by a curl-style call, are recording when the replica serving them is killed with an act of each in flight; the
 clients retry on the other replica, and each recording holds every answered step exactly once (the retried step
@@ -19,9 +19,9 @@ from test_cluster import MODEL, grpc_replica, held_by_victim, pad, rest_replica
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
+from gmt.cluster import supervisor as cluster
 from gmt.common.recording import read_recording
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from service_harness import RunningServer, make_settings
 
+from gmt.cluster import supervisor as cluster
+from gmt.cluster.supervisor import free_port
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
-from gmt.service import cluster, session_codec
-from gmt.service.cluster import free_port
+from gmt.service import session_codec
 
 pytestmark = pytest.mark.skipif(
     shutil.which("redis-server") is None,

@@ -9,8 +9,8 @@ import subprocess
 
 import pytest
 
+from gmt.cluster.supervisor import free_port
 from gmt.service import resp
-from gmt.service.cluster import free_port
 
 pytestmark = pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server is not installed")
 

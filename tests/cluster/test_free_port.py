@@ -1,9 +1,9 @@
-"""`gmt.service.cluster.free_port`: ports that another process can bind a moment later."""
+"""`gmt.cluster.supervisor.free_port`: ports that another process can bind a moment later."""
 
 import itertools
 import socket
 
-from gmt.service import cluster
+from gmt.cluster import supervisor as cluster
 
 
 def test_ports_are_free_distinct_and_below_the_ephemeral_range():

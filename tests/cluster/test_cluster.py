@@ -23,8 +23,8 @@ from service_harness import CLUSTER_ENV, clean_env
 from gmt.client import base
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
+from gmt.cluster import supervisor as cluster
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from service_harness import CLUSTER_ENV, clean_env
 
+from gmt.cluster import supervisor as cluster
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import cluster
 
 MODEL = "tiny-cheetah"
 N, STEPS = 8, 4
