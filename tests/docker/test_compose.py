@@ -25,8 +25,8 @@ import pytest
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
-from gmt.model.fixtures import tiny_checkpoint
 from gmt.cluster.supervisor import free_port
+from gmt.model.fixtures import tiny_checkpoint
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
