@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gmt.service import cluster
+from gmt.cluster import supervisor as cluster
 
 ROOT = Path(__file__).resolve().parents[2]
 K8S = ROOT / "deploy" / "k8s"
