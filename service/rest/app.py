@@ -18,10 +18,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gmt.service import admin, examples, keys
-from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from gmt.service.rest import docs, media, openapi
+from gmt.service.rest import console, docs, media, openapi
+from gmt.service.rest.error_body import error_response
 from gmt.service.rest.methods import KnownMethods
 from gmt.service.rest.models_admin import admin_api
 from gmt.service.rest.routes import act_answer, api, public, session_header
@@ -35,11 +35,6 @@ HTTP_CODES = {
     413: "payload_too_large",
     415: "unsupported_media_type",
 }
-
-
-def error_response(status: int, code: str, message: str, headers: dict | None = None) -> JSONResponse:
-    """The one error body: `{"error": {"code", "message"}}`."""
-    return JSONResponse({"error": {"code": code, "message": message}}, status_code=status, headers=headers)
 
 
 def _session_header(request: Request) -> dict:

@@ -13,12 +13,14 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from gmt.common.recording import COLUMNS
-from gmt.service.core import MAX_ID_LENGTH, MAX_LIST_OFFSET, MAX_TIMELINE_PAGE, Core
+from gmt.service.core import Core
 from gmt.service.errors import ServiceError
+from gmt.service.ids import MAX_ID_LENGTH
 from gmt.service.observations import decode_base64, decode_tensor
 from gmt.service.records import check_report
 from gmt.service.rest import schemas as S
 from gmt.service.rest.media import require_json
+from gmt.service.views import MAX_LIST_OFFSET, MAX_TIMELINE_PAGE
 
 SESSION_HEADER = "X-Session-Id"
 _ERRORS = {

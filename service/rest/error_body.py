@@ -1,0 +1,11 @@
+"""The one error body of the REST adapter: `{"error": {"code", "message"}}` (codes and statuses from
+`gmt.service.errors`)."""
+
+from __future__ import annotations
+
+from fastapi.responses import JSONResponse
+
+
+def error_response(status: int, code: str, message: str, headers: dict | None = None) -> JSONResponse:
+    """The one error body: `{"error": {"code", "message"}}`."""
+    return JSONResponse({"error": {"code": code, "message": message}}, status_code=status, headers=headers)
