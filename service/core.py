@@ -11,24 +11,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from gmt.service import keys
-from gmt.service.batcher import MicroBatcher
 from gmt.service.core_acts import Acts
 from gmt.service.core_recordings import Recordings
 from gmt.service.core_sessions import Sessions
 from gmt.service.core_versions import Versions
 from gmt.service.errors import ServiceError, Unavailable
-from gmt.service.events import EventHub
-from gmt.service.ids import SessionLocks, short_id
-from gmt.service.metrics import Metrics
-from gmt.service.model_state import ModelState, NoModelState
+from gmt.service.ids import short_id
 from gmt.service.registry import ModelRegistry
-from gmt.service.sessions import Clock, MemorySessionStore, SessionStore
-from gmt.service.settings import Settings
+from gmt.service.sessions import MemorySessionStore
 
 log = logging.getLogger("gmt.core")
 
@@ -42,34 +35,6 @@ class Core(Versions, Sessions, Acts, Recordings):
         store: Session store (default: Redis if `settings.redis_url`, else memory).
         clock: Wall-clock seconds used for idle timeouts (injectable for tests).
     """
-
-    def __init__(
-        self,
-        settings: Settings,
-        registry: ModelRegistry | None = None,
-        store: SessionStore | None = None,
-        clock: Clock = time.time,
-    ) -> None:
-        self.settings = settings
-        self.registry = registry
-        self.store = store
-        self.clock = clock
-        self.metrics = Metrics()
-        self.keyring = keys.Keyring.of(settings)  # the adapters identify callers by it (`gmt.service.keys`)
-        self.started = False
-        self.closing = False
-        self._closed = False
-        self._batchers: dict[str, MicroBatcher] = {}  # by `LoadedModel.key`
-        self._executor: ThreadPoolExecutor | None = None
-        self._admin = asyncio.Lock()  # one model change (load, adopt, promote, drain, unload) at a time
-        self._adopting: dict[str, asyncio.Future] = {}  # key -> the load of a version a session needs
-        self._unloaded: set[str] = set()  # keys unloaded with force: their sessions are refused here
-        self._tasks: set[asyncio.Task] = set()  # unloads of drained versions in progress
-        self._lock = SessionLocks()  # one lock per session, taken by every part (`gmt.service.ids`)
-        self._sweeper: asyncio.Task | None = None
-        self.events = EventHub()  # per-session event feeds of this replica (`GET /sessions/{id}/events`)
-        self._archives: set[asyncio.Task] = set()  # recordings being written (expired sessions)
-        self.model_state: ModelState = NoModelState()  # where each model's default and canary are kept
 
     # ----- lifecycle ----------------------------------------------------------------------------------------
     async def start(self) -> None:

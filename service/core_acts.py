@@ -12,31 +12,21 @@ import numpy as np
 
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed
+from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, ServiceError
-from gmt.service.events import EventHub
 from gmt.service.ids import check_session_id, short_id
-from gmt.service.metrics import Metrics
 from gmt.service.observations import to_array
 from gmt.service.records import Report
-from gmt.service.registry import LoadedModel, ModelRegistry
-from gmt.service.sessions import Clock, Session, SessionStore
-from gmt.service.settings import Settings
+from gmt.service.registry import LoadedModel
+from gmt.service.sessions import Session
 from gmt.service.units import point_of_no_return, run_whole
 from gmt.service.views import MAX_ACT_ITEMS, ActResult
 
 log = logging.getLogger("gmt.core")
 
 
-class Acts:
+class Acts(CoreState):
     """The act path, a part of `gmt.service.core.Core`."""
-
-    settings: Settings
-    registry: ModelRegistry
-    store: SessionStore
-    clock: Clock
-    metrics: Metrics
-    events: EventHub
-    closing: bool
 
     def validate_observation(self, m: LoadedModel, observation: object) -> np.ndarray:
         """The raw observation checked and normalised, once, into what the engine consumes.

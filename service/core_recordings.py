@@ -10,30 +10,19 @@ import logging
 from pathlib import Path
 
 from gmt.common.recording import Recording
+from gmt.service.core_state import CoreState
 from gmt.service.errors import Aborted, FailedPrecondition, InvalidArgument, NotFound
-from gmt.service.events import EventHub
 from gmt.service.ids import check_session_id, short_id
-from gmt.service.metrics import Metrics
 from gmt.service.records import assemble, decode_timeline, record_drawn
-from gmt.service.registry import ModelRegistry
-from gmt.service.sessions import Clock, Session, SessionStore
-from gmt.service.settings import Settings
+from gmt.service.sessions import Session
 from gmt.service.views import MAX_LIST_OFFSET, MAX_TIMELINE_PAGE, TimelineView
 
 log = logging.getLogger("gmt.core")
 
 
-class Recordings:
+class Recordings(CoreState):
     """Recordings and timelines, a part of `gmt.service.core.Core` (it owns `_archives`, the recordings being
     written)."""
-
-    settings: Settings
-    registry: ModelRegistry
-    store: SessionStore
-    clock: Clock
-    metrics: Metrics
-    events: EventHub
-    closing: bool
 
     def _records(self, sid: str, record: bool | None) -> bool:
         """Whether a new session records: asked, or drawn by `--record-share`.

@@ -16,31 +16,21 @@ from gmt.model.context import Context
 from gmt.model.engine import check_blend_steps
 from gmt.service import keys
 from gmt.service.activity import SessionRow
+from gmt.service.core_state import CoreState
 from gmt.service.errors import AlreadyExists, FailedPrecondition, InvalidArgument, NotFound
-from gmt.service.events import EventHub
 from gmt.service.ids import check_new_session_id, check_session_id, check_version, short_id
-from gmt.service.metrics import Metrics
 from gmt.service.observations import MAX_ABS_VALUE
 from gmt.service.records import BY, Layout
-from gmt.service.registry import LoadedModel, ModelRegistry
-from gmt.service.sessions import Clock, MemorySessionStore, Session, SessionStore
-from gmt.service.settings import Settings
+from gmt.service.registry import LoadedModel
+from gmt.service.sessions import MemorySessionStore, Session
 from gmt.service.units import point_of_no_return, run_whole
 from gmt.service.views import MAX_LIST_OFFSET, MAX_LIST_SESSIONS, GoalRef, SessionView
 
 log = logging.getLogger("gmt.core")
 
 
-class Sessions:
+class Sessions(CoreState):
     """Session calls, a part of `gmt.service.core.Core`."""
-
-    settings: Settings
-    registry: ModelRegistry
-    store: SessionStore
-    clock: Clock
-    metrics: Metrics
-    events: EventHub
-    closing: bool
 
     @staticmethod
     def resolve_goal(m: LoadedModel, goal: GoalRef, target: float | None) -> int:

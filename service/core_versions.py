@@ -11,22 +11,19 @@ from pathlib import Path
 
 from gmt.model.checkpoint import CheckpointError
 from gmt.service.batcher import MicroBatcher
+from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, PermissionDenied, ServiceError
-from gmt.service.events import EventHub
 from gmt.service.ids import DOT_SEGMENTS, MAX_PATH_LENGTH, check_version
-from gmt.service.metrics import Metrics
 from gmt.service.model_state import entry_of, model_state_for, restore
 from gmt.service.registry import (
     DRAINING,
     LoadedModel,
-    ModelRegistry,
     ModelVersions,
     find_by_fingerprint,
     load_model,
     model_key,
 )
-from gmt.service.sessions import Clock, Session, SessionStore
-from gmt.service.settings import Settings
+from gmt.service.sessions import Session
 from gmt.service.views import ModelView, VersionView
 
 log = logging.getLogger("gmt.core")
@@ -36,17 +33,9 @@ _HEX = re.compile(r"[0-9a-fA-F]{12,64}")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
 
 
-class Versions:
+class Versions(CoreState):
     """Model versions, a part of `gmt.service.core.Core` (it owns `_batchers`, `_admin`, `_adopting`, `_unloaded`,
     `_tasks` and `model_state`; `Core.__init__` makes them)."""
-
-    settings: Settings
-    registry: ModelRegistry
-    store: SessionStore
-    clock: Clock
-    metrics: Metrics
-    events: EventHub
-    closing: bool
 
     async def _restore_model_state(self) -> None:
         """Serve the defaults and canaries saved before a restart (`gmt.service.model_state`)."""

@@ -48,6 +48,7 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
             }
         ),
     ),
+    ("core state", frozenset({"core_state"})),
     ("core parts", frozenset({"core_versions", "core_sessions", "core_acts", "core_recordings"})),
     ("core", frozenset({"core"})),
     ("adapters", frozenset({"rest", "grpc", "console"})),
