@@ -9,19 +9,19 @@ import sys
 import time
 from contextlib import asynccontextmanager
 
-import orjson
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gmt.service import admin, examples, keys
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
 from gmt.service.rest import console, docs, media, openapi
-from gmt.service.rest.error_body import error_response
+from gmt.service.rest.error_body import error_bytes, error_response
 from gmt.service.rest.methods import KnownMethods
 from gmt.service.rest.models_admin import admin_api
 from gmt.service.rest.routes import act_answer, api, public, session_header
@@ -137,21 +137,13 @@ class BodyLimit:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        for k, v in scope["headers"]:
-            if k == b"content-length" and v.isdigit() and int(v) > self.limit:
-                return await self._too_large(scope, receive, send)
-        chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":
-                return
-            chunks.append(msg.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.limit:
-                return await self._too_large(scope, receive, send)
-            if not msg.get("more_body", False):
-                break
-        body, replayed = b"".join(chunks), False
+        try:
+            body = await media.read_body(scope, receive, self.limit)
+        except ClientDisconnect:
+            return
+        if body is None:
+            return await self._too_large(scope, receive, send)
+        replayed = False
 
         async def replay() -> Message:
             nonlocal replayed
@@ -329,49 +321,31 @@ class FastAct:
     async def _answer(self, core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
         session = session_header(sid)
         try:
-            raw = await self._body(scope, receive)
+            try:
+                raw = await media.read_body(scope, receive, self.limit)
+            except ClientDisconnect:
+                raw = b""
             if raw is None:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
-                return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
+                return e.http_status, error_bytes(e.code, e.message), {"Connection": "close"}
             if raw:
                 content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
                 refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
                 if refusal is not None:
-                    return refusal.http_status, _error_body(refusal.code, refusal.message), session
+                    return refusal.http_status, error_bytes(refusal.code, refusal.message), session
             try:
                 return 200, await act_answer(core, sid, raw), session
             except ValidationError as e:
                 return (
                     400,
-                    _error_body("invalid_argument", validation_message(e.errors(include_url=False))),
+                    error_bytes("invalid_argument", validation_message(e.errors(include_url=False))),
                     session,
                 )
         except ServiceError as e:
-            return e.http_status, _error_body(e.code, e.message), session
+            return e.http_status, error_bytes(e.code, e.message), session
         except Exception as e:  # noqa: BLE001 - the error envelope, never a dropped connection
             log.exception("unhandled error", extra={"path": scope.get("path")})
-            return 500, _error_body("internal", f"internal error: {type(e).__name__}"), {}
-
-    async def _body(self, scope: Scope, receive: Receive) -> bytes | None:
-        """The whole body, or None once it exceeds the limit."""
-        for k, v in scope["headers"]:
-            if k == b"content-length" and v.isdigit() and int(v) > self.limit:
-                return None
-        chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":
-                return b""
-            chunks.append(msg.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.limit:
-                return None
-            if not msg.get("more_body", False):
-                return b"".join(chunks)
-
-
-def _error_body(code: str, message: str) -> bytes:
-    return orjson.dumps({"error": {"code": code, "message": message}})
+            return 500, error_bytes("internal", f"internal error: {type(e).__name__}"), {}
 
 
 class _App(FastAPI):
