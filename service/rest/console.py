@@ -22,7 +22,8 @@ from gmt.service.core import Core
 from gmt.service.errors import NotFound, ServiceError
 from gmt.service.events import Subscription
 from gmt.service.rest import schemas as S
-from gmt.service.rest.routes import CoreDep, errors, session_header
+from gmt.service.rest.answers import session_header
+from gmt.service.rest.routes import CoreDep, errors
 from gmt.service.views import MAX_LIST_OFFSET, MAX_LIST_SESSIONS
 
 STATIC = (

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from gmt.service.rest.error_body import error_response
+from gmt.service.rest.answers import error_response
 
 
 class KnownMethods:
