@@ -2,9 +2,10 @@
 (REST, gRPC, the console) call this.
 
 `Core` is assembled from its parts, one job each: `core_versions` (the model-version control plane),
-`core_sessions` (session calls), `core_acts` (the act path), `core_recordings` (recordings and timelines). They
-share the state `Core.__init__` makes: the settings, registry, store, clock, metrics, event feed and the per-session
-lock (`gmt.service.ids`). Ids are checked by `gmt.service.ids`; answers are `gmt.service.views`.
+`core_sessions` (session calls), `core_acts` (the act path), `core_recordings` (recordings and timelines) and
+`core_feeds` (events and session metrics). They share the state `core_state.CoreState` makes: the settings,
+registry, store, clock, metrics, event feed and the per-session lock (`gmt.service.ids`). Ids are checked by
+`gmt.service.ids`; answers are `gmt.service.views`.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from gmt.service.core_acts import Acts
+from gmt.service.core_feeds import Feeds
 from gmt.service.core_recordings import Recordings
 from gmt.service.core_sessions import Sessions
 from gmt.service.core_versions import Versions
@@ -26,7 +28,7 @@ from gmt.service.sessions import MemorySessionStore
 log = logging.getLogger("gmt.core")
 
 
-class Core(Versions, Sessions, Acts, Recordings):
+class Core(Versions, Sessions, Acts, Recordings, Feeds):
     """Loads models, keeps sessions and answers requests; knows nothing of HTTP or gRPC.
 
     Args:
@@ -140,12 +142,12 @@ class Core(Versions, Sessions, Acts, Recordings):
         gone = await self.store.sweep()
         for s in gone:
             self._dropped(s.id, s.key)
-            self.events.end(s.id, "expired", {"session_id": s.id})
+            self._ended(s.id, "expired")
             log.info("session expired", extra={"session": short_id(s.id), "model": s.key})
         for m in self.registry.loaded():  # a shared store lets go of sessions it stopped seeing
             self._unload_if_drained(m)
         self.metrics.sessions_expired.inc(len(gone))
-        self.metrics.live_sessions.set(await self.store.count())
+        await self._count_live()
         return len(gone)
 
     def _check_serving(self) -> None:

@@ -87,18 +87,6 @@ class Acts(CoreState):
             self._acted(s, result, t0, report)
         return result
 
-    def _acted(self, s: Session, r: ActResult, t0: float, report: Report | None = None) -> None:
-        """Account for an answered act begun at `perf_counter()` `t0`: the session's activity, its watchers (who
-        also get the reward the client reported for the previous step, when it did)."""
-        latency = time.perf_counter() - t0
-        s.activity.record(s.last_used, latency, self.settings.replica_id)
-        if s.id in self.events:
-            action = r.action if r.action is not None else r.discrete_action
-            data = {"step": r.step, "goal": r.goal, "action": action, "latency_ms": latency * 1000.0}
-            if report is not None and report.reward is not None:
-                data["reward"], data["reward_step"] = report.reward, r.step - 1
-            self.events.publish(s.id, "act", data)
-
     async def _prepare(self, sid: str, observation: object, step: int | None, report: Report | None = None):
         """(session, model, live context, prepared observation, the repeated answer or None) of one act."""
         s = self._owned(await self.store.get(sid))

@@ -214,7 +214,7 @@ class Sessions(CoreState):
                 s.ctx = s.ctx.to_stored()
                 m.engine.forget(sid)
         self.metrics.created(m.name, m.version, s.owner)
-        self.metrics.live_sessions.set(await self.store.count())
+        await self._count_live()
         log.info("session created", extra={"session": short_id(s.id), "model": m.key, "goal": g})
         return self._view_session(s)
 
@@ -323,9 +323,7 @@ class Sessions(CoreState):
             await self._save(m, s, version)
             log.info("goal set", extra={"session": short_id(sid), "goal": g, "blend_steps": blend_steps})
             view = dataclasses.replace(self._view_session(s), effective_step=step)
-            if sid in self.events:
-                data = {"goal": g, "goal_name": view.goal_name, "step": view.step, "given": given}
-                self.events.publish(sid, "goal", {**data, "blend_steps": blend_steps})
+            self._goal_set(view, g, given, blend_steps)
             return view
 
     async def reset(self, sid: str, goal: GoalRef = None, target: float | None = None) -> SessionView:
@@ -363,8 +361,7 @@ class Sessions(CoreState):
             s.last_used = now
             await self._save(m, s, version)
             view = self._view_session(s)
-            if sid in self.events:
-                self.events.publish(sid, "reset", {"goal": view.goal, "goal_name": view.goal_name, "step": 0})
+            self._was_reset(view)
             return view
 
     async def close_session(self, sid: str) -> None:
@@ -380,6 +377,6 @@ class Sessions(CoreState):
                 await self.store.delete(sid)
             else:
                 await self._close_recorded(sid)
-            self.events.end(sid, "closed", {"session_id": sid})
-        self.metrics.live_sessions.set(await self.store.count())
+            self._ended(sid, "closed")
+        await self._count_live()
         log.info("session closed", extra={"session": short_id(sid)})

@@ -49,7 +49,10 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
         ),
     ),
     ("core state", frozenset({"core_state"})),
-    ("core parts", frozenset({"core_versions", "core_sessions", "core_acts", "core_recordings"})),
+    (
+        "core parts",
+        frozenset({"core_versions", "core_sessions", "core_acts", "core_recordings", "core_feeds"}),
+    ),
     ("core", frozenset({"core"})),
     ("adapters", frozenset({"rest", "grpc", "console"})),
     ("entry points", frozenset({"server", "serve_cli", "cli"})),
