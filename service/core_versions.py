@@ -35,7 +35,7 @@ _MODEL_NAME = re.compile(r"[A-Za-z0-9._-]{1,128}")
 
 class Versions(CoreState):
     """Model versions, a part of `gmt.service.core.Core` (it owns `_batchers`, `_admin`, `_adopting`, `_unloaded`,
-    `_tasks` and `model_state`; `Core.__init__` makes them)."""
+    `_tasks` and `model_state`; `CoreState` makes them)."""
 
     async def _restore_model_state(self) -> None:
         """Serve the defaults and canaries saved before a restart (`gmt.service.model_state`)."""
