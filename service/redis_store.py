@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import orjson
 
 from gmt.service import resp, session_codec
-from gmt.service.console.activity import Activity, SessionBrief
+from gmt.service.activity import Activity, SessionBrief
 from gmt.service.errors import (
     Aborted,
     AlreadyExists,

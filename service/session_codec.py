@@ -8,7 +8,7 @@ Fields (format 3):
 - `ver`: the compare-and-set token `<version>@<created_at>` (a session created again under the same id never
   matches a copy of its predecessor);
 - `st`: JSON of the context's scalars (goal, step, blend, mode, seed, version), `last_used` and `activity` (acts/s,
-  last latency and replica of the console's listing, `console.activity`: as of the act before the write);
+  last latency and replica of the console's listing, `activity`: as of the act before the write);
 - `r:<t mod H>`: the record of held step `t`: t, goal token, blend target and weight, state, action, as raw
   little-endian bytes;
 - `tl`: the last entry of the session's goal timeline (JSON, `gmt.service.records`), written with each entry.
@@ -32,7 +32,7 @@ import numpy as np
 import orjson
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.console.activity import Activity
+from gmt.service.activity import Activity
 from gmt.service.records import Ledger
 from gmt.service.sessions import Session
 

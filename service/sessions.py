@@ -13,7 +13,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gmt.model.context import Context, StoredContext
-from gmt.service.console.activity import Activity, SessionBrief
+from gmt.service.activity import Activity, SessionBrief
 from gmt.service.errors import (
     AlreadyExists,
     FailedPrecondition,

@@ -1,6 +1,6 @@
-"""The server console (`GET /ui`): per-session activity, the per-session event feed, the listing and the page.
+"""The server console's page (`GET /ui`): static files only (`static/`), served by the REST adapter.
 
-- `activity`: acts/s and last latency of a session, kept in O(1) per act (stored with the session);
-- `events`: the per-session event feed with bounded per-subscriber queues (`GET /sessions/{id}/events`);
-- `routes`: `GET /sessions`, `GET /sessions/{id}/events` and the static page `GET /ui` (assets in `static/`).
+The console is an adapter like REST and gRPC: its routes (`GET /sessions`, `GET /sessions/{id}/events` and the page)
+are in `gmt.service.rest.console`; the feeds it shows are the service's own (`gmt.service.activity`: acts/s and last
+latency per session; `gmt.service.events`: the per-session event feed).
 """

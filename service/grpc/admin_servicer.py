@@ -6,9 +6,10 @@ from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
 from gmt.service import admin
-from gmt.service.core import Core, ModelView
+from gmt.service.core import Core
 from gmt.service.grpc import convert
 from gmt.service.grpc.servicer import PolicyServicer
+from gmt.service.views import ModelView
 from gmt.v1 import admin_pb2 as apb
 from gmt.v1 import admin_pb2_grpc
 from gmt.v1 import policy_pb2 as pb

@@ -8,10 +8,11 @@ from dataclasses import asdict
 
 import numpy as np
 
-from gmt.service.core import ActResult, GoalRef, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import InvalidArgument, ServiceError
+from gmt.service.ids import echoed_id
 from gmt.service.observations import decode_tensor
 from gmt.service.records import Report, check_report
+from gmt.service.views import ActResult, GoalRef, ModelView, SessionView, TimelineView
 from gmt.v1 import policy_pb2 as pb
 
 

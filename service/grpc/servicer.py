@@ -10,10 +10,11 @@ from typing import TypeVar
 
 import grpc
 
-from gmt.service.core import MAX_TIMELINE_PAGE, Core
+from gmt.service.core import Core
 from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from gmt.service.grpc import convert
 from gmt.service.memory import Trimmer
+from gmt.service.views import MAX_TIMELINE_PAGE
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

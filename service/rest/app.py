@@ -9,22 +9,22 @@ import sys
 import time
 from contextlib import asynccontextmanager
 
-import orjson
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gmt.service import admin, examples, keys
-from gmt.service.console import routes as console
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError, Unauthenticated, Unavailable
-from gmt.service.rest import docs, media, openapi
+from gmt.service.rest import console, docs, media, openapi
+from gmt.service.rest.act import FastAct
+from gmt.service.rest.answers import error_response, session_header, validation_message
 from gmt.service.rest.methods import KnownMethods
 from gmt.service.rest.models_admin import admin_api
-from gmt.service.rest.routes import act_answer, api, public, session_header
+from gmt.service.rest.routes import api, public
 from gmt.service.settings import Settings
 
 log = logging.getLogger("gmt.rest")
@@ -35,11 +35,6 @@ HTTP_CODES = {
     413: "payload_too_large",
     415: "unsupported_media_type",
 }
-
-
-def error_response(status: int, code: str, message: str, headers: dict | None = None) -> JSONResponse:
-    """The one error body: `{"error": {"code", "message"}}`."""
-    return JSONResponse({"error": {"code": code, "message": message}}, status_code=status, headers=headers)
 
 
 def _session_header(request: Request) -> dict:
@@ -53,35 +48,8 @@ async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
     return error_response(exc.http_status, exc.code, exc.message, headers)
 
 
-_UNION_TAG = re.compile(r"^(int|str|float|bool|none|list\[.*\]|dict\[.*\]|function-.*|[A-Z]\w*)$")
-
-
-def _field(loc: tuple) -> str:
-    parts = [str(p) for p in loc]
-    if parts and parts[0] in ("body", "query", "path", "header"):
-        parts = parts[1:]
-    # union branches (goal.int / goal.str, observation.list[any] / observation.Tensor) name the same field
-    return ".".join(p for p in parts if not _UNION_TAG.match(p)) or "body"
-
-
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     return error_response(400, "invalid_argument", validation_message(exc.errors()), _session_header(request))
-
-
-def validation_message(errors) -> str:
-    """One message naming every field a body got wrong (or where its JSON broke)."""
-    if any(e.get("type") == "json_invalid" for e in errors):
-        e = next(e for e in errors if e.get("type") == "json_invalid")
-        detail = (e.get("ctx") or {}).get("error", "invalid")
-        loc = e.get("loc", ())
-        where = f" at character {loc[1]}" if len(loc) > 1 else ""
-        msg = f"request body is not valid JSON: {detail}{where}"
-    else:
-        by_field: dict[str, list[str]] = {}
-        for e in errors:
-            by_field.setdefault(_field(tuple(e.get("loc", ()))), []).append(e.get("msg", "invalid"))
-        msg = "; ".join(f"{f}: {' or '.join(dict.fromkeys(m))}" for f, m in by_field.items())
-    return msg
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -142,21 +110,13 @@ class BodyLimit:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        for k, v in scope["headers"]:
-            if k == b"content-length" and v.isdigit() and int(v) > self.limit:
-                return await self._too_large(scope, receive, send)
-        chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":
-                return
-            chunks.append(msg.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.limit:
-                return await self._too_large(scope, receive, send)
-            if not msg.get("more_body", False):
-                break
-        body, replayed = b"".join(chunks), False
+        try:
+            body = await media.read_body(scope, receive, self.limit)
+        except ClientDisconnect:
+            return
+        if body is None:
+            return await self._too_large(scope, receive, send)
+        replayed = False
 
         async def replay() -> Message:
             nonlocal replayed
@@ -295,88 +255,6 @@ class AnswerCutOff:
             e = Unavailable("server shut down before this request was answered; retry it")
             headers = {"Connection": "close", **session_header(_path_session(scope.get("path", "")))}
             await error_response(e.http_status, e.code, e.message, headers)(scope, receive, send)
-
-
-class FastAct:
-    """`POST /sessions/{id}/act`, the hot path, answered below FastAPI's routing and middleware.
-
-    The same contract as the documented route in `routes.py` (body limit, JSON content type, validation
-    messages, error envelope, `X-Session-Id`, request metrics; `AuthFirst` and `ServedBy` still wrap it) at a
-    fraction of the per-request cost: measured, FastAPI's stack was most of the server's time per act under load.
-    Any other request passes through untouched.
-    """
-
-    _PATH = re.compile(r"^/sessions/([^/]+)/act$")
-
-    def __init__(self, app: ASGIApp, settings: Settings) -> None:
-        self.app = app
-        self.limit = settings.max_request_bytes
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        m = self._PATH.match(scope.get("path", "")) if scope["type"] == "http" else None
-        if m is None or scope["method"] != "POST":
-            return await self.app(scope, receive, send)
-        core = scope["app"].state.core
-        t0 = time.perf_counter()
-        sid = m.group(1)  # `path` is decoded once by the server, as for every route: never decode it again
-        in_flight = core.metrics.in_flight_rest
-        in_flight.inc()
-        try:
-            status, body, headers = await self._answer(core, scope, receive, sid)
-            raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-            raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
-            await send({"type": "http.response.start", "status": status, "headers": raw})
-            await send({"type": "http.response.body", "body": body})
-        finally:
-            in_flight.dec()
-        core.metrics.observe_request("rest", "act", str(status), time.perf_counter() - t0)
-
-    async def _answer(self, core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
-        session = session_header(sid)
-        try:
-            raw = await self._body(scope, receive)
-            if raw is None:
-                e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
-                return e.http_status, _error_body(e.code, e.message), {"Connection": "close"}
-            if raw:
-                content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
-                refusal = media.refusal(None if content_type is None else content_type.decode("latin-1"))
-                if refusal is not None:
-                    return refusal.http_status, _error_body(refusal.code, refusal.message), session
-            try:
-                return 200, await act_answer(core, sid, raw), session
-            except ValidationError as e:
-                return (
-                    400,
-                    _error_body("invalid_argument", validation_message(e.errors(include_url=False))),
-                    session,
-                )
-        except ServiceError as e:
-            return e.http_status, _error_body(e.code, e.message), session
-        except Exception as e:  # noqa: BLE001 - the error envelope, never a dropped connection
-            log.exception("unhandled error", extra={"path": scope.get("path")})
-            return 500, _error_body("internal", f"internal error: {type(e).__name__}"), {}
-
-    async def _body(self, scope: Scope, receive: Receive) -> bytes | None:
-        """The whole body, or None once it exceeds the limit."""
-        for k, v in scope["headers"]:
-            if k == b"content-length" and v.isdigit() and int(v) > self.limit:
-                return None
-        chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":
-                return b""
-            chunks.append(msg.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.limit:
-                return None
-            if not msg.get("more_body", False):
-                return b"".join(chunks)
-
-
-def _error_body(code: str, message: str) -> bytes:
-    return orjson.dumps({"error": {"code": code, "message": message}})
 
 
 class _App(FastAPI):

@@ -7,12 +7,15 @@ a missing header would help no curl user, while a web page can make a browser se
 and without a CORS preflight, to a server on localhost (FastAPI refuses to parse such bodies for that reason). A
 request without a body is not concerned. `FastAct` applies the rule to `POST /sessions/{id}/act`, `require_json`
 (a dependency of every API route) to the others; `openapi` documents the 415. A compressed body (a Content-Encoding
-other than identity) answers 415 too (`encoding_refusal`, applied to every route by `app.PlainBodies`).
+other than identity) answers 415 too (`encoding_refusal`, applied to every route by `app.PlainBodies`). A body is
+read whole, up to the request-size limit, by `read_body` (`app.BodyLimit` and `app.FastAct`).
 """
 
 from __future__ import annotations
 
 from fastapi import Request
+from starlette.requests import ClientDisconnect
+from starlette.types import Receive, Scope
 
 from gmt.service.errors import UnsupportedMediaType
 
@@ -57,3 +60,25 @@ async def require_json(request: Request) -> None:
         error = refusal(request.headers.get("content-type"))
         if error is not None:
             raise error
+
+
+async def read_body(scope: Scope, receive: Receive, limit: int) -> bytes | None:
+    """The whole request body, or None once it is over `limit` bytes (a Content-Length over it is refused unread).
+
+    Raises:
+        ClientDisconnect: the client left before the body ended.
+    """
+    for k, v in scope["headers"]:
+        if k == b"content-length" and v.isdigit() and int(v) > limit:
+            return None
+    chunks, size = [], 0
+    while True:
+        msg = await receive()
+        if msg["type"] != "http.request":
+            raise ClientDisconnect
+        chunks.append(msg.get("body", b""))
+        size += len(chunks[-1])
+        if size > limit:
+            return None
+        if not msg.get("more_body", False):
+            return b"".join(chunks)

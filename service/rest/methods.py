@@ -11,6 +11,8 @@ from collections.abc import Iterator
 from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from gmt.service.rest.answers import error_response
+
 
 class KnownMethods:
     """Answers 405 `method_not_allowed` (with the path's methods in `Allow`) to a method no route has.
@@ -34,8 +36,6 @@ class KnownMethods:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] in self.known():
             return await self.app(scope, receive, send)
-        from gmt.service.rest.app import error_response  # the one error body (app imports this module)
-
         path = scope.get("path", "")
         allow = sorted(
             {

@@ -27,11 +27,14 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
+from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, SESSION_ID_PATTERN, VERSION_PATTERN, Core, ModelView
+from gmt.service.core import Core
 from gmt.service.examples import Example
+from gmt.service.ids import SESSION_ID_PATTERN
 from gmt.service.observations import MAX_ABS_VALUE
 from gmt.service.records import INFO_KEY, MAX_INFO_KEYS, MAX_REPORTED
+from gmt.service.views import MAX_ACT_ITEMS, ModelView
 
 BEARER = "bearerAuth"
 ADMIN = "adminAuth"

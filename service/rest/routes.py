@@ -8,19 +8,17 @@ from typing import Annotated, Literal
 import numpy as np
 import orjson
 from fastapi import APIRouter, Depends, Query, Request, Response
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
 
 from gmt.common.recording import COLUMNS
-from gmt.service.core import MAX_ID_LENGTH, MAX_LIST_OFFSET, MAX_TIMELINE_PAGE, Core
+from gmt.service.core import Core
 from gmt.service.errors import ServiceError
-from gmt.service.observations import decode_base64, decode_tensor
-from gmt.service.records import check_report
+from gmt.service.rest import act as act_path
 from gmt.service.rest import schemas as S
+from gmt.service.rest.answers import SESSION_HEADER, session_header
 from gmt.service.rest.media import require_json
+from gmt.service.views import MAX_LIST_OFFSET, MAX_TIMELINE_PAGE
 
-SESSION_HEADER = "X-Session-Id"
 _ERRORS = {
     400: "Invalid argument",
     404: "Unknown or expired model or session",
@@ -35,13 +33,6 @@ _ERRORS = {
 def errors(*codes: int) -> dict:
     """The documented error answers of a route (401 is added by `openapi` when auth is on)."""
     return {c: {"model": S.ErrorOut, "description": _ERRORS[c]} for c in codes}
-
-
-def session_header(sid: str | None) -> dict:
-    """`X-Session-Id` for a response, when the id can be a session's (printable ASCII, at most 128 characters);
-    else none: a hostile id is never echoed."""
-    ok = sid and len(sid) <= MAX_ID_LENGTH and sid.isascii() and sid.isprintable()
-    return {SESSION_HEADER: sid} if ok else {}
 
 
 def get_core(request: Request) -> Core:
@@ -122,17 +113,6 @@ async def get_session(session_id: str, core: CoreDep, response: Response) -> S.S
     return S.SessionOut.of(await core.get_session(session_id))
 
 
-def _report(body: S.Act):
-    return check_report(body.reward, body.terminated, body.truncated, body.info)
-
-
-def _observation(body: S.Act) -> object:
-    obs = body.observation
-    if isinstance(obs, S.Tensor):
-        obs = decode_tensor(decode_base64(obs.data), obs.dtype, obs.shape)
-    return obs
-
-
 def _act_body_schema() -> dict:
     schema = S.Act.model_json_schema(ref_template="#/components/schemas/{model}")
     schema.pop("$defs", None)  # Tensor is a component already (POST /act uses it)
@@ -148,25 +128,12 @@ def _act_body_schema() -> dict:
 )
 async def act(session_id: str, request: Request, core: CoreDep) -> Response:
     """One step: the observation in, the action out."""
-    # Served by `app.FastAct` below FastAPI's stack; this route documents it (and answers the same way).
-    try:
-        body = await act_answer(core, session_id, await request.body())
-    except ValidationError as e:
-        raise RequestValidationError(e.errors(include_url=False)) from None
-    return Response(body, media_type="application/json", headers=session_header(session_id))
-
-
-async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
-    """The JSON answer of one act, from the raw body (validated from bytes by pydantic-core, written by orjson).
-
-    Raises:
-        ValidationError: the body does not match `S.Act`.
-        ServiceError: the core refused the act.
-    """
-    body = S.Act.model_validate_json(raw)
-    r = await core.act(session_id, _observation(body), body.step, _report(body))
-    action = r.action if r.action is not None else r.discrete_action
-    return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
+    # Answered by `act_path.FastAct` below FastAPI's routing; this route documents it, with the same implementation.
+    body = await request.body()
+    status, answer, headers = await act_path.answer(
+        core, session_id, body, request.headers.get("content-type")
+    )
+    return Response(answer, status, headers, media_type="application/json")
 
 
 @api.post(
@@ -183,7 +150,7 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
     for r in body.requests:
         report = None
         try:
-            obs, report = _observation(r), _report(r)
+            obs, report = act_path.observation(r), act_path.report(r)
         except ServiceError as e:  # an undecodable tensor or a bad report fails its item alone
             obs = e
         items.append((r.session_id, obs, r.step, report))

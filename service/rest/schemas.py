@@ -23,10 +23,11 @@ from pydantic import (
 
 from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.core import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView, echoed_id
 from gmt.service.errors import ServiceError
 from gmt.service.examples import Example
+from gmt.service.ids import echoed_id
 from gmt.service.records import MAX_INFO_KEYS, MAX_REPORTED
+from gmt.service.views import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView
 
 
 def _integral(v: object) -> object:

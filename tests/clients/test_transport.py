@@ -25,7 +25,7 @@ from gmt.client.errors import (
 )
 from gmt.client.grpc import GrpcClient, StreamSession
 from gmt.client.rest import RestClient
-from gmt.service.core import MAX_ACT_ITEMS
+from gmt.service.views import MAX_ACT_ITEMS
 
 TRANSPORTS = ["rest", "grpc", "grpc-stream"]
 OBS = np.linspace(-1, 1, 17)

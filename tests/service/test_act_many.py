@@ -10,7 +10,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gmt.model.checkpoint import load_checkpoint
-from gmt.service.core import MAX_ACT_ITEMS
+from gmt.service.views import MAX_ACT_ITEMS
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

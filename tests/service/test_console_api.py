@@ -13,9 +13,9 @@ import httpx
 import pytest
 from service_harness import OBS_DIM, RunningServer, make_settings
 
-from gmt.service.console.activity import TAU_S, Activity
-from gmt.service.console.events import EventHub
+from gmt.service.activity import TAU_S, Activity
 from gmt.service.errors import ResourceExhausted
+from gmt.service.events import EventHub
 
 OBS = [0.1] * OBS_DIM
 TOKEN = "console-token"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from gmt.service.core import MAX_ID_LENGTH
+from gmt.service.ids import MAX_ID_LENGTH
 from gmt.v1 import policy_pb2 as pb
 
 HUGE = "a" * 200_000

@@ -21,7 +21,7 @@ from google.protobuf.message import DecodeError
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from service_harness import OBS_DIM
 
-from gmt.service.core import echoed_id
+from gmt.service.ids import echoed_id
 from gmt.v1 import policy_pb2 as pb
 
 SERVICE = pb.DESCRIPTOR.services_by_name["PolicyService"]

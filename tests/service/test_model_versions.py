@@ -22,7 +22,7 @@ from service_harness import OBS_DIM
 from gmt.model.checkpoint import load_checkpoint
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.service import core as core_module
+from gmt.service import core_versions as core_module
 from gmt.service.model_state import STATE_FILE
 from gmt.v1 import admin_pb2 as apb
 from gmt.v1 import admin_pb2_grpc, policy_pb2_grpc

@@ -18,11 +18,11 @@ import httpx
 import orjson
 import pytest
 
-import gmt.service.core as core_module
+import gmt.service.core_recordings as core_module
 import gmt.service.rest.routes as routes_module
 from gmt.common.recording import Recording
-from gmt.service.core import MAX_TIMELINE_PAGE
 from gmt.service.records import MAX_GOALS_PER_STEP
+from gmt.service.views import MAX_TIMELINE_PAGE
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 

@@ -18,13 +18,17 @@ from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, Field
 from starlette.types import Receive, Scope, Send
 
-from gmt.service.console.events import Subscription
-from gmt.service.core import MAX_LIST_OFFSET, MAX_LIST_SESSIONS, Core
+from gmt.service.core import Core
 from gmt.service.errors import NotFound, ServiceError
+from gmt.service.events import Subscription
 from gmt.service.rest import schemas as S
-from gmt.service.rest.routes import CoreDep, errors, session_header
+from gmt.service.rest.answers import session_header
+from gmt.service.rest.routes import CoreDep, errors
+from gmt.service.views import MAX_LIST_OFFSET, MAX_LIST_SESSIONS
 
-STATIC = Path(__file__).parent / "static"
+STATIC = (
+    Path(__file__).resolve().parent.parent / "console" / "static"
+)  # the page's files (`gmt.service.console`)
 ASSETS = {  # every file the page loads: nothing else is served from /ui
     "console.js": "text/javascript; charset=utf-8",
     "console.css": "text/css; charset=utf-8",

@@ -1,0 +1,127 @@
+"""`POST /sessions/{id}/act`, the hot path: one implementation (`answer`), which the documented route in `routes.py`
+and the fast path `FastAct` both call.
+
+The fast path answers the act below FastAPI's routing and middleware: measured with py-spy, FastAPI's stack was most
+of the server's time per act (docs/performance.md, "Throughput at 256 sessions").
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+
+import orjson
+from pydantic import ValidationError
+from starlette.requests import ClientDisconnect
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from gmt.service.core import Core
+from gmt.service.errors import PayloadTooLarge, ServiceError
+from gmt.service.observations import decode_base64, decode_tensor
+from gmt.service.records import Report, check_report
+from gmt.service.rest import media
+from gmt.service.rest import schemas as S
+from gmt.service.rest.answers import error_bytes, session_header, validation_message
+from gmt.service.settings import Settings
+
+log = logging.getLogger("gmt.rest")
+
+
+def report(body: S.Act) -> Report | None:
+    """The client's report on its previous action, checked (`records.check_report`)."""
+    return check_report(body.reward, body.terminated, body.truncated, body.info)
+
+
+def observation(body: S.Act) -> object:
+    """The observation a body carries, a tensor decoded (`gmt.service.observations`)."""
+    obs = body.observation
+    if isinstance(obs, S.Tensor):
+        obs = decode_tensor(decode_base64(obs.data), obs.dtype, obs.shape)
+    return obs
+
+
+async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
+    """The JSON answer of one act, from the raw body (validated from bytes by pydantic-core, written by orjson).
+
+    Raises:
+        ValidationError: the body does not match `S.Act`.
+        ServiceError: the core refused the act.
+    """
+    body = S.Act.model_validate_json(raw)
+    r = await core.act(session_id, observation(body), body.step, report(body))
+    action = r.action if r.action is not None else r.discrete_action
+    return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
+
+
+async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:
+    """(status, JSON body, headers) of one act from its raw body: the content-type rule (`media`), the body checked,
+    the core's answer or its error in the one envelope.
+
+    Raises:
+        Exception: anything but a refusal (a bug): the caller answers 500.
+    """
+    session = session_header(sid)
+    try:
+        if raw:
+            refusal = media.refusal(content_type)
+            if refusal is not None:
+                return refusal.http_status, error_bytes(refusal.code, refusal.message), session
+        try:
+            return 200, await act_answer(core, sid, raw), session
+        except ValidationError as e:
+            return (
+                400,
+                error_bytes("invalid_argument", validation_message(e.errors(include_url=False))),
+                session,
+            )
+    except ServiceError as e:
+        return e.http_status, error_bytes(e.code, e.message), session
+
+
+class FastAct:
+    """`POST /sessions/{id}/act` answered below FastAPI's routing and middleware (`answer`; the body limit and
+    request metrics as every route has them; `AuthFirst` and `ServedBy` still wrap it). Any other request passes
+    through untouched."""
+
+    _PATH = re.compile(r"^/sessions/([^/]+)/act$")
+
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+        self.app = app
+        self.limit = settings.max_request_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        m = self._PATH.match(scope.get("path", "")) if scope["type"] == "http" else None
+        if m is None or scope["method"] != "POST":
+            return await self.app(scope, receive, send)
+        core = scope["app"].state.core
+        t0 = time.perf_counter()
+        sid = m.group(1)  # `path` is decoded once by the server, as for every route: never decode it again
+        in_flight = core.metrics.in_flight_rest
+        in_flight.inc()
+        try:
+            status, body, headers = await self._answer(core, scope, receive, sid)
+            raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+            raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
+            await send({"type": "http.response.start", "status": status, "headers": raw})
+            await send({"type": "http.response.body", "body": body})
+        finally:
+            in_flight.dec()
+        core.metrics.observe_request("rest", "act", str(status), time.perf_counter() - t0)
+
+    async def _answer(self, core: Core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
+        try:
+            try:
+                raw = await media.read_body(scope, receive, self.limit)
+            except ClientDisconnect:
+                raw = b""
+            if raw is None:
+                e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
+                return e.http_status, error_bytes(e.code, e.message), {"Connection": "close"}
+            content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
+            return await answer(
+                core, sid, raw, None if content_type is None else content_type.decode("latin-1")
+            )
+        except Exception as e:  # noqa: BLE001 - the error envelope, never a dropped connection
+            log.exception("unhandled error", extra={"path": scope.get("path")})
+            return 500, error_bytes("internal", f"internal error: {type(e).__name__}"), {}

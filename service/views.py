@@ -1,0 +1,115 @@
+"""What the core answers, whatever the transport: models and versions, sessions, timelines and actions, and the
+bounds of its calls. The adapters (REST, gRPC, console) convert these; nothing here knows HTTP or gRPC."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gmt.model.checkpoint import Goal
+
+MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
+MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
+MAX_LIST_OFFSET = 10**9  # the largest offset of `list_sessions` (far past any store; larger overflow int64)
+MAX_TIMELINE_PAGE = 1000  # the longest page of `timeline` (and its default)
+GoalRef = int | str | None
+
+
+@dataclass(frozen=True)
+class VersionView:
+    """One loaded version of a model.
+
+    Attributes:
+        sessions: Sessions of this version this server holds (all of them with sessions in memory; with a shared
+            store, those this replica created or served lately).
+        state: `serving` (new sessions may get it) or `draining` (its sessions only; unloaded when none is left).
+    """
+
+    version: str
+    sessions: int
+    state: str
+    fingerprint: str
+
+
+@dataclass(frozen=True)
+class ModelView:
+    """What clients learn about a model: its default version's spaces and goals, and its version table."""
+
+    name: str
+    env_id: str
+    observation_space: dict
+    action_space: dict
+    context_length: int
+    statistic: str
+    goals: list[Goal]
+    discrete_actions: bool
+    action_modes: tuple[str, ...]  # the first is the default
+    preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
+    switch_relabel_steps: int = 0  # past steps a goal change at once relabels (`PolicyEngine.set_goal`)
+    version: str = ""  # the version this view describes (the default)
+    versions: tuple[VersionView, ...] = ()
+    default_version: str = ""
+    canary: tuple[str, float] | None = None  # (version, share of new sessions)
+
+
+@dataclass(frozen=True)
+class SessionView:
+    """What clients learn about a session.
+
+    Attributes:
+        goal: The goal the session pursues (the target of a running blend).
+        blend_from: The goal being faded out (equal to `goal` when no blend runs).
+        context_goals: Goal token of each step in the context, oldest first.
+        expires_in_s: Seconds left before the idle timeout ends the session.
+        recording: Whether the session records its episode.
+        effective_step: For a goal change, the step of the first act that uses the new goal (else None).
+    """
+
+    session_id: str
+    model: str
+    model_version: str
+    goal: int
+    goal_name: str
+    step: int
+    context_size: int
+    blend_remaining: int
+    blend_from: int
+    action_mode: str
+    idle_timeout_s: float
+    expires_in_s: float
+    context_goals: list[int]
+    recording: bool = False
+    effective_step: int | None = None
+
+
+@dataclass(frozen=True)
+class TimelineView:
+    """Every goal a session had (`gmt.service.records`).
+
+    Attributes:
+        step: The session's step now (the step of its next act).
+        episode: The session's episode now.
+        goals: A page of the timeline entries in order: step, episode, goal, given, blend_steps, by, at.
+        entries: How many entries there were (more than are kept once the timeline was full).
+        offset: The index of the page's first entry.
+    """
+
+    session_id: str
+    model: str
+    model_version: str
+    fingerprint: str | None
+    step: int
+    episode: int
+    goals: list[dict]
+    entries: int
+    offset: int = 0
+
+
+@dataclass(frozen=True)
+class ActResult:
+    """One action: `action` for Box spaces, `discrete_action` for Discrete ones; `step` is the observation's."""
+
+    session_id: str
+    action: list[float] | None
+    discrete_action: int | None
+    step: int
+    goal: int
