@@ -55,7 +55,7 @@ fi
 cd "$ROOT"
 hash=$(inputs_hash "$(image_id "$BASE")" "$ENGINE" "torch-index=${TORCH_INDEX-default}" docker/Dockerfile \
   docker/Dockerfile.dockerignore constraints.txt pyproject.toml README.md proto model service clients common \
-  datagen benchmarks checkpoints)
+  datagen benchmarks cluster checkpoints)
 if built_from "$IMAGE" "$hash"; then
   echo "$IMAGE is up to date (inputs $hash)" >&2
 else

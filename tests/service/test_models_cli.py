@@ -51,9 +51,9 @@ def test_gmt_models_drives_a_rollout(make_server, tmp_path):
     out = gmt("models", "drain", "tiny-gmt", v1, *s)  # no session: unloaded at once
     assert out.returncode == 0 and v1 not in out.stdout
     assert f"draining tiny-gmt {v1} (0 session(s)) on {server.url}" in out.stderr
-    out = gmt("models", "unload", "tiny-gmt", v2, *s)
-    assert out.returncode == 0 and out.stdout.splitlines()[0] == "MODEL  VERSION  STATE  SESSIONS  ROLE"
-    assert len(out.stdout.splitlines()) == 2 and f"unloading tiny-gmt {v2} (0 session(s)) on" in out.stderr
+    out = gmt("models", "unload", "tiny-gmt", v2, *s)  # the only version left: a server keeps one (409)
+    assert out.returncode == 1 and f"unloading tiny-gmt {v2} (0 session(s)) on" in out.stderr
+    assert "is the only version this server serves: load another before unloading it" in out.stderr
     out = gmt("models", "load", "tiny-gmt", "/etc", *s)
     assert out.returncode == 1 and "\nerror: permission_denied: '/etc' is not under" in out.stderr
     out = gmt("models", "list", "--server", "http://127.0.0.1:9")
@@ -86,15 +86,15 @@ def test_gmt_models_copy_makes_a_second_version(make_server, tmp_path):
 
 
 def test_gmt_models_with_an_admin_token_that_is_not_the_auth_token(make_server, tmp_path):
-    """GET /models takes the auth token only: with the admin token, `promote` still acts (it says it could not list
-    the versions before and after) instead of failing before acting."""
+    """The admin token lists the versions too (it sees everything): `promote` names the default it replaces and
+    prints the versions after acting."""
     root = tmp_path / "checkpoints"
     tiny_checkpoint(root / "tiny-gmt")
     v1 = load_checkpoint(root / "tiny-gmt").version
     server = make_server(checkpoints=[root], auth_token="user", admin_token="root")
     out = gmt("models", "promote", "tiny-gmt", v1, "--server", server.url, "--token", "root")
     assert out.returncode == 0, out.stderr
-    assert (
-        "cannot list the server's versions first" in out.stderr
-        and f"tiny-gmt {v1} promoted; cannot list" in out.stderr
-    )
+    assert f"(default was {v1})" in out.stderr and "cannot list" not in out.stderr
+    assert out.stdout.splitlines()[1].split()[1:] == [v1, "serving", "0", "default"]
+    out = gmt("models", "promote", "tiny-gmt", v1, "--server", server.url, "--token", "user")
+    assert out.returncode == 1 and "error: unauthenticated" in out.stderr
