@@ -13,7 +13,6 @@ import secrets
 import shutil
 import stat
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ import grpc
 import httpx
 import numpy as np
 import pytest
+from container_engine import DOCKER, IMAGE, build_env, engine
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
@@ -30,28 +30,11 @@ from gmt.model.fixtures import tiny_checkpoint
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
-ROOT = Path(__file__).resolve().parents[2]
-DOCKER = ROOT / "docker"
 MODEL = "tiny-cheetah"
-IMAGE = "localhost/gmt-service:test"
 STEPS, KILL_AT = 10, 4
 
 
-def _engine() -> tuple[str | None, str]:
-    """The engine that answers (docker first, as docker/lib.sh picks), or None and why neither does."""
-    why = []
-    for name in ("docker", "podman"):
-        if shutil.which(name) is None:
-            why.append(f"{name} is not installed")
-            continue
-        r = subprocess.run([name, "info"], capture_output=True, text=True, timeout=60)
-        if r.returncode == 0:
-            return name, ""
-        why.append(f"`{name} info` failed: {(r.stderr.strip().splitlines() or ['?'])[-1]}")
-    return None, "; ".join(why) + " (apt-get install podman runc mmdebstrap; .ci/run does)"
-
-
-ENGINE, WHY_NOT = _engine()
+ENGINE, WHY_NOT = engine()
 pytestmark = pytest.mark.skipif(ENGINE is None, reason=f"no container engine can run: {WHY_NOT}")
 
 
@@ -97,9 +80,8 @@ class Topology:
 
 
 @pytest.fixture(scope="module")
-def topology():
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env.update(ENGINE=ENGINE, PODMAN_COMPOSE=str(Path(sys.executable).with_name("podman-compose")))
+def topology(prebuilt):
+    env = build_env(ENGINE)
     t0 = time.monotonic()
     base, redis, nginx = _run(str(DOCKER / "local-images.sh"), env=env).split()
     t_local = time.monotonic() - t0
