@@ -49,7 +49,7 @@ demo: $(VENV)/.installed-run
 # --store-min-replicas 1) and nginx (docker/nginx.conf), all on loopback; REST :$(REST_PORT) and gRPC :$(GRPC_PORT)
 # through nginx. Returns once all are ready (Redis replicas in sync, sentinels agreeing). Pids, logs, Redis data and
 # sentinel configs in run/cluster/. Needs nginx and redis-server (apt-get install nginx redis-server).
-# More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --max-batch 32"
+# More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --idle-timeout 60"; tuning knobs by environment: GMT_MAX_BATCH=32 make cluster
 cluster: $(VENV)/.installed-serve
 	$(BIN)/gmt cluster up --rest-port $(REST_PORT) --grpc-port $(GRPC_PORT) $(CLUSTER_ARGS)
 
@@ -113,7 +113,7 @@ eval: $(VENV)/.installed-eval $(if $(findstring breakout,$(CHECKPOINT)),$(VENV)/
 		--markdown $(CHECKPOINT)/eval.md --plot $(CHECKPOINT)/eval.png
 
 # Figures as JSON (schema: benchmarks/__init__.py; results: docs/performance.md): engine vs K, serving over every
-# transport beside `gmt serve --naive` (against the shipped HalfCheetah model), training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
+# transport beside `GMT_NAIVE=1 gmt serve` (against the shipped HalfCheetah model), training GFLOP/s. Needs wrk (apt-get install wrk) for the REST load.
 bench: $(VENV)/.installed-bench
 	$(BIN)/gmt bench --checkpoint $(CHECKPOINT) --out bench.json
 

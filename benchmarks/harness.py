@@ -47,16 +47,29 @@ def default_size_checkpoint(directory: Path, K: int = 20, attention: str = "wind
 
 
 def start_server(
-    checkpoint: Path, naive: bool, max_batch: int = 256, extra: tuple[str, ...] = ()
+    checkpoint: Path,
+    naive: bool,
+    max_batch: int = 256,
+    extra: tuple[str, ...] = (),
+    tuning: dict[str, str] | None = None,
 ) -> tuple[subprocess.Popen, dict]:
-    """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record)."""
+    """`gmt serve` in its own process on free loopback ports; returns (process, its 'serving' log record).
+
+    Args:
+        checkpoint: What it serves.
+        naive: Serve by the reference path (GMT_NAIVE).
+        max_batch: GMT_MAX_BATCH.
+        extra: More `gmt serve` flags.
+        tuning: More tuning knobs, as GMT_* environment variables.
+    """
     exe = Path(sys.executable).parent / "gmt"
     args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
-    args += ["--log-level", "INFO", "--max-batch", str(max_batch), "--max-sessions", "4096"]
-    args += ["--naive"] if naive else []
-    args += list(extra)
+    args += ["--log-level", "INFO", "--max-sessions", "4096", *extra]
     env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
-    env["GMT_LOG_LEVEL"] = "INFO"
+    # Tuning knobs are environment variables only (`gmt.service.settings.TUNING`).
+    env.update(
+        GMT_LOG_LEVEL="INFO", GMT_MAX_BATCH=str(max_batch), GMT_NAIVE="1" if naive else "0", **(tuning or {})
+    )
     proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
     for line in proc.stderr:
         rec = json.loads(line) if line.startswith("{") else {}

@@ -1,5 +1,5 @@
 """`gmt bench --sections serving`: acts/s and p50/p99 over every transport (REST one call per act, `POST /act`, gRPC
-unary, the gRPC `Control` stream) for `gmt serve --naive` and the default server, same checkpoint, same run.
+unary, the gRPC `Control` stream) for `GMT_NAIVE=1 gmt serve` and the default server, same checkpoint, same run.
 """
 
 from __future__ import annotations

@@ -453,7 +453,8 @@ def up(
             it is acknowledged; at most the two there are).
         replicas: gmt serve replicas behind nginx (`gmt-1` .. `gmt-N`; 2 by default, as in docker/compose.yaml).
         checkpoints: Passed to each replica as --checkpoints (none: its default, GMT_CHECKPOINTS or checkpoints/).
-        serve_args: More `gmt serve` flags for both replicas (e.g. ["--batch-wait-ms", "5"]).
+        serve_args: More `gmt serve` flags for both replicas (e.g. ["--record-dir", "recordings"]; tuning
+            knobs such as GMT_BATCH_WAIT_MS go in `env`).
         env: The replicas' environment (default: this process's; GMT_* variables apply where no flag is given).
         timeout_s: Longest wait for everything to be ready.
 
@@ -777,7 +778,7 @@ def up_command(
     timeout: float = typer.Option(180.0, help="Longest wait, in seconds, for everything to be ready."),
 ) -> None:
     """Start the cluster and return once it is ready. More `gmt serve` flags for both replicas may follow
-    (e.g. `-- --batch-wait-ms 5`); GMT_* environment variables (GMT_AUTH_TOKEN, ...) reach the replicas."""
+    (e.g. `-- --idle-timeout 60`; tuning knobs as GMT_* variables); GMT_* environment variables (GMT_AUTH_TOKEN, ...) reach the replicas."""
     try:
         c = up(
             run_dir,

@@ -4,7 +4,7 @@ Every session's state lives in one slot of a `SessionPool` (`gmt.model.pool`): i
 `history_steps` steps in a ring, and (for `window` models) its key/value cache. An act checks the observations,
 gathers the batch's slots, runs the network over them (`gmt.model.predict`: the incremental path of `window`
 models or the reference recompute), chooses every row's action at once (`gmt.model.sampling`) and commits the rows
-that succeeded. `gmt serve --naive` uses the recompute path one request at a time as the exactness oracle.
+that succeeded. `GMT_NAIVE=1 gmt serve` uses the recompute path one request at a time as the exactness oracle.
 
 The engine owns the rules of what it is given: goal ids (`check_goal`), action modes (`check_mode`), blend lengths
 (`check_blend_steps`) and observations (`prepare_observation`); the service calls these and maps their errors.

@@ -113,7 +113,7 @@ class Metrics:
         self.connections_closed = Counter(
             "gmt_connections_closed",
             "Connections (REST) and Control streams (gRPC) the server closed to protect itself, by transport and "
-            "reason: header_timeout, body_timeout, body_rate (a body under --body-min-rate), evicted (a connection "
+            "reason: header_timeout, body_timeout, body_rate (a body under GMT_BODY_MIN_RATE), evicted (a connection "
             "not being answered, closed for a new one past the cap), over_limit (a new connection past the cap, none could be evicted), "
             "write_timeout (a Control stream whose client took no answer).",
             ["transport", "reason"],

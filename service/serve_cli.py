@@ -1,5 +1,6 @@
-"""`gmt serve`: REST and gRPC in one process. Its options are the fields of `gmt.service.settings.Settings`; a flag
-that is given overrides the `GMT_*` environment variable, one that is not leaves it (or the default)."""
+"""`gmt serve`: REST and gRPC in one process. Its options are the fields of `gmt.service.settings.Settings` but the
+tuning knobs (`settings.TUNING`, environment only); a flag that is given overrides the `GMT_*` environment variable,
+one that is not leaves it (or the default)."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ from typing import Any
 import typer
 
 from gmt.common.cli_support import settings_flags, with_flags
-from gmt.service.settings import Settings
+from gmt.service.settings import TUNING, Settings
 
 SERVE_FLAGS = settings_flags(
     Settings,
+    skip=TUNING,
     shown={"replica_id": "hostname:pid"},
     names={"checkpoints": ("--checkpoints", "-c"), "idle_timeout_s": ("--idle-timeout", "--idle-timeout-s")},
 )

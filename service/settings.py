@@ -1,4 +1,9 @@
-"""Server settings: environment variables prefixed `GMT_`, overridden by `gmt serve` flags."""
+"""Server settings: environment variables prefixed `GMT_`, overridden by `gmt serve` flags.
+
+What a user sets is a flag of `gmt serve` as well; the tuning knobs (`TUNING`: batching, event loop, connection
+limits and timeouts, the reference path) are set in the environment only, so that `gmt serve --help` lists what a
+deployment chooses. docs/serving.md has one table of them all.
+"""
 
 from __future__ import annotations
 
@@ -46,8 +51,8 @@ class Settings(BaseSettings):
         store_wait_timeout_s: Longest wait for those replicas (under the store's 5 s socket timeout).
         store_spin_us: With a Redis store, a lone session's write (the only session this replica serves, no other
             write in flight) waits for Redis's reply by polling the socket for up to this long instead of sleeping
-            in the event loop: ~0.06 ms less per act here, for that much CPU (0 = never poll: for a Redis whose round
-            trip is longer than the limit, as across a network, polling only burns it).
+            in the event loop (0 = never poll, the default: on the shared 2-core machine polling 500 us made the
+            lone session's p50 no shorter, docs/performance.md; across a network it only burns CPU).
         log_format: `json` or `kv` (key=value) log lines.
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
@@ -109,7 +114,7 @@ class Settings(BaseSettings):
     redis_url: str | None = None
     store_min_replicas: int = Field(0, ge=0)
     store_wait_timeout_s: float = Field(1.0, gt=0, le=4.0)
-    store_spin_us: int = Field(500, ge=0, le=5000)
+    store_spin_us: int = Field(0, ge=0, le=5000)
     log_format: Literal["json", "kv"] = "json"
     log_level: str = "INFO"
     shutdown_grace_s: float = Field(5.0, ge=0)
@@ -208,3 +213,30 @@ class Settings(BaseSettings):
     def management_token(self) -> str | None:
         """The bearer token of model management calls in clear (the admin token, else the auth token), or None."""
         return self.admin_token.get_secret_value() if self.admin_token else self.token
+
+
+# Set in the environment (GMT_<NAME>) or by building `Settings`, not by `gmt serve` flags: knobs that tune or test
+# the server rather than choose what it serves and to whom.
+TUNING = frozenset(
+    {
+        "batch_wait_ms",
+        "max_batch",
+        "store_wait_timeout_s",
+        "store_spin_us",
+        "shutdown_grace_s",
+        "keep_alive_s",
+        "header_timeout_s",
+        "body_timeout_s",
+        "body_min_rate",
+        "rest_max_connections",
+        "rest_max_connections_per_peer",
+        "grpc_max_connections",
+        "grpc_handshake_timeout_s",
+        "grpc_window_bytes",
+        "grpc_max_streams_per_connection",
+        "grpc_max_concurrent_rpcs",
+        "grpc_write_timeout_s",
+        "event_loop",
+        "naive",
+    }
+)

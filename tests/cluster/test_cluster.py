@@ -116,13 +116,12 @@ def running(tmp_path_factory):
     root = tmp_path_factory.mktemp("checkpoints")
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = clean_env(**CLUSTER_ENV)
+    env = clean_env(**CLUSTER_ENV, GMT_BATCH_WAIT_MS=str(BATCH_WAIT_MS))
     c = cluster.up(
         run_dir,
         rest_port=0,
         grpc_port=0,
         checkpoints=[root],
-        serve_args=["--batch-wait-ms", str(BATCH_WAIT_MS)],
         env=env,
         timeout_s=90,
     )

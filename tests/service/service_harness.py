@@ -122,9 +122,15 @@ def exec_after(prelude: str, cmd: list[str]) -> list[str]:
 class ServeProcess:
     """`gmt serve` in a subprocess; a reader thread drains its JSON log lines and spots the "serving" line."""
 
-    def __init__(self, *args: str, nofile: int | None = None, cwd: Path | None = None) -> None:
+    def __init__(
+        self,
+        *args: str,
+        nofile: int | None = None,
+        cwd: Path | None = None,
+        env: dict[str, str] | None = None,
+    ) -> None:
         exe = Path(sys.executable).parent / "gmt"
-        env = clean_env()
+        env = clean_env(**(env or {}))  # tuning knobs (`settings.TUNING`) are environment variables only
         cmd = [str(exe), "serve", "--rest-port", "0", "--grpc-port", "0", "--log-format", "json", *args]
 
         if nofile:  # `ulimit -n nofile` in the child

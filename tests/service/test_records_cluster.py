@@ -37,13 +37,13 @@ def recording_cluster(tmp_path_factory):
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     record_dir = tmp_path_factory.mktemp("recordings")
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = clean_env(**CLUSTER_ENV)
+    env = clean_env(**CLUSTER_ENV, GMT_BATCH_WAIT_MS=str(BATCH_WAIT_MS))
     c = cluster.up(
         run_dir,
         rest_port=0,
         grpc_port=0,
         checkpoints=[root],
-        serve_args=["--batch-wait-ms", str(BATCH_WAIT_MS), "--record-dir", str(record_dir)],
+        serve_args=["--record-dir", str(record_dir)],
         env=env,
         timeout_s=90,
     )

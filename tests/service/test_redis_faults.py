@@ -292,7 +292,7 @@ def test_writes_sent_while_a_wait_is_in_flight_share_the_next_wait(tmp_path, eng
                         saves.append(asyncio.ensure_future(store.save(*await stepped(sid))))
                         await asyncio.sleep(0)  # the next write in a turn of its own
                         await asyncio.sleep(0)
-                    assert store._waiting_on is not None and len(store._uncovered) == 4
+                    assert store.commit.waiting_on is not None and len(store.commit.uncovered) == 4
                 finally:
                     os.kill(replica.pid, signal.SIGCONT)
                 results = await asyncio.gather(*saves, return_exceptions=True)

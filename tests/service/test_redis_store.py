@@ -124,8 +124,8 @@ def test_redis_store_semantics(redis_clean_any, engine, clock):
             again = await (RedisSessionStore(redis_clean, 10, 2, clock)).get("one")
             assert again.ctx.step == 1 and np.array_equal(again.ctx.states, got.ctx.states)
             # The act was written over the store's own pipelined connection, on the URL's transport.
-            assert b._fast is not None and not b._fast.closed
-            assert (b._fast.path is not None) == redis_clean.startswith("unix://")
+            assert b.commit.fast is not None and not b.commit.fast.closed
+            assert (b.commit.fast.path is not None) == redis_clean.startswith("unix://")
             # Compare-and-set: a replica whose copy is old loses the race instead of overwriting.
             stale.ctx = engine.from_stored(stale.ctx, key="stale")
             engine.set_goal(stale.ctx, 1)

@@ -8,7 +8,7 @@ an idle Control stream), docs/reliability.md "SIGTERM with requests in flight":
 - the process exits 0, well within its grace period.
 
 The acts are held in flight by the batcher: a session that acted a moment before still counts as acting, so the
-batcher keeps each batch open for it for --batch-wait-ms. The test waits for the server's `gmt_requests_in_flight` gauge to count them all before it
+batcher keeps each batch open for it for GMT_BATCH_WAIT_MS. The test waits for the server's `gmt_requests_in_flight` gauge to count them all before it
 sends the signal, and for answers and statuses afterwards; it never sleeps to synchronise.
 """
 
@@ -56,8 +56,8 @@ def queued(http: httpx.Client) -> float:
 
 
 def hold_batches(http: httpx.Client, sid: str) -> None:
-    """Make `sid` act once, then never again: for twice --batch-wait-ms it counts as acting, so the batcher keeps
-    the next batches open for --batch-wait-ms waiting for it."""
+    """Make `sid` act once, then never again: for twice GMT_BATCH_WAIT_MS it counts as acting, so the batcher keeps
+    the next batches open for GMT_BATCH_WAIT_MS waiting for it."""
     r = http.post(f"/sessions/{sid}/act", json={"observation": [0.0] * OBS_DIM, "step": 0})
     assert r.status_code == 200, r.text
 
@@ -100,10 +100,7 @@ def test_sigterm_answers_requests_in_flight_and_exits_0(ckpt_root):
     proc = ServeProcess(
         "--checkpoints",
         str(ckpt_root / "tiny-gmt"),
-        "--batch-wait-ms",
-        str(BATCH_WAIT_MS),
-        "--shutdown-grace-s",
-        str(GRACE_S),
+        env={"GMT_BATCH_WAIT_MS": str(BATCH_WAIT_MS), "GMT_SHUTDOWN_GRACE_S": str(GRACE_S)},
     )
     streams: list[Stream] = []
     try:
@@ -221,7 +218,9 @@ def test_calls_still_running_when_the_grace_period_ends_answer_unavailable(ckpt_
     answers 503 unavailable from the replica (uvicorn alone would answer 500), gRPC answers UNAVAILABLE; the
     process still exits 0, soon after the grace period."""
     proc = ServeProcess(
-        "--checkpoints", str(ckpt_root / "tiny-gmt"), "--batch-wait-ms", "20000", "--shutdown-grace-s", "1"
+        "--checkpoints",
+        str(ckpt_root / "tiny-gmt"),
+        env={"GMT_BATCH_WAIT_MS": "20000", "GMT_SHUTDOWN_GRACE_S": "1"},
     )
     try:
         info = proc.wait_serving()

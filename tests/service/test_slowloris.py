@@ -4,9 +4,9 @@
   headers one byte a second: a fresh client's REST request and gRPC calls are answered within 5 s while they are
   open (before the fix: the process ran out of descriptors and neither transport answered), and afterwards the
   server is healthy and its descriptors are back;
-- a request's headers (or body) that do not arrive within --header-timeout-s (--body-timeout-s) answer 408 and
+- a request's headers (or body) that do not arrive within GMT_HEADER_TIMEOUT_S (GMT_BODY_TIMEOUT_S) answer 408 and
   the connection closes; an idle keep-alive connection is not cut by the header timeout;
-- past --rest-max-connections a new connection closes the oldest one without a request in progress (half-open
+- past GMT_REST_MAX_CONNECTIONS a new connection closes the oldest one without a request in progress (half-open
   or idle), never one with a request in progress; when every connection has one, the new connection is closed.
 
 Every wait polls a condition with a deadline; sleeps only let a timeout under test elapse.
@@ -130,7 +130,7 @@ def test_half_open_connections_under_a_descriptor_limit(ckpt_root):
     # A header timeout far beyond the test's length: only evictions may make room (on a slow machine the default
     # 10 s could run out for the oldest attacking connections before the metrics are read).
     server = ServeProcess(
-        "--checkpoints", str(ckpt_root / "tiny-gmt"), "--header-timeout-s", "120", nofile=NOFILE
+        "--checkpoints", str(ckpt_root / "tiny-gmt"), nofile=NOFILE, env={"GMT_HEADER_TIMEOUT_S": "120"}
     )
     attack = None
     try:
@@ -185,11 +185,8 @@ def test_slow_bodies_under_a_descriptor_limit(ckpt_root):
     server = ServeProcess(
         "--checkpoints",
         str(ckpt_root / "tiny-gmt"),
-        "--body-timeout-s",
-        "120",
-        "--body-min-rate",
-        "0",
         nofile=NOFILE,
+        env={"GMT_BODY_TIMEOUT_S": "120", "GMT_BODY_MIN_RATE": "0"},
     )
     attack = None
     try:
@@ -374,7 +371,7 @@ def test_past_the_cap_with_every_request_being_answered_the_new_connection_is_cl
 
 
 def test_a_body_below_the_minimum_rate_answers_408(make_server):
-    """A body trickled at 1 byte a second is cut after its first seconds, long before --body-timeout-s."""
+    """A body trickled at 1 byte a second is cut after its first seconds, long before GMT_BODY_TIMEOUT_S."""
     s = make_server(body_timeout_s=60, body_min_rate=500)
     head = b"POST /sessions HTTP/1.1\r\nHost: t\r\ncontent-type: application/json\r\ncontent-length: 100000\r\n\r\n"
     sock = connect(s.server.rest_port, head + b"{")

@@ -6,10 +6,10 @@
 - the HTTP/2 settings the server announces are the configured ones (window, streams per connection), so the
   grpcio option names are the ones gRPC reads (it ignores unknown ones silently);
 - a message larger than the window still arrives;
-- a Control stream whose client takes no answer for --grpc-write-timeout-s ends with RESOURCE_EXHAUSTED;
-- one call past --grpc-max-concurrent-rpcs answers RESOURCE_EXHAUSTED at once;
-- a connection past --grpc-max-connections is closed at once, one that never completes its HTTP/2 handshake
-  after --grpc-handshake-timeout-s.
+- a Control stream whose client takes no answer for GMT_GRPC_WRITE_TIMEOUT_S ends with RESOURCE_EXHAUSTED;
+- one call past GMT_GRPC_MAX_CONCURRENT_RPCS answers RESOURCE_EXHAUSTED at once;
+- a connection past GMT_GRPC_MAX_CONNECTIONS is closed at once, one that never completes its HTTP/2 handshake
+  after GMT_GRPC_HANDSHAKE_TIMEOUT_S.
 
 Every wait polls a condition with a deadline; nothing sleeps to synchronise.
 """
