@@ -48,6 +48,23 @@ def commit_tree(commit: str, into: Path) -> Path:
     return into / "root"
 
 
+def start_commits(checkpoint: Path, commits: dict[str, str], tmp: Path, procs: dict) -> None:
+    """`gmt serve` of each named commit at once, each from its own `git archive` tree under `tmp` (all the same
+    way: a server run from the editable install measured slower here than the same code run from such a tree),
+    into `procs` as {name: (process, its 'serving' log record)} as each starts. The caller terminates them."""
+    for name, commit in commits.items():
+        root = commit_tree(commit, tmp / name)
+        old_path = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = str(root)
+        try:
+            procs[name] = start_server(checkpoint, naive=False)
+        finally:
+            if old_path is None:
+                os.environ.pop("PYTHONPATH")
+            else:
+                os.environ["PYTHONPATH"] = old_path
+
+
 def bench_batching(
     checkpoint: Path,
     sessions: int = 256,
@@ -71,19 +88,7 @@ def bench_batching(
     rows: dict = {s: {load: [] for load in loads} for s in ("current", "baseline")}
     procs: dict = {}
     try:
-        # Both run from `git archive` trees the same way: a server run from the editable install measured slower
-        # here than the same code run from such a tree.
-        for server, commit in (("baseline", baseline), ("current", current)):
-            root = commit_tree(commit, tmp / server)
-            old_path = os.environ.get("PYTHONPATH")
-            os.environ["PYTHONPATH"] = str(root)
-            try:
-                procs[server] = start_server(checkpoint, naive=False)
-            finally:
-                if old_path is None:
-                    os.environ.pop("PYTHONPATH")
-                else:
-                    os.environ["PYTHONPATH"] = old_path
+        start_commits(checkpoint, {"baseline": baseline, "current": current}, tmp, procs)
         urls = {
             s: (f"http://127.0.0.1:{info['rest_port']}", info["models"][0]) for s, (_, info) in procs.items()
         }

@@ -131,15 +131,18 @@ def report(req: pb.ActRequest) -> Report | None:
 
 def act_response(r: ActResult) -> pb.ActResponse:
     """An act result as ActResponse."""
+    out = pb.ActResponse()
+    fill_act_response(out, r)
+    return out
+
+
+def fill_act_response(out: pb.ActResponse, r: ActResult) -> None:
+    """Write an act result into `out` (a field of the message that carries it: no copy of a built message)."""
     if r.action is None:
-        return pb.ActResponse(
-            discrete_action=r.discrete_action,
-            is_discrete=True,
-            step=r.step,
-            goal=r.goal,
-            session_id=r.session_id,
-        )
-    return pb.ActResponse(action=r.action, step=r.step, goal=r.goal, session_id=r.session_id)
+        out.discrete_action, out.is_discrete = r.discrete_action, True
+    else:
+        out.action.extend(r.action)
+    out.step, out.goal, out.session_id = r.step, r.goal, r.session_id
 
 
 def act_batch_result(session_id: str, r: ActResult | ServiceError) -> pb.ActBatchResult:
