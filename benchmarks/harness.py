@@ -282,7 +282,7 @@ def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict
                     t = time.perf_counter()
                     try:
                         r = await stub.ActBatch(req, metadata=key)
-                        errors += sum(1 for x in r.results if x.WhichOneof("result") != "action")
+                        errors += sum(1 for x in r.results if x.WhichOneof("outcome") != "action")
                     except grpc.RpcError:
                         errors += len(sids)
                     lat.append(time.perf_counter() - t)

@@ -143,11 +143,10 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 obs = e
             items.append((r.session_id, obs, r.step if r.HasField("step") else None, report))
         out = await self.core.act_many(items)
-        return pb.ActBatchResponse(
-            results=[
-                convert.act_batch_result(r.session_id, o) for r, o in zip(request.requests, out, strict=True)
-            ]
-        )
+        answer = pb.ActBatchResponse()
+        for (sid, *_), o in zip(items, out, strict=True):
+            convert.add_act_batch_result(answer, sid, o)
+        return answer
 
     async def _set_goal(self, request: pb.SetGoalRequest, by: str = "grpc") -> pb.SessionInfo:
         if not request.HasField("goal"):
