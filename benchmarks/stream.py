@@ -32,14 +32,15 @@ def bench_stream(
     """The servers of commits `current` and `baseline`, at once, same loads in alternating rounds of `seconds / 2`:
 
     - `control`: one session, one Control stream, one act at a time (a robot loop), from a separate process;
-    - `act_batch`: `sessions` sessions in one `ActBatch` call at a time (p50/p99 per call).
+    - `act_batch`: `sessions` sessions in one `ActBatch` call at a time (p50/p99 per call);
+    - `control_all`: `sessions` sessions, one Control stream each, all acting at once.
 
     Figures over rounds as in the store section; `vs_baseline` is current over baseline: acts/s for both loads
     and the Control stream's p50 and p99 (below 1 is faster).
     """
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-stream-"))
     per_round = max(seconds / 2, 1.0)
-    loads = ("control", "act_batch")
+    loads = ("control", "act_batch", "control_all")
     names = ("baseline", "current")
     rows: dict = {s: {load: [] for load in loads} for s in names}
     procs: dict = {}
@@ -62,9 +63,14 @@ def bench_stream(
         for r in range(rounds):
             for s, (_, target, _) in servers.items():
                 rows[s]["act_batch"].append(grpc_load(target, ones[s] + many[s], per_round, "batch"))
+                rows[s]["control_all"].append(grpc_load(target, ones[s] + many[s], per_round, "stream"))
             print(
                 f"[bench] stream round {r + 1}/{rounds}: "
-                + ", ".join(f"{s}: ActBatch {rows[s]['act_batch'][r]['acts_per_s']}/s" for s in names),
+                + ", ".join(
+                    f"{s}: ActBatch {rows[s]['act_batch'][r]['acts_per_s']}/s, "
+                    f"Control x{sessions} {rows[s]['control_all'][r]['acts_per_s']}/s"
+                    for s in names
+                ),
                 file=sys.stderr,
             )
         for s, (url, _, _) in servers.items():

@@ -180,9 +180,9 @@ def test_stream_section_loads_control_and_act_batch_on_two_commits(window_ckpt):
 
     res = bench_stream(window_ckpt, sessions=3, seconds=2.0, rounds=1, baseline="HEAD", current="HEAD")
     for server in ("current", "baseline"):
-        control, batch = res["servers"][server]["control"], res["servers"][server]["act_batch"]
-        assert control["sessions"] == 1 and batch["sessions"] == 3
-        for row in (control, batch):
+        control, batch, every = (res["servers"][server][k] for k in ("control", "act_batch", "control_all"))
+        assert control["sessions"] == 1 and batch["sessions"] == 3 and every["sessions"] == 3
+        for row in (control, batch, every):
             assert row["errors"] == 0 and row["acts_per_s"] > 0 and len(row["rounds"]) == 1, (server, row)
     v = res["servers"]
     assert res["vs_baseline"]["control_p50"] == round(
