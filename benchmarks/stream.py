@@ -8,14 +8,11 @@ section's method), so that the machine's drift falls on both alike.
 
 from __future__ import annotations
 
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
-from gmt.bench.batching import start_commits
+from gmt.bench.batching import commit_servers, over_commits
 from gmt.bench.harness import close_sessions, grpc_load, open_sessions
-from gmt.bench.store import _over_rounds
 
 # The commit before the Control stream's and ActBatch's per-act work was cut (issue 58).
 BASELINE = "a30586a"
@@ -38,14 +35,11 @@ def bench_stream(
     Figures over rounds as in the store section; `vs_baseline` is current over baseline: acts/s for both loads
     and the Control stream's p50 and p99 (below 1 is faster).
     """
-    tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-stream-"))
     per_round = max(seconds / 2, 1.0)
     loads = ("control", "act_batch", "control_all")
     names = ("baseline", "current")
     rows: dict = {s: {load: [] for load in loads} for s in names}
-    procs: dict = {}
-    try:
-        start_commits(checkpoint, {"baseline": baseline, "current": current}, tmp, procs)
+    with commit_servers(checkpoint, {"baseline": baseline, "current": current}) as procs:
         servers = {
             s: (f"http://127.0.0.1:{info['rest_port']}", f"127.0.0.1:{info['grpc_port']}", info["models"][0])
             for s, (_, info) in procs.items()
@@ -75,21 +69,7 @@ def bench_stream(
             )
         for s, (url, _, _) in servers.items():
             close_sessions(url, ones[s] + many[s])
-    finally:
-        for proc, _ in procs.values():
-            proc.terminate()
-        for proc, _ in procs.values():
-            proc.wait(30)
-        shutil.rmtree(tmp, ignore_errors=True)
-    out: dict = {
-        "model": str(checkpoint),
-        "sessions": sessions,
-        "baseline": baseline,
-        "current": current,
-        "seconds_per_round": per_round,
-        "rounds": rounds,
-        "servers": {s: {load: _over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
-    }
+    out = over_commits(rows, checkpoint, sessions, (baseline, current), per_round, rounds)
     cur, base = out["servers"]["current"], out["servers"]["baseline"]
     out["vs_baseline"] = {
         **{
