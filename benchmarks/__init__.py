@@ -1,7 +1,7 @@
 """`gmt bench`: engine, serving and training figures as JSON, each beside the naive baseline of the same run.
 
 Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `store`,
-`batching`, `cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
+`batching`, `stream`, `cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
 
 - `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
   a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
@@ -29,8 +29,13 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   {..., rounds}}}, idle_vs_alone: {current, baseline}, vs_baseline: {rest, rest_batch}}: one session's REST p50
   alone and beside `sessions - 1` idle sessions of its model, then `sessions` acting, for this checkout's server
   and a baseline commit's (`git archive`, run from this environment), both up at once, rounds alternated.
+- `stream`: {sessions, baseline, servers: {current | baseline: {control | act_batch | control_all: {..., rounds}}},
+  vs_baseline: {control_acts_per_s, act_batch_acts_per_s, control_all_acts_per_s, control_p50, control_p99}}: one
+  session's Control stream (one act at a time), `sessions` sessions per `ActBatch` call and `sessions` Control
+  streams at once, from a fresh client process per round, for the same two
+  servers as `batching`, both up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
-One module per section (`engine`, `serving`, `store`, `batching`, `cluster`, `failover`, `training`, `alternatives`), what
+One module per section (`engine`, `serving`, `store`, `batching`, `stream`, `cluster`, `failover`, `training`, `alternatives`), what
 they share in `harness`, the whole run in `run`, its tables in `report`, the command in `cli`.
 """

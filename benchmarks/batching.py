@@ -7,11 +7,13 @@ that the machine's drift falls on both alike.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 from gmt.bench.harness import bench_rest, bench_rest_batch, close_sessions, open_sessions, start_server
@@ -48,6 +50,50 @@ def commit_tree(commit: str, into: Path) -> Path:
     return into / "root"
 
 
+@contextlib.contextmanager
+def commit_servers(checkpoint: Path, commits: dict[str, str]) -> Iterator[dict]:
+    """`gmt serve` of each named commit at once, each from its own `git archive` tree (all the same way: a server
+    run from the editable install measured slower here than the same code run from such a tree): yields {name:
+    (process, its 'serving' log record)}; the servers are stopped and the trees removed on leaving."""
+    tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-commits-"))
+    procs: dict = {}
+    try:
+        for name, commit in commits.items():
+            root = commit_tree(commit, tmp / name)
+            old_path = os.environ.get("PYTHONPATH")
+            os.environ["PYTHONPATH"] = str(root)
+            try:
+                procs[name] = start_server(checkpoint, naive=False)
+            finally:
+                if old_path is None:
+                    os.environ.pop("PYTHONPATH")
+                else:
+                    os.environ["PYTHONPATH"] = old_path
+        yield procs
+    finally:
+        for proc, _ in procs.values():
+            proc.terminate()
+        for proc, _ in procs.values():
+            proc.wait(30)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def over_commits(
+    rows: dict, checkpoint: Path, sessions: int, commits: tuple[str, str], per_round: float, rounds: int
+) -> dict:
+    """A two-commit section's result: what ran (model, sessions, the (baseline, current) commits, rounds) and each
+    server's loads over their rounds (`servers`: {current | baseline: {load: figures}})."""
+    return {
+        "model": str(checkpoint),
+        "sessions": sessions,
+        "baseline": commits[0],
+        "current": commits[1],
+        "seconds_per_round": per_round,
+        "rounds": rounds,
+        "servers": {s: {load: _over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
+    }
+
+
 def bench_batching(
     checkpoint: Path,
     sessions: int = 256,
@@ -65,25 +111,10 @@ def bench_batching(
     Figures over rounds as in the store section (acts/s mean, p50 and p99 medians); `idle_vs_alone` is each
     server's p50 with idle neighbours over its p50 alone, `vs_baseline` current's acts/s over the baseline's.
     """
-    tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-batching-"))
     per_round = max(seconds / 2, 1.0)
     loads = ("alone", "idle_neighbours", "rest", "rest_batch")
     rows: dict = {s: {load: [] for load in loads} for s in ("current", "baseline")}
-    procs: dict = {}
-    try:
-        # Both run from `git archive` trees the same way: a server run from the editable install measured slower
-        # here than the same code run from such a tree.
-        for server, commit in (("baseline", baseline), ("current", current)):
-            root = commit_tree(commit, tmp / server)
-            old_path = os.environ.get("PYTHONPATH")
-            os.environ["PYTHONPATH"] = str(root)
-            try:
-                procs[server] = start_server(checkpoint, naive=False)
-            finally:
-                if old_path is None:
-                    os.environ.pop("PYTHONPATH")
-                else:
-                    os.environ["PYTHONPATH"] = old_path
+    with commit_servers(checkpoint, {"baseline": baseline, "current": current}) as procs:
         urls = {
             s: (f"http://127.0.0.1:{info['rest_port']}", info["models"][0]) for s, (_, info) in procs.items()
         }
@@ -112,21 +143,7 @@ def bench_batching(
             )
         for s, (url, _) in urls.items():
             close_sessions(url, ones[s] + idle[s])
-    finally:
-        for proc, _ in procs.values():
-            proc.terminate()
-        for proc, _ in procs.values():
-            proc.wait(30)
-        shutil.rmtree(tmp, ignore_errors=True)
-    out: dict = {
-        "model": str(checkpoint),
-        "sessions": sessions,
-        "baseline": baseline,
-        "current": current,
-        "seconds_per_round": per_round,
-        "rounds": rounds,
-        "servers": {s: {load: _over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
-    }
+    out = over_commits(rows, checkpoint, sessions, (baseline, current), per_round, rounds)
     cur, base = out["servers"]["current"], out["servers"]["baseline"]
     out["idle_vs_alone"] = {
         s: round(v["idle_neighbours"]["p50_ms"] / v["alone"]["p50_ms"], 3) for s, v in out["servers"].items()

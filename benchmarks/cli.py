@@ -11,6 +11,7 @@ SECTIONS = (
     "serving",
     "store",
     "batching",
+    "stream",
     "records",
     "cluster",
     "soak",
@@ -33,6 +34,10 @@ def bench_command(
     sessions: str = typer.Option("1,16,64,256", help="Concurrent sessions per serving measurement point."),
     out: Path = typer.Option(None, help="Also write the JSON here."),
     markdown: Path = typer.Option(None, help="Also write the tables (as in docs/performance.md) here."),
+    baseline: str = typer.Option(
+        None,
+        help="The commit the batching and stream sections compare this checkout with (default: each's own).",
+    ),
 ) -> None:
     """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.
 
@@ -60,7 +65,7 @@ def bench_command(
         raise typer.BadParameter("must be positive", param_hint="--seconds")
     if checkpoint is not None and not checkpoint.is_dir():
         raise typer.BadParameter(f"{checkpoint} is not a checkpoint directory", param_hint="--checkpoint")
-    result = run(checkpoint, chosen, seconds, counts)
+    result = run(checkpoint, chosen, seconds, counts, baseline)
     text = json.dumps(result, indent=2)
     typer.echo(text)
     if out:

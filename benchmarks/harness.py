@@ -245,7 +245,8 @@ end
 
 
 def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict:
-    """Run in a separate process: one concurrent caller per session (unary Act or one Control stream each)."""
+    """Run in a separate process: one concurrent caller per session (`mode` "unary": unary Act, "stream": one
+    Control stream each), or ("batch") one caller sending every session's act in one ActBatch (p50/p99 per call)."""
     import grpc
 
     from gmt.v1 import policy_pb2 as pb
@@ -284,13 +285,32 @@ def grpc_client(target: str, sids: list[str], seconds: float, mode: str) -> dict
                     lat.append(time.perf_counter() - t)
                 await call.done_writing()
 
+            async def batch():
+                nonlocal errors
+                req = pb.ActBatchRequest(
+                    requests=[pb.ActRequest(session_id=s, values=pb.FloatVector(values=obs)) for s in sids]
+                )
+                key = (("x-session-id", min(sids)),)
+                while time.perf_counter() < stop:
+                    t = time.perf_counter()
+                    try:
+                        r = await stub.ActBatch(req, metadata=key)
+                        errors += sum(1 for x in r.results if x.WhichOneof("outcome") != "action")
+                    except grpc.RpcError:
+                        errors += len(sids)
+                    lat.append(time.perf_counter() - t)
+
             t0 = time.perf_counter()
-            await asyncio.gather(*((unary if mode == "unary" else stream)(s) for s in sids))
+            if mode == "batch":
+                await batch()
+            else:
+                await asyncio.gather(*((unary if mode == "unary" else stream)(s) for s in sids))
             wall = time.perf_counter() - t0
         ms = np.asarray(lat[len(lat) // 10 :]) * 1000  # drop the first tenth (warm-up)
+        acts = len(lat) * len(sids) - errors if mode == "batch" else len(lat)
         return {
             "sessions": len(sids),
-            "acts_per_s": round(len(lat) / wall, 1),
+            "acts_per_s": round(acts / wall, 1),
             "p50_ms": round(float(np.percentile(ms, 50)), 3),
             "p99_ms": round(float(np.percentile(ms, 99)), 3),
             "errors": errors,

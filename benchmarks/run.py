@@ -18,6 +18,7 @@ from gmt.bench.harness import SESSIONS, default_size_checkpoint
 from gmt.bench.records import bench_records
 from gmt.bench.serving import bench_serving
 from gmt.bench.store import bench_store
+from gmt.bench.stream import bench_stream
 from gmt.bench.training import bench_training
 
 
@@ -49,9 +50,15 @@ def _default(tmp: Path) -> Path:
 
 
 def run(
-    checkpoint: Path | None, sections: tuple[str, ...], seconds: float, sessions: tuple[int, ...] = SESSIONS
+    checkpoint: Path | None,
+    sections: tuple[str, ...],
+    seconds: float,
+    sessions: tuple[int, ...] = SESSIONS,
+    baseline: str | None = None,
 ) -> dict:
-    """Every requested section; a temporary default-size `window` checkpoint when none is given."""
+    """Every requested section; a temporary default-size `window` checkpoint when none is given; `baseline`: the
+    commit the batching and stream sections compare with (None: each section's own)."""
+    against = {"baseline": baseline} if baseline else {}
     result: dict = {"machine": machine()}
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-"))
     try:
@@ -74,7 +81,11 @@ def run(
             if shutil.which("wrk") is None:
                 result["batching"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
             else:
-                result["batching"] = bench_batching(checkpoint or _default(tmp), max(sessions), seconds)
+                result["batching"] = bench_batching(
+                    checkpoint or _default(tmp), max(sessions), seconds, **against
+                )
+        if "stream" in sections:
+            result["stream"] = bench_stream(checkpoint or _default(tmp), max(sessions), seconds, **against)
         if "records" in sections:
             if shutil.which("wrk") is None or shutil.which("redis-server") is None:
                 result["records"] = {

@@ -14,13 +14,14 @@ from gmt.service.core import Core
 from gmt.service.errors import DeadlineExceeded, InvalidArgument, ServiceError
 from gmt.service.grpc import convert
 from gmt.service.memory import Trimmer
-from gmt.service.views import MAX_TIMELINE_PAGE
+from gmt.service.views import MAX_TIMELINE_PAGE, ActResult
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
 T = TypeVar("T")
 log = logging.getLogger("gmt.grpc")
 SHUTTING_DOWN = "server is shutting down: open the stream again (a proxy sends it to another replica)"
+UNWRITTEN = "the last answer could not be written"
 
 
 class Undecodable:
@@ -54,14 +55,16 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         self.trimmer = Trimmer()
         self._stopping = False
         self._idle_streams: set[asyncio.Task] = set()  # Control streams waiting for their next command
-        self._woken: set[asyncio.Task] = set()  # ... of which `stop_streams` cancelled these
+        self._woken: dict[
+            asyncio.Task, str
+        ] = {}  # ... of which these were cancelled: why (SHUTTING_DOWN, UNWRITTEN)
 
     def stop_streams(self) -> None:
         """Shutting down: every Control stream ends with UNAVAILABLE once its command in flight is answered
         (at once when it waits for a command), instead of holding the server for the whole grace period."""
         self._stopping = True
         for task in list(self._idle_streams):
-            self._woken.add(task)
+            self._woken[task] = SHUTTING_DOWN
             task.cancel()
 
     async def _unary(
@@ -124,9 +127,12 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         return await self._unary("GetSession", context, call)
 
     async def _act(self, request: pb.ActRequest) -> pb.ActResponse:
+        return convert.act_response(await self._core_act(request))
+
+    async def _core_act(self, request: pb.ActRequest) -> ActResult:
         step = request.step if request.HasField("step") else None
         obs, report = convert.observation(request), convert.report(request)
-        return convert.act_response(await self.core.act(request.session_id, obs, step, report))
+        return await self.core.act(request.session_id, obs, step, report)
 
     async def _act_batch(self, request: pb.ActBatchRequest) -> pb.ActBatchResponse:
         items = []
@@ -138,11 +144,10 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
                 obs = e
             items.append((r.session_id, obs, r.step if r.HasField("step") else None, report))
         out = await self.core.act_many(items)
-        return pb.ActBatchResponse(
-            results=[
-                convert.act_batch_result(r.session_id, o) for r, o in zip(request.requests, out, strict=True)
-            ]
-        )
+        answer = pb.ActBatchResponse()
+        for (sid, *_), o in zip(items, out, strict=True):
+            convert.add_act_batch_result(answer, sid, o)
+        return answer
 
     async def _set_goal(self, request: pb.SetGoalRequest, by: str = "grpc") -> pb.SessionInfo:
         if not request.HasField("goal"):
@@ -195,46 +200,76 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             self.trimmer.soon()  # what the stream held is freed now: hand it back to the OS
 
     async def _control(self, request_iterator: AsyncIterator, context) -> None:
+        # Each answer is written while the next command is read: its write's completion (a hop through gRPC's
+        # poller thread) overlaps the client's turn instead of delaying the next read. A command still runs only
+        # once the answer before it is written.
         bound: str | None = None
+        handler = asyncio.current_task()
         commands = request_iterator.__aiter__()
         in_flight = self.core.metrics.in_flight_grpc
-        while True:
-            req = await self._next_command(commands, context)
-            if req is None:
-                return
-            undecodable = isinstance(req, Undecodable)
-            kind = "undecodable" if undecodable else req.WhichOneof("command")
-            t0, code = time.perf_counter(), "OK"
-            in_flight.inc()
-            try:
-                if undecodable:
-                    raise InvalidArgument(req.message)
-                if kind is None:
-                    raise InvalidArgument("empty command: set act, set_goal or reset")
-                cmd = getattr(req, kind)
-                sid = cmd.session_id or bound
-                if not sid:
-                    raise InvalidArgument("session_id is required in the first command of a stream")
-                if bound is not None and sid != bound:
-                    raise InvalidArgument(
-                        f"this stream controls session {bound!r}; a command names another one"
-                    )
-                bound = cmd.session_id = sid
-                if kind == "act":
-                    out = pb.ControlResponse(act=await within_deadline(context, self._act(cmd)))
-                elif kind == "set_goal":
-                    out = pb.ControlResponse(
-                        session=await within_deadline(context, self._set_goal(cmd, by="stream"))
-                    )
-                else:
-                    out = pb.ControlResponse(session=await within_deadline(context, self._reset(cmd)))
-            except ServiceError as e:
-                code = e.grpc_code
-                out = pb.ControlResponse(error=pb.ControlError(code=e.code, message=e.message))
-            finally:
-                in_flight.dec()
-            self.core.metrics.observe_request("grpc", f"Control.{kind}", code, time.perf_counter() - t0)
-            await self._answer(context, out, bound)
+        writing: asyncio.Task | None = None
+        try:
+            while True:
+                req = await self._next_command(commands)
+                if writing is not None:
+                    await writing
+                    writing = None
+                if req is None:
+                    return
+                if req is SHUTTING_DOWN:
+                    await context.abort(grpc.StatusCode.UNAVAILABLE, SHUTTING_DOWN)
+                undecodable = isinstance(req, Undecodable)
+                kind = "undecodable" if undecodable else req.WhichOneof("command")
+                t0, code = time.perf_counter(), "OK"
+                out = pb.ControlResponse()
+                in_flight.inc()
+                try:
+                    if undecodable:
+                        raise InvalidArgument(req.message)
+                    if kind is None:
+                        raise InvalidArgument("empty command: set act, set_goal or reset")
+                    cmd = getattr(req, kind)
+                    sid = cmd.session_id or bound
+                    if not sid:
+                        raise InvalidArgument("session_id is required in the first command of a stream")
+                    if bound is not None and sid != bound:
+                        raise InvalidArgument(
+                            f"this stream controls session {bound!r}; a command names another one"
+                        )
+                    bound = cmd.session_id = sid
+                    if kind == "act":
+                        convert.fill_act_response(
+                            out.act, await within_deadline(context, self._core_act(cmd))
+                        )
+                    elif kind == "set_goal":
+                        out.session.CopyFrom(await within_deadline(context, self._set_goal(cmd, by="stream")))
+                    else:
+                        out.session.CopyFrom(await within_deadline(context, self._reset(cmd)))
+                except ServiceError as e:
+                    code = e.grpc_code
+                    out = pb.ControlResponse(error=pb.ControlError(code=e.code, message=e.message))
+                finally:
+                    in_flight.dec()
+                self.core.metrics.observe_request("grpc", f"Control.{kind}", code, time.perf_counter() - t0)
+                writing = asyncio.ensure_future(self._answer(context, out, bound))
+                writing.add_done_callback(self._woken_by(handler))
+        finally:
+            if (
+                writing is not None and not writing.done()
+            ):  # the stream ended meanwhile (the client went away)
+                writing.cancel()
+                await asyncio.gather(writing, return_exceptions=True)
+
+    def _woken_by(self, handler: asyncio.Task) -> Callable[[asyncio.Task], None]:
+        """A write's done callback: a failed write (the client took no answer) wakes its stream's handler when it
+        waits for the next command, so that the stream ends now, not at the client's next command."""
+
+        def done(write: asyncio.Task) -> None:
+            if not write.cancelled() and write.exception() is not None and handler in self._idle_streams:
+                self._woken.setdefault(handler, UNWRITTEN)
+                handler.cancel()
+
+        return done
 
     async def _answer(self, context, answer: pb.ControlResponse, session_id: str | None) -> None:
         """Write one Control answer. The write waits for the client's flow-control window: a client that takes no
@@ -260,11 +295,11 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
             except Exception:  # noqa: BLE001 - gRPC's ExecuteBatchError: the client went away meanwhile
                 pass  # the call is over; gRPC ends it as aborted
 
-    async def _next_command(self, commands: AsyncIterator, context) -> pb.ControlRequest | Undecodable | None:
-        """The stream's next message (None once the client closed its side); ends the call with UNAVAILABLE when
-        the server is shutting down, also while waiting."""
+    async def _next_command(self, commands: AsyncIterator) -> pb.ControlRequest | Undecodable | str | None:
+        """The stream's next message; None once the client closed its side; SHUTTING_DOWN when the server is
+        shutting down (also while waiting), UNWRITTEN when the answer before failed to be written meanwhile."""
         if self._stopping:
-            await context.abort(grpc.StatusCode.UNAVAILABLE, SHUTTING_DOWN)
+            return SHUTTING_DOWN
         task = asyncio.current_task()
         self._idle_streams.add(task)
         try:
@@ -272,10 +307,11 @@ class PolicyServicer(policy_pb2_grpc.PolicyServiceServicer):
         except StopAsyncIteration:
             return None
         except asyncio.CancelledError:
-            if task not in self._woken:
+            why = self._woken.get(task)
+            if why is None:
                 raise  # the client went away
             task.uncancel()
+            return why
         finally:
             self._idle_streams.discard(task)
-            self._woken.discard(task)
-        await context.abort(grpc.StatusCode.UNAVAILABLE, SHUTTING_DOWN)
+            self._woken.pop(task, None)

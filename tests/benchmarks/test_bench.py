@@ -173,3 +173,32 @@ def test_batching_section_serves_two_commits_and_measures_idle_neighbours(window
     assert res["vs_baseline"]["rest"] == round(
         v["current"]["rest"]["acts_per_s"] / v["baseline"]["rest"]["acts_per_s"], 3
     )
+
+
+def test_stream_section_loads_control_and_act_batch_on_two_commits(window_ckpt):
+    from gmt.bench.stream import bench_stream
+
+    res = bench_stream(window_ckpt, sessions=3, seconds=2.0, rounds=1, baseline="HEAD", current="HEAD")
+    for server in ("current", "baseline"):
+        control, batch, every = (res["servers"][server][k] for k in ("control", "act_batch", "control_all"))
+        assert control["sessions"] == 1 and batch["sessions"] == 3 and every["sessions"] == 3
+        for row in (control, batch, every):
+            assert row["errors"] == 0 and row["acts_per_s"] > 0 and len(row["rounds"]) == 1, (server, row)
+    v = res["servers"]
+    assert res["vs_baseline"]["control_p50"] == round(
+        v["current"]["control"]["p50_ms"] / v["baseline"]["control"]["p50_ms"], 3
+    )
+
+
+def test_grpc_client_counts_act_batch_items_that_failed(window_ckpt):
+    """ActBatch acts/s counts answered items only: an unknown session's item is an error, not an act."""
+    from gmt.bench.harness import grpc_client, open_sessions, start_server
+
+    proc, info = start_server(window_ckpt, naive=False)
+    try:
+        sids = open_sessions(f"http://127.0.0.1:{info['rest_port']}", info["models"][0], 2)
+        res = grpc_client(f"127.0.0.1:{info['grpc_port']}", [*sids, "no-such-session"], 1.0, "batch")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    assert res["sessions"] == 3 and res["errors"] > 0 and res["acts_per_s"] > 0

@@ -16,6 +16,7 @@ Every wait polls a condition with a deadline; nothing sleeps to synchronise.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import queue
 import socket
@@ -350,3 +351,49 @@ def test_grpc_connection_cap_and_handshake_timeout(make_server):
     finally:
         for sock in [*held, extra]:
             sock.close()
+
+
+class _NeverWritten:
+    """A Control call's context whose client takes no answer: every write waits for ever."""
+
+    def __init__(self) -> None:
+        self.aborted: tuple | None = None
+        self.writes = 0
+
+    def time_remaining(self) -> None:
+        return None
+
+    async def write(self, _answer) -> None:
+        self.writes += 1
+        await asyncio.Event().wait()
+
+    async def abort(self, code, details: str) -> None:
+        self.aborted = (code, details)
+        raise grpc.aio.AbortError()
+
+
+def test_a_stream_ends_when_its_last_answer_is_never_taken(make_server):
+    """The answer is written while the next command is awaited: when the client sends nothing more and never takes
+    that answer, the stream still ends after --grpc-write-timeout-s (it does not wait for a next command)."""
+    s = make_server(grpc_write_timeout_s=0.3)
+    with httpx.Client(base_url=s.url, timeout=10) as http:
+        sid = http.post("/sessions", json={"model": "tiny-gmt", "goal": 0}).json()["session_id"]
+        step_before = http.get(f"/sessions/{sid}").json()["step"]
+    context = _NeverWritten()
+
+    async def one_command_then_silence():
+        yield pb.ControlRequest(act=act(sid))
+        await asyncio.Event().wait()  # the client keeps the stream open and sends nothing more
+
+    async def control():
+        with pytest.raises(grpc.aio.AbortError):
+            async with asyncio.timeout(
+                20
+            ):  # not a timing assertion: without the wake-up it would wait for ever
+                await s.server._grpc.servicer._control(one_command_then_silence(), context)
+
+    s.run(control())
+    assert context.writes == 1
+    assert context.aborted is not None and context.aborted[0] == grpc.StatusCode.RESOURCE_EXHAUSTED
+    with httpx.Client(base_url=s.url, timeout=10) as http:
+        assert http.get(f"/sessions/{sid}").json()["step"] == step_before + 1  # the act was applied once
