@@ -109,24 +109,30 @@ def test_a_replica_that_cannot_start_fails_up_and_leaves_nothing_running(tmp_pat
 
 
 # ----- a running cluster ---------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def running(tmp_path_factory):
+def start_cluster(tmp_path_factory, serve_args: tuple[str, ...] = ()):
+    """A cluster on free ports serving a tiny MODEL (skips where nginx or redis-server is missing)."""
     if cluster.find_executable("nginx") is None or cluster.find_executable("redis-server") is None:
         pytest.skip(f"nginx and redis-server are needed ({cluster.INSTALL_HINT})")
     root = tmp_path_factory.mktemp("checkpoints")
     tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     run_dir = tmp_path_factory.mktemp("run") / "cluster"
     env = clean_env(**CLUSTER_ENV, GMT_BATCH_WAIT_MS=str(BATCH_WAIT_MS))
-    c = cluster.up(
+    return cluster.up(
         run_dir,
         rest_port=0,
         grpc_port=0,
         checkpoints=[root],
+        serve_args=list(serve_args),
         env=env,
         timeout_s=90,
     )
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory):
+    c = start_cluster(tmp_path_factory)
     yield c
-    cluster.down(run_dir, timeout_s=10, quiet=True)
+    cluster.down(c.run_dir, timeout_s=10, quiet=True)
 
 
 def rest_replica(http: httpx.Client, sid: str) -> str:

@@ -14,14 +14,12 @@ import grpc
 import httpx
 import numpy as np
 import pytest
-from service_harness import CLUSTER_ENV, clean_env
-from test_cluster import MODEL, grpc_replica, held_by_victim, pad, rest_replica
+from test_cluster import MODEL, grpc_replica, held_by_victim, pad, rest_replica, start_cluster
 
 from gmt.client.grpc import GrpcClient
 from gmt.client.rest import RestClient
 from gmt.cluster import supervisor as cluster
 from gmt.common.recording import read_recording
-from gmt.model.fixtures import tiny_checkpoint
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
@@ -31,24 +29,10 @@ BATCH_WAIT_MS = 400  # an act waits this long for a session still acting: the ki
 
 @pytest.fixture(scope="module")
 def recording_cluster(tmp_path_factory):
-    if cluster.find_executable("nginx") is None or cluster.find_executable("redis-server") is None:
-        pytest.skip(f"nginx and redis-server are needed ({cluster.INSTALL_HINT})")
-    root = tmp_path_factory.mktemp("checkpoints")
-    tiny_checkpoint(root / MODEL, name=MODEL, attention="window", calibrated=True)
     record_dir = tmp_path_factory.mktemp("recordings")
-    run_dir = tmp_path_factory.mktemp("run") / "cluster"
-    env = clean_env(**CLUSTER_ENV, GMT_BATCH_WAIT_MS=str(BATCH_WAIT_MS))
-    c = cluster.up(
-        run_dir,
-        rest_port=0,
-        grpc_port=0,
-        checkpoints=[root],
-        serve_args=["--record-dir", str(record_dir)],
-        env=env,
-        timeout_s=90,
-    )
+    c = start_cluster(tmp_path_factory, ("--record-dir", str(record_dir)))
     yield c, record_dir
-    cluster.down(run_dir, timeout_s=10, quiet=True)
+    cluster.down(c.run_dir, timeout_s=10, quiet=True)
 
 
 def _report(t: int) -> dict:
