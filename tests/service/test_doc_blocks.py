@@ -102,7 +102,10 @@ def test_the_blocks_run_as_written(server, doc):
     rest = f"127.0.0.1:{s.server.rest_port}"
     grpc = f"127.0.0.1:{s.server.grpc_port}"
     env = clean_env(
-        PATH=f"{VENV / 'bin'}{os.pathsep}{os.environ['PATH']}", OMP_NUM_THREADS="1", COLUMNS="200", TERM="dumb"
+        PATH=f"{VENV / 'bin'}{os.pathsep}{os.environ['PATH']}",
+        OMP_NUM_THREADS="1",
+        COLUMNS="200",
+        TERM="dumb",
     )
     script = ['curl() { command curl --fail-with-body "$@"; }']  # an HTTP error answer fails the block
     for i, (line, block, _) in enumerate(RUN[doc]):
@@ -121,4 +124,8 @@ def test_the_blocks_run_as_written(server, doc):
     for (line, _, shown), got in zip(RUN[doc], parts, strict=True):
         if shown is not None:
             missing = compare(shown, got, 0.02)
-            assert not missing, f"{doc}:{line}: stale output (numbers within 0.02):\n" + "\n".join(missing) + f"\n--- printed ---\n{got[-3000:]}"
+            assert not missing, (
+                f"{doc}:{line}: stale output (numbers within 0.02):\n"
+                + "\n".join(missing)
+                + f"\n--- printed ---\n{got[-3000:]}"
+            )
