@@ -1,25 +1,41 @@
-"""A served model as both sides describe it: its environment, spaces and goal table.
+"""The records both sides share, defined once: a goal, a served model and a session.
 
-The clients read it from a server (`GET /models/{name}`, gRPC `GetModel`); evaluation builds one from a checkpoint
-to make the same environment a client would (`gmt.common.envs.make_env`).
+The clients read them from a server (`GET /models/{name}`, gRPC `GetModel`, a session's answers); evaluation builds
+a `ModelInfo` from a checkpoint to make the same environment a client would (`gmt.common.envs.make_env`). The server
+answers the same dataclasses (`gmt.service.views`), the REST schemas are built from their fields
+(`gmt.service.rest.schemas`), the gRPC converters copy them field by field (`gmt.service.grpc.convert`), and
+tests/common/test_spec.py checks that the proto messages carry every field under the same name.
+
+Each field's one-line description is its `doc` metadata; a field with `optional` metadata may be left out of an
+answer (its default stands in), every other one is always sent.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+
+
+def doc(text: str, *, optional: bool = False) -> dict:
+    """A record field's metadata: its one-line description, and whether an answer may leave it out."""
+    return {"doc": text, "optional": optional}
+
+
+def field_docs(record: type) -> dict[str, str]:
+    """Each field of a record dataclass and its one-line description."""
+    return {f.name: f.metadata.get("doc", "") for f in fields(record)}
 
 
 @dataclass(frozen=True)
 class GoalInfo:
     """One row of a model's goal table (statistic of the goal's cluster of training trajectories)."""
 
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
+    id: int = field(metadata=doc("The goal's id: its token, 0 for the lowest statistic."))
+    name: str = field(metadata=doc("The goal's name."))
+    mean: float = field(metadata=doc("Mean statistic of the goal's trajectories."))
+    std: float = field(metadata=doc("Standard deviation of the statistic of the goal's trajectories."))
+    min: float = field(metadata=doc("Smallest statistic of the goal's trajectories."))
+    max: float = field(metadata=doc("Largest statistic of the goal's trajectories."))
+    count: int = field(metadata=doc("How many training trajectories the goal's cluster holds."))
 
 
 @dataclass(frozen=True)
@@ -49,3 +65,41 @@ class ModelInfo:
         raise KeyError(
             f"model {self.name!r} has no goal {id_or_name!r}; goals: {[g.name for g in self.goals]}"
         )
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """A session's state, as the server answers it (the defaults serve clients that build one by hand)."""
+
+    session_id: str = field(metadata=doc("The session's id."))
+    model: str = field(metadata=doc("The model the session runs."))
+    goal: int = field(metadata=doc("The goal the session pursues (the target of a running blend)."))
+    goal_name: str = field(default="", metadata=doc("The name of `goal`."))
+    step: int = field(default=0, metadata=doc("The step of the next observation (0 after create or reset)."))
+    context_size: int = field(default=0, metadata=doc("Steps in the session's context."))
+    blend_remaining: int = field(default=0, metadata=doc("Steps left of a running blend (0: none runs)."))
+    blend_from: int = field(
+        default=0, metadata=doc("The goal being faded out (equal to `goal` when no blend runs).")
+    )
+    idle_timeout_s: float = field(default=0.0, metadata=doc("Seconds without a call after which it ends."))
+    expires_in_s: float = field(
+        default=0.0, metadata=doc("Seconds left before the idle timeout ends the session.")
+    )
+    action_mode: str = field(
+        default="", metadata=doc("How actions are chosen (argmax, sample, expert or mean).")
+    )
+    context_goals: tuple[int, ...] = field(
+        default=(), metadata=doc("Goal token of each step in the context, oldest first.")
+    )
+    model_version: str = field(
+        default="", metadata=doc("The model version the session runs for its whole life.")
+    )
+    recording: bool = field(
+        default=False, metadata=doc("Whether the session records its episode.", optional=True)
+    )
+    effective_step: int | None = field(
+        default=None,
+        metadata=doc(
+            "In the answer to a goal change: the step of the first act that uses the new goal.", optional=True
+        ),
+    )

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from gmt.model.checkpoint import Goal
+from gmt.common.spec import GoalInfo, SessionInfo
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
@@ -40,7 +40,7 @@ class ModelView:
     action_space: dict
     context_length: int
     statistic: str
-    goals: list[Goal]
+    goals: list[GoalInfo]
     discrete_actions: bool
     action_modes: tuple[str, ...]  # the first is the default
     preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
@@ -51,34 +51,8 @@ class ModelView:
     canary: tuple[str, float] | None = None  # (version, share of new sessions)
 
 
-@dataclass(frozen=True)
-class SessionView:
-    """What clients learn about a session.
-
-    Attributes:
-        goal: The goal the session pursues (the target of a running blend).
-        blend_from: The goal being faded out (equal to `goal` when no blend runs).
-        context_goals: Goal token of each step in the context, oldest first.
-        expires_in_s: Seconds left before the idle timeout ends the session.
-        recording: Whether the session records its episode.
-        effective_step: For a goal change, the step of the first act that uses the new goal (else None).
-    """
-
-    session_id: str
-    model: str
-    model_version: str
-    goal: int
-    goal_name: str
-    step: int
-    context_size: int
-    blend_remaining: int
-    blend_from: int
-    action_mode: str
-    idle_timeout_s: float
-    expires_in_s: float
-    context_goals: list[int]
-    recording: bool = False
-    effective_step: int | None = None
+SessionView = SessionInfo
+"""What clients learn about a session: the one session record (`gmt.common.spec.SessionInfo`)."""
 
 
 @dataclass(frozen=True)

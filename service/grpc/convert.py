@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, fields
 
 import numpy as np
 
@@ -61,24 +61,8 @@ def versions(v: ModelView) -> dict:
 
 
 def session_info(v: SessionView) -> pb.SessionInfo:
-    """A session view as SessionInfo."""
-    return pb.SessionInfo(
-        session_id=v.session_id,
-        model=v.model,
-        goal=v.goal,
-        goal_name=v.goal_name,
-        step=v.step,
-        context_size=v.context_size,
-        blend_remaining=v.blend_remaining,
-        idle_timeout_s=v.idle_timeout_s,
-        action_mode=v.action_mode,
-        context_goals=v.context_goals,
-        expires_in_s=v.expires_in_s,
-        blend_from=v.blend_from,
-        model_version=v.model_version,
-        effective_step=v.effective_step,
-        recording=v.recording,
-    )
+    """A session view as SessionInfo (the proto carries every field of the record under its name)."""
+    return pb.SessionInfo(**{f.name: getattr(v, f.name) for f in fields(SessionView)})
 
 
 def timeline(v: TimelineView) -> pb.Timeline:

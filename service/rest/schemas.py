@@ -7,7 +7,8 @@ JSON numbers (`2.0`), which JSON Schema counts as integers too.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+import typing
+from dataclasses import MISSING, asdict, fields
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -18,9 +19,11 @@ from pydantic import (
     StrictBool,
     StrictInt,
     StrictStr,
+    create_model,
     field_validator,
 )
 
+from gmt.common.spec import GoalInfo, SessionInfo
 from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
 from gmt.service.errors import ServiceError
@@ -56,16 +59,26 @@ class Space(BaseModel):
     n: int | None = None
 
 
-class GoalOut(BaseModel):
-    """One goal of a model's goal table (a cluster of the per-trajectory statistic)."""
+def record_schema(record: type, exclude: frozenset[str] = frozenset()) -> type[BaseModel]:
+    """A pydantic model of a record dataclass (`gmt.common.spec`): the same fields, types and descriptions; a field
+    the record marks `optional` keeps its default, every other one is required (an answer always carries it)."""
 
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
+    def wire(t: object) -> object:  # a tuple of one type is a JSON array: list it as one
+        args = typing.get_args(t)
+        return list[args[0]] if typing.get_origin(t) is tuple and args[1:] == (Ellipsis,) else t
+
+    hints = typing.get_type_hints(record)
+    spec = {}
+    for f in fields(record):
+        if f.name in exclude:
+            continue
+        default = f.default if f.metadata.get("optional") and f.default is not MISSING else ...
+        spec[f.name] = (wire(hints[f.name]), Field(default, description=f.metadata.get("doc") or None))
+    return create_model(f"_{record.__name__}Record", **spec)
+
+
+class GoalOut(record_schema(GoalInfo)):
+    """One goal of a model's goal table (a cluster of the per-trajectory statistic)."""
 
 
 class VersionOut(BaseModel):
@@ -265,23 +278,8 @@ class ResetSession(_Request):
     target: float | None = None
 
 
-class SessionOut(BaseModel):
+class SessionOut(record_schema(SessionInfo, exclude=frozenset({"effective_step"}))):
     """A session's state."""
-
-    session_id: str
-    model: str
-    model_version: str = Field(description="The model version the session runs for its whole life.")
-    goal: int
-    goal_name: str
-    step: int
-    context_size: int
-    blend_remaining: int
-    blend_from: int
-    action_mode: str
-    idle_timeout_s: float
-    expires_in_s: float
-    context_goals: list[int]
-    recording: bool = Field(False, description="Whether the session records its episode.")
 
     @classmethod
     def of(cls, v: SessionView) -> SessionOut:
