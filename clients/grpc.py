@@ -114,17 +114,16 @@ def space_from_proto(s: pb.Space) -> dict:
 
 def model_from_proto(m: pb.ModelInfo) -> ModelInfo:
     """A `ModelInfo` from the gRPC message."""
+    values = {f.name: getattr(m, f.name) for f in fields(ModelInfo) if f.name != "preprocessing"}
     return ModelInfo(
-        name=m.name,
-        env_id=m.env_id,
-        observation_space=space_from_proto(m.observation_space),
-        action_space=space_from_proto(m.action_space),
-        context_length=m.context_length,
-        statistic=m.statistic,
-        goals=[GoalInfo(**{f.name: getattr(g, f.name) for f in fields(GoalInfo)}) for g in m.goals],
-        preprocessing=json.loads(m.preprocessing_json) if m.preprocessing_json else None,
-        action_modes=list(m.action_modes),
-        switch_relabel_steps=m.switch_relabel_steps,
+        **values
+        | {
+            "observation_space": space_from_proto(m.observation_space),
+            "action_space": space_from_proto(m.action_space),
+            "goals": [GoalInfo(**{f.name: getattr(g, f.name) for f in fields(GoalInfo)}) for g in m.goals],
+            "preprocessing": json.loads(m.preprocessing_json) if m.preprocessing_json else None,
+            "action_modes": list(m.action_modes),
+        }
     )
 
 

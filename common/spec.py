@@ -42,16 +42,40 @@ class GoalInfo:
 class ModelInfo:
     """A served model: its environment, spaces (as `gmt.common.spaces.space_to_dict` dicts) and goals."""
 
-    name: str
-    env_id: str
-    observation_space: dict
-    action_space: dict
-    context_length: int
-    statistic: str
-    goals: list[GoalInfo] = field(default_factory=list)
-    preprocessing: dict | None = None  # the observation pipeline (Atari), None for raw observations
-    action_modes: list[str] = field(default_factory=list)  # accepted action modes, the default first
-    switch_relabel_steps: int = 0  # past steps a goal change without a blend relabels with the new goal
+    name: str = field(metadata=doc("The model's name."))
+    env_id: str = field(metadata=doc("The Gymnasium environment id the model acts in."))
+    observation_space: dict = field(metadata=doc("The environment's observation space."))
+    action_space: dict = field(metadata=doc("The environment's action space."))
+    context_length: int = field(metadata=doc("K: the most past steps the model attends to."))
+    statistic: str = field(
+        metadata=doc(
+            "The per-trajectory statistic the goals cluster, as a client measures it: an expression "
+            "AGG(SOURCE) such as mean(info.x_velocity) or mean(abs(obs[2])), a name (return), or a module:function "
+            "plug-in (docs/your-own-data.md)."
+        )
+    )
+    goals: list[GoalInfo] = field(
+        default_factory=list, metadata=doc("The goal table, goal 0 = lowest statistic.")
+    )
+    preprocessing: dict | None = field(
+        default=None,
+        metadata=doc(
+            "The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
+            "arguments), to reproduce observations client-side; null for raw environment observations.",
+            optional=True,
+        ),
+    )
+    action_modes: list[str] = field(
+        default_factory=list, metadata=doc("Accepted `action_mode` values; the first is the default.")
+    )
+    switch_relabel_steps: int = field(
+        default=0,
+        metadata=doc(
+            "On a goal change without a blend, this many past steps of the session's context take the "
+            "new goal token, as if it had been pursued all along (0: the context keeps its goals).",
+            optional=True,
+        ),
+    )
 
     def goal(self, id_or_name: int | str) -> GoalInfo:
         """The goal with this id or name.

@@ -3,9 +3,9 @@ bounds of its calls. The adapters (REST, gRPC, console) convert these; nothing h
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from gmt.common.spec import GoalInfo, SessionInfo
+from gmt.common.spec import ModelInfo, SessionInfo
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
@@ -31,24 +31,15 @@ class VersionView:
 
 
 @dataclass(frozen=True)
-class ModelView:
-    """What clients learn about a model: its default version's spaces and goals, and its version table."""
+class ModelView(ModelInfo):
+    """What clients learn about a model: the model record (`gmt.common.spec.ModelInfo`) of its default version,
+    and its version table."""
 
-    name: str
-    env_id: str
-    observation_space: dict
-    action_space: dict
-    context_length: int
-    statistic: str
-    goals: list[GoalInfo]
-    discrete_actions: bool
-    action_modes: tuple[str, ...]  # the first is the default
-    preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
-    switch_relabel_steps: int = 0  # past steps a goal change at once relabels (`PolicyEngine.set_goal`)
-    version: str = ""  # the version this view describes (the default)
-    versions: tuple[VersionView, ...] = ()
-    default_version: str = ""
-    canary: tuple[str, float] | None = None  # (version, share of new sessions)
+    discrete_actions: bool = field(kw_only=True)
+    version: str = field(default="", kw_only=True)  # the version this view describes (the default)
+    versions: tuple[VersionView, ...] = field(default=(), kw_only=True)
+    default_version: str = field(default="", kw_only=True)
+    canary: tuple[str, float] | None = field(default=None, kw_only=True)  # (version, share of new sessions)
 
 
 SessionView = SessionInfo

@@ -8,6 +8,7 @@ from dataclasses import asdict, fields
 
 import numpy as np
 
+from gmt.common.spec import ModelInfo
 from gmt.service.errors import InvalidArgument, ServiceError
 from gmt.service.ids import echoed_id
 from gmt.service.observations import decode_tensor
@@ -32,21 +33,21 @@ def space(d: dict) -> pb.Space:
     )
 
 
+RENAMED = {
+    "preprocessing": "preprocessing_json"
+}  # record field -> proto field: the proto carries a JSON string
+
+
 def model_info(v: ModelView) -> pb.ModelInfo:
-    """A model view as ModelInfo."""
-    return pb.ModelInfo(
-        name=v.name,
-        env_id=v.env_id,
-        observation_space=space(v.observation_space),
-        action_space=space(v.action_space),
-        context_length=v.context_length,
-        statistic=v.statistic,
-        goals=[pb.Goal(**asdict(g)) for g in v.goals],
-        preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
-        action_modes=list(v.action_modes),
-        switch_relabel_steps=v.switch_relabel_steps,
-        **versions(v),
-    )
+    """A model view as ModelInfo: every field of the model record (`gmt.common.spec.ModelInfo`), and the versions."""
+    out = {f.name: getattr(v, f.name) for f in fields(ModelInfo)} | {
+        "observation_space": space(v.observation_space),
+        "action_space": space(v.action_space),
+        "goals": [pb.Goal(**asdict(g)) for g in v.goals],
+        "action_modes": list(v.action_modes),
+        "preprocessing": json.dumps(v.preprocessing) if v.preprocessing else "",
+    }
+    return pb.ModelInfo(**{RENAMED.get(k, k): x for k, x in out.items()}, **versions(v))
 
 
 def versions(v: ModelView) -> dict:

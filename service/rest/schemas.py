@@ -23,7 +23,7 @@ from pydantic import (
     field_validator,
 )
 
-from gmt.common.spec import GoalInfo, SessionInfo
+from gmt.common.spec import GoalInfo, ModelInfo, SessionInfo
 from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
 from gmt.service.errors import ServiceError
@@ -59,9 +59,15 @@ class Space(BaseModel):
     n: int | None = None
 
 
-def record_schema(record: type, exclude: frozenset[str] = frozenset()) -> type[BaseModel]:
-    """A pydantic model of a record dataclass (`gmt.common.spec`): the same fields, types and descriptions; a field
-    the record marks `optional` keeps its default, every other one is required (an answer always carries it)."""
+def record_schema(
+    record: type,
+    exclude: frozenset[str] = frozenset(),
+    types: dict[str, object] | None = None,
+    base: type[BaseModel] = BaseModel,
+) -> type[BaseModel]:
+    """A pydantic model of a record dataclass (`gmt.common.spec`): the same fields, types (a nested record's
+    `types` gives its schema) and descriptions; a field the record marks `optional` keeps its default, every
+    other one is required (an answer always carries it)."""
 
     def wire(t: object) -> object:  # a tuple of one type is a JSON array: list it as one
         args = typing.get_args(t)
@@ -73,8 +79,9 @@ def record_schema(record: type, exclude: frozenset[str] = frozenset()) -> type[B
         if f.name in exclude:
             continue
         default = f.default if f.metadata.get("optional") and f.default is not MISSING else ...
-        spec[f.name] = (wire(hints[f.name]), Field(default, description=f.metadata.get("doc") or None))
-    return create_model(f"_{record.__name__}Record", **spec)
+        kind = (types or {}).get(f.name, wire(hints[f.name]))
+        spec[f.name] = (kind, Field(default, description=f.metadata.get("doc") or None))
+    return create_model(f"_{record.__name__}Record", __base__=base, **spec)
 
 
 class GoalOut(record_schema(GoalInfo)):
@@ -154,32 +161,16 @@ class ExampleObservation(BaseModel):
     )
 
 
-class ModelOut(_Versions):
+class ModelOut(
+    record_schema(
+        ModelInfo,
+        types={"observation_space": Space, "action_space": Space, "goals": list[GoalOut]},
+        base=_Versions,
+    )
+):
     """`GET /models/{name}`: spaces, goal table and context length K (of the default version), and the versions."""
 
-    name: str
-    env_id: str
-    observation_space: Space
-    action_space: Space
-    context_length: int
-    statistic: str = Field(
-        description="The per-trajectory statistic the goals cluster, as a client measures it: an expression "
-        "AGG(SOURCE) such as mean(info.x_velocity) or mean(abs(obs[2])), a name (return), or a module:function "
-        "plug-in (docs/your-own-data.md)."
-    )
-    goals: list[GoalOut]
     discrete_actions: bool
-    action_modes: list[str] = Field(description="Accepted `action_mode` values; the first is the default.")
-    preprocessing: dict | None = Field(
-        default=None,
-        description="The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
-        "arguments), to reproduce observations client-side; null for raw environment observations.",
-    )
-    switch_relabel_steps: int = Field(
-        default=0,
-        description="On a goal change without a blend, this many past steps of the session's context take the "
-        "new goal token, as if it had been pursued all along (0: the context keeps its goals).",
-    )
     example_observation: ExampleObservation | None = Field(
         default=None,
         description="What an observation of this model looks like (where it comes from: `source`).",
@@ -189,17 +180,14 @@ class ModelOut(_Versions):
     def of(cls, v: ModelView, example: Example | None = None) -> ModelOut:
         """From the core's view and the model's example observation."""
         return cls(
-            name=v.name,
-            env_id=v.env_id,
-            observation_space=Space(**v.observation_space),
-            action_space=Space(**v.action_space),
-            context_length=v.context_length,
-            statistic=v.statistic,
-            goals=[GoalOut(**asdict(g)) for g in v.goals],
+            **{f.name: getattr(v, f.name) for f in fields(ModelInfo)}
+            | {
+                "observation_space": Space(**v.observation_space),
+                "action_space": Space(**v.action_space),
+                "goals": [GoalOut(**asdict(g)) for g in v.goals],
+                "action_modes": list(v.action_modes),
+            },
             discrete_actions=v.discrete_actions,
-            action_modes=list(v.action_modes),
-            preprocessing=v.preprocessing,
-            switch_relabel_steps=v.switch_relabel_steps,
             example_observation=None if example is None else ExampleObservation(**asdict(example)),
             **_versions(v),
         )
