@@ -33,42 +33,13 @@ import numpy as np
 from gmt.client.errors import ConnectionFailed, NotFound, ServiceError
 from gmt.common.spec import GoalInfo as GoalInfo  # part of the client interface, as ModelInfo
 from gmt.common.spec import ModelInfo
+from gmt.common.spec import SessionInfo as SessionInfo  # the one session record
 
 T = TypeVar("T")
 
 DEFAULT_TIMEOUT_S = 10.0
 DEFAULT_RETRIES = 3
 DEFAULT_BACKOFF_S = 0.2
-
-
-@dataclass(frozen=True)
-class SessionInfo:
-    """A session's state as the server reports it.
-
-    Attributes:
-        goal: The goal pursued (the new goal while a blend runs).
-        step: Timestep of the next observation.
-        blend_from: Goal being faded out (equal to `goal` when no blend runs).
-        context_goals: Goal token of each step in the context, oldest first.
-        expires_in_s: Seconds left before the idle timeout ends the session.
-        recording: Whether the session records its episode.
-        effective_step: In the answer to a goal change: the step of the first act that uses the new goal.
-    """
-
-    session_id: str
-    model: str
-    goal: int
-    goal_name: str = ""
-    step: int = 0
-    context_size: int = 0
-    blend_remaining: int = 0
-    blend_from: int = 0
-    idle_timeout_s: float = 0.0
-    expires_in_s: float = 0.0
-    action_mode: str = ""
-    context_goals: tuple[int, ...] = ()
-    recording: bool = False
-    effective_step: int | None = None
 
 
 @dataclass(frozen=True)

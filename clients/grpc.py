@@ -7,6 +7,7 @@ import math
 import queue
 import threading
 from collections.abc import Mapping, Sequence
+from dataclasses import fields
 from typing import Any
 
 import grpc
@@ -113,38 +114,25 @@ def space_from_proto(s: pb.Space) -> dict:
 
 def model_from_proto(m: pb.ModelInfo) -> ModelInfo:
     """A `ModelInfo` from the gRPC message."""
+    values = {f.name: getattr(m, f.name) for f in fields(ModelInfo) if f.name != "preprocessing"}
     return ModelInfo(
-        name=m.name,
-        env_id=m.env_id,
-        observation_space=space_from_proto(m.observation_space),
-        action_space=space_from_proto(m.action_space),
-        context_length=m.context_length,
-        statistic=m.statistic,
-        goals=[GoalInfo(g.id, g.name, g.mean, g.std, g.min, g.max, g.count) for g in m.goals],
-        preprocessing=json.loads(m.preprocessing_json) if m.preprocessing_json else None,
-        action_modes=list(m.action_modes),
-        switch_relabel_steps=m.switch_relabel_steps,
+        **values
+        | {
+            "observation_space": space_from_proto(m.observation_space),
+            "action_space": space_from_proto(m.action_space),
+            "goals": [GoalInfo(**{f.name: getattr(g, f.name) for f in fields(GoalInfo)}) for g in m.goals],
+            "preprocessing": json.loads(m.preprocessing_json) if m.preprocessing_json else None,
+            "action_modes": list(m.action_modes),
+        }
     )
 
 
 def session_from_proto(s: pb.SessionInfo) -> SessionInfo:
     """A `SessionInfo` from the gRPC message."""
-    return SessionInfo(
-        session_id=s.session_id,
-        model=s.model,
-        goal=s.goal,
-        goal_name=s.goal_name,
-        step=s.step,
-        context_size=s.context_size,
-        blend_remaining=s.blend_remaining,
-        blend_from=s.blend_from,
-        idle_timeout_s=s.idle_timeout_s,
-        expires_in_s=s.expires_in_s,
-        action_mode=s.action_mode,
-        context_goals=tuple(s.context_goals),
-        recording=s.recording,
-        effective_step=s.effective_step if s.HasField("effective_step") else None,
-    )
+    values = {f.name: getattr(s, f.name) for f in fields(SessionInfo)}
+    values["context_goals"] = tuple(s.context_goals)
+    values["effective_step"] = s.effective_step if s.HasField("effective_step") else None
+    return SessionInfo(**values)
 
 
 def timeline_from_proto(t: pb.Timeline) -> Timeline:

@@ -77,18 +77,12 @@ def _worth_retrying(r: httpx.Response, safe: bool) -> bool:
 
 def model_from_json(d: dict) -> ModelInfo:
     """A `ModelInfo` from a `GET /models/{name}` body."""
-    return ModelInfo(
-        name=d["name"],
-        env_id=d["env_id"],
-        observation_space=d["observation_space"],
-        action_space=d["action_space"],
-        context_length=int(d.get("context_length", 0)),
-        statistic=d.get("statistic", ""),
-        goals=[GoalInfo(**{k: g[k] for k in GoalInfo.__dataclass_fields__}) for g in d.get("goals", [])],
-        preprocessing=d.get("preprocessing"),
-        action_modes=list(d.get("action_modes", [])),
-        switch_relabel_steps=int(d.get("switch_relabel_steps", 0)),
-    )
+    fields = {k: d[k] for k in ModelInfo.__dataclass_fields__ if d.get(k) is not None}
+    fields["goals"] = [
+        GoalInfo(**{k: g[k] for k in GoalInfo.__dataclass_fields__}) for g in fields.get("goals", [])
+    ]
+    fields["action_modes"] = list(fields.get("action_modes", []))
+    return ModelInfo(**fields)
 
 
 def session_from_json(d: dict) -> SessionInfo:

@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from gmt.common.envs import make_env
-from gmt.common.spec import GoalInfo, ModelInfo
+from gmt.common.spec import ModelInfo
 from gmt.common.statistics import signal_from_step
 from gmt.common.tables import markdown_table
 from gmt.model.checkpoint import Checkpoint
@@ -266,7 +266,7 @@ def model_info(ckpt: Checkpoint) -> ModelInfo:
         action_space=ckpt.action_space,
         context_length=ckpt.config.context_length,
         statistic=ckpt.statistic,
-        goals=[GoalInfo(g.id, g.name, g.mean, g.std, g.min, g.max, g.count) for g in ckpt.goals],
+        goals=list(ckpt.goals),  # a checkpoint's goals are the goal record (gmt.common.spec.GoalInfo)
         preprocessing=ckpt.preprocessing,
     )
 

@@ -1,21 +1,11 @@
 """A goal of a trained model: one cluster of training trajectories and the spread of their statistic.
 
-Relabelling (`gmt.model.data.relabel`) finds the goals; a checkpoint stores them (`gmt.model.checkpoint`).
+Relabelling (`gmt.model.data.relabel`) finds the goals; a checkpoint stores them (`gmt.model.checkpoint`). The record
+is the one goal record clients and server share (`gmt.common.spec.GoalInfo`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from gmt.common.spec import GoalInfo as Goal
 
-
-@dataclass
-class Goal:
-    """One goal: a cluster of trajectories and the spread of their statistic."""
-
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
+__all__ = ["Goal"]

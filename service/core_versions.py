@@ -286,7 +286,7 @@ class Versions(CoreState):
     @staticmethod
     def _gone(name: str) -> ModelView:
         """The view of a model whose last version was unloaded: no versions."""
-        return ModelView(name, "", {}, {}, 0, "", [], False, ())
+        return ModelView(name, "", {}, {}, 0, "", discrete_actions=False)
 
     async def _model_of(self, s: Session) -> LoadedModel:
         """The loaded version a session runs; a version this server lacks is found under the checkpoint roots by

@@ -3,9 +3,9 @@ bounds of its calls. The adapters (REST, gRPC, console) convert these; nothing h
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from gmt.model.checkpoint import Goal
+from gmt.common.spec import ModelInfo, SessionInfo
 
 MAX_ACT_ITEMS = 4096  # most (session, observation) items in one many-session act (POST /act, gRPC ActBatch)
 MAX_LIST_SESSIONS = 500  # the longest page of `list_sessions`
@@ -31,54 +31,19 @@ class VersionView:
 
 
 @dataclass(frozen=True)
-class ModelView:
-    """What clients learn about a model: its default version's spaces and goals, and its version table."""
+class ModelView(ModelInfo):
+    """What clients learn about a model: the model record (`gmt.common.spec.ModelInfo`) of its default version,
+    and its version table."""
 
-    name: str
-    env_id: str
-    observation_space: dict
-    action_space: dict
-    context_length: int
-    statistic: str
-    goals: list[Goal]
-    discrete_actions: bool
-    action_modes: tuple[str, ...]  # the first is the default
-    preprocessing: dict | None = None  # the observation pipeline of the training data (Atari frames)
-    switch_relabel_steps: int = 0  # past steps a goal change at once relabels (`PolicyEngine.set_goal`)
-    version: str = ""  # the version this view describes (the default)
-    versions: tuple[VersionView, ...] = ()
-    default_version: str = ""
-    canary: tuple[str, float] | None = None  # (version, share of new sessions)
+    discrete_actions: bool = field(kw_only=True)
+    version: str = field(default="", kw_only=True)  # the version this view describes (the default)
+    versions: tuple[VersionView, ...] = field(default=(), kw_only=True)
+    default_version: str = field(default="", kw_only=True)
+    canary: tuple[str, float] | None = field(default=None, kw_only=True)  # (version, share of new sessions)
 
 
-@dataclass(frozen=True)
-class SessionView:
-    """What clients learn about a session.
-
-    Attributes:
-        goal: The goal the session pursues (the target of a running blend).
-        blend_from: The goal being faded out (equal to `goal` when no blend runs).
-        context_goals: Goal token of each step in the context, oldest first.
-        expires_in_s: Seconds left before the idle timeout ends the session.
-        recording: Whether the session records its episode.
-        effective_step: For a goal change, the step of the first act that uses the new goal (else None).
-    """
-
-    session_id: str
-    model: str
-    model_version: str
-    goal: int
-    goal_name: str
-    step: int
-    context_size: int
-    blend_remaining: int
-    blend_from: int
-    action_mode: str
-    idle_timeout_s: float
-    expires_in_s: float
-    context_goals: list[int]
-    recording: bool = False
-    effective_step: int | None = None
+SessionView = SessionInfo
+"""What clients learn about a session: the one session record (`gmt.common.spec.SessionInfo`)."""
 
 
 @dataclass(frozen=True)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, fields
 
 import numpy as np
 
+from gmt.common.spec import ModelInfo
 from gmt.service.errors import InvalidArgument, ServiceError
 from gmt.service.ids import echoed_id
 from gmt.service.observations import decode_tensor
@@ -32,21 +33,21 @@ def space(d: dict) -> pb.Space:
     )
 
 
+RENAMED = {
+    "preprocessing": "preprocessing_json"
+}  # record field -> proto field: the proto carries a JSON string
+
+
 def model_info(v: ModelView) -> pb.ModelInfo:
-    """A model view as ModelInfo."""
-    return pb.ModelInfo(
-        name=v.name,
-        env_id=v.env_id,
-        observation_space=space(v.observation_space),
-        action_space=space(v.action_space),
-        context_length=v.context_length,
-        statistic=v.statistic,
-        goals=[pb.Goal(**asdict(g)) for g in v.goals],
-        preprocessing_json=json.dumps(v.preprocessing) if v.preprocessing else "",
-        action_modes=list(v.action_modes),
-        switch_relabel_steps=v.switch_relabel_steps,
-        **versions(v),
-    )
+    """A model view as ModelInfo: every field of the model record (`gmt.common.spec.ModelInfo`), and the versions."""
+    out = {f.name: getattr(v, f.name) for f in fields(ModelInfo)} | {
+        "observation_space": space(v.observation_space),
+        "action_space": space(v.action_space),
+        "goals": [pb.Goal(**asdict(g)) for g in v.goals],
+        "action_modes": list(v.action_modes),
+        "preprocessing": json.dumps(v.preprocessing) if v.preprocessing else "",
+    }
+    return pb.ModelInfo(**{RENAMED.get(k, k): x for k, x in out.items()}, **versions(v))
 
 
 def versions(v: ModelView) -> dict:
@@ -61,24 +62,8 @@ def versions(v: ModelView) -> dict:
 
 
 def session_info(v: SessionView) -> pb.SessionInfo:
-    """A session view as SessionInfo."""
-    return pb.SessionInfo(
-        session_id=v.session_id,
-        model=v.model,
-        goal=v.goal,
-        goal_name=v.goal_name,
-        step=v.step,
-        context_size=v.context_size,
-        blend_remaining=v.blend_remaining,
-        idle_timeout_s=v.idle_timeout_s,
-        action_mode=v.action_mode,
-        context_goals=v.context_goals,
-        expires_in_s=v.expires_in_s,
-        blend_from=v.blend_from,
-        model_version=v.model_version,
-        effective_step=v.effective_step,
-        recording=v.recording,
-    )
+    """A session view as SessionInfo (the proto carries every field of the record under its name)."""
+    return pb.SessionInfo(**{f.name: getattr(v, f.name) for f in fields(SessionView)})
 
 
 def timeline(v: TimelineView) -> pb.Timeline:

@@ -7,7 +7,8 @@ JSON numbers (`2.0`), which JSON Schema counts as integers too.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+import typing
+from dataclasses import MISSING, asdict, fields
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -18,9 +19,11 @@ from pydantic import (
     StrictBool,
     StrictInt,
     StrictStr,
+    create_model,
     field_validator,
 )
 
+from gmt.common.spec import GoalInfo, ModelInfo, SessionInfo
 from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
 from gmt.service.errors import ServiceError
@@ -56,16 +59,33 @@ class Space(BaseModel):
     n: int | None = None
 
 
-class GoalOut(BaseModel):
-    """One goal of a model's goal table (a cluster of the per-trajectory statistic)."""
+def record_schema(
+    record: type,
+    exclude: frozenset[str] = frozenset(),
+    types: dict[str, object] | None = None,
+    base: type[BaseModel] = BaseModel,
+) -> type[BaseModel]:
+    """A pydantic model of a record dataclass (`gmt.common.spec`): the same fields, types (a nested record's
+    `types` gives its schema) and descriptions; a field the record marks `optional` keeps its default, every
+    other one is required (an answer always carries it)."""
 
-    id: int
-    name: str
-    mean: float
-    std: float
-    min: float
-    max: float
-    count: int
+    def wire(t: object) -> object:  # a tuple of one type is a JSON array: list it as one
+        args = typing.get_args(t)
+        return list[args[0]] if typing.get_origin(t) is tuple and args[1:] == (Ellipsis,) else t
+
+    hints = typing.get_type_hints(record)
+    spec = {}
+    for f in fields(record):
+        if f.name in exclude:
+            continue
+        default = f.default if f.metadata.get("optional") and f.default is not MISSING else ...
+        kind = (types or {}).get(f.name, wire(hints[f.name]))
+        spec[f.name] = (kind, Field(default, description=f.metadata.get("doc") or None))
+    return create_model(f"_{record.__name__}Record", __base__=base, **spec)
+
+
+class GoalOut(record_schema(GoalInfo)):
+    """One goal of a model's goal table (a cluster of the per-trajectory statistic)."""
 
 
 class VersionOut(BaseModel):
@@ -141,32 +161,16 @@ class ExampleObservation(BaseModel):
     )
 
 
-class ModelOut(_Versions):
+class ModelOut(
+    record_schema(
+        ModelInfo,
+        types={"observation_space": Space, "action_space": Space, "goals": list[GoalOut]},
+        base=_Versions,
+    )
+):
     """`GET /models/{name}`: spaces, goal table and context length K (of the default version), and the versions."""
 
-    name: str
-    env_id: str
-    observation_space: Space
-    action_space: Space
-    context_length: int
-    statistic: str = Field(
-        description="The per-trajectory statistic the goals cluster, as a client measures it: an expression "
-        "AGG(SOURCE) such as mean(info.x_velocity) or mean(abs(obs[2])), a name (return), or a module:function "
-        "plug-in (docs/your-own-data.md)."
-    )
-    goals: list[GoalOut]
     discrete_actions: bool
-    action_modes: list[str] = Field(description="Accepted `action_mode` values; the first is the default.")
-    preprocessing: dict | None = Field(
-        default=None,
-        description="The observation pipeline of the training data (Atari: Gymnasium wrappers and their "
-        "arguments), to reproduce observations client-side; null for raw environment observations.",
-    )
-    switch_relabel_steps: int = Field(
-        default=0,
-        description="On a goal change without a blend, this many past steps of the session's context take the "
-        "new goal token, as if it had been pursued all along (0: the context keeps its goals).",
-    )
     example_observation: ExampleObservation | None = Field(
         default=None,
         description="What an observation of this model looks like (where it comes from: `source`).",
@@ -176,17 +180,14 @@ class ModelOut(_Versions):
     def of(cls, v: ModelView, example: Example | None = None) -> ModelOut:
         """From the core's view and the model's example observation."""
         return cls(
-            name=v.name,
-            env_id=v.env_id,
-            observation_space=Space(**v.observation_space),
-            action_space=Space(**v.action_space),
-            context_length=v.context_length,
-            statistic=v.statistic,
-            goals=[GoalOut(**asdict(g)) for g in v.goals],
+            **{f.name: getattr(v, f.name) for f in fields(ModelInfo)}
+            | {
+                "observation_space": Space(**v.observation_space),
+                "action_space": Space(**v.action_space),
+                "goals": [GoalOut(**asdict(g)) for g in v.goals],
+                "action_modes": list(v.action_modes),
+            },
             discrete_actions=v.discrete_actions,
-            action_modes=list(v.action_modes),
-            preprocessing=v.preprocessing,
-            switch_relabel_steps=v.switch_relabel_steps,
             example_observation=None if example is None else ExampleObservation(**asdict(example)),
             **_versions(v),
         )
@@ -265,23 +266,8 @@ class ResetSession(_Request):
     target: float | None = None
 
 
-class SessionOut(BaseModel):
+class SessionOut(record_schema(SessionInfo, exclude=frozenset({"effective_step"}))):
     """A session's state."""
-
-    session_id: str
-    model: str
-    model_version: str = Field(description="The model version the session runs for its whole life.")
-    goal: int
-    goal_name: str
-    step: int
-    context_size: int
-    blend_remaining: int
-    blend_from: int
-    action_mode: str
-    idle_timeout_s: float
-    expires_in_s: float
-    context_goals: list[int]
-    recording: bool = Field(False, description="Whether the session records its episode.")
 
     @classmethod
     def of(cls, v: SessionView) -> SessionOut:
