@@ -215,7 +215,8 @@ class Sessions(CoreState):
                 m.engine.forget(sid)
         self.metrics.created(m.name, m.version, s.owner)
         await self._count_live()
-        log.info("session created", extra={"session": short_id(s.id), "model": m.key, "goal": g})
+        owned = {"key": s.owner} if s.owner else {}  # the key's name, never its token
+        log.info("session created", extra={"session": short_id(s.id), "model": m.key, "goal": g, **owned})
         return self._view_session(s)
 
     async def _existing(self, sid: str, request: str) -> Session:

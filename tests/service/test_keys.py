@@ -216,9 +216,15 @@ def test_gmt_serve_logs_the_key_names_and_never_a_token(ckpt_root, key_file):
         with httpx.Client(base_url=p.url, timeout=30) as http:
             assert http.get("/sessions").status_code == 401
             assert listed(http, "bob-token-2") == (0, set())
+            made = http.post(
+                "/sessions", json={"model": "tiny-gmt", "goal": 0}, headers=bearer("bob-token-2")
+            )
+            assert made.status_code == 201, made.text
     finally:
         p.kill()
     assert not any(t in json.dumps(p.lines) for t in ("alice-token-1", "bob-token-2", "root-token"))
+    created = [rec for rec in p.lines if rec.get("msg") == "session created"]
+    assert [rec.get("key") for rec in created] == ["bob"]  # the log names the key that created it
 
 
 def test_a_stored_session_without_owner_is_read_as_anyones(engine):
