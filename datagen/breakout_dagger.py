@@ -102,10 +102,9 @@ def collect(
 
     from gmt.common.envs import make_env
     from gmt.datagen.breakout import ENV_ID, recompress, update_metadata
-    from gmt.model.checkpoint import load_checkpoint
+    from gmt.model.checkpoint import load_checkpoint, model_info
     from gmt.model.data.minari_io import write_dataset
     from gmt.model.engine import PolicyEngine
-    from gmt.model.evaluate_return import model_info
 
     start = time.time()
     if not 1 <= seeds <= 1000:

@@ -16,6 +16,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load as load_tensors
 from safetensors.torch import save_file
 
+from gmt.common.spec import ModelInfo
 from gmt.model.config import GMTConfig
 from gmt.model.gmt import GMT
 from gmt.model.goals import Goal
@@ -349,3 +350,24 @@ def state_dicts_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     """Whether two modules hold bit-identical parameters and buffers."""
     sa, sb = a.state_dict(), b.state_dict()
     return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def model_info(ckpt: Checkpoint, **served) -> ModelInfo:
+    """The checkpoint as a client sees it (`GET /models/{name}`): enough to build its environment.
+
+    Args:
+        served: Fields a server sets from its engine (`action_modes`, `switch_relabel_steps`, `name`).
+    """
+    return ModelInfo(
+        **{
+            "name": ckpt.name,
+            "env_id": ckpt.env_id,
+            "observation_space": ckpt.observation_space,
+            "action_space": ckpt.action_space,
+            "context_length": ckpt.config.context_length,
+            "statistic": ckpt.statistic,
+            "goals": list(ckpt.goals),  # a checkpoint's goals are the goal record (gmt.common.spec.GoalInfo)
+            "preprocessing": ckpt.preprocessing,
+            **served,
+        }
+    )

@@ -34,10 +34,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from gmt.common.envs import make_env
-from gmt.common.spec import ModelInfo
 from gmt.common.statistics import signal_from_step
 from gmt.common.tables import markdown_table
-from gmt.model.checkpoint import Checkpoint
+from gmt.model.checkpoint import Checkpoint, model_info
 from gmt.model.engine import PolicyEngine
 from gmt.model.evaluate import play_lockstep
 
@@ -255,20 +254,6 @@ class ReturnEvalResult:
             )
             + ".\n"
         )
-
-
-def model_info(ckpt: Checkpoint) -> ModelInfo:
-    """The checkpoint as a client sees it (`GET /models/{name}`): enough to build its environment."""
-    return ModelInfo(
-        name=ckpt.name,
-        env_id=ckpt.env_id,
-        observation_space=ckpt.observation_space,
-        action_space=ckpt.action_space,
-        context_length=ckpt.config.context_length,
-        statistic=ckpt.statistic,
-        goals=list(ckpt.goals),  # a checkpoint's goals are the goal record (gmt.common.spec.GoalInfo)
-        preprocessing=ckpt.preprocessing,
-    )
 
 
 def evaluate_returns(

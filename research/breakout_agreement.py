@@ -19,9 +19,8 @@ import numpy as np
 
 from gmt.common.envs import make_env
 from gmt.datagen.breakout import LEVELS, TrackingAgent, read_ram
-from gmt.model.checkpoint import load_checkpoint
+from gmt.model.checkpoint import load_checkpoint, model_info
 from gmt.model.engine import PolicyEngine
-from gmt.model.evaluate_return import model_info
 
 LOW_HALF = 100  # RAM ball y below which (larger y) a descending ball is on its way to the paddle (at ~183)
 

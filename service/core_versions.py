@@ -7,9 +7,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
+from dataclasses import fields
 from pathlib import Path
 
-from gmt.model.checkpoint import CheckpointError
+from gmt.model.checkpoint import CheckpointError, model_info
 from gmt.service.batcher import MicroBatcher
 from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, PermissionDenied, ServiceError
@@ -64,18 +65,15 @@ class Versions(CoreState):
     def _view_model(self, mv: ModelVersions) -> ModelView:
         m = mv.versions[mv.default]
         c = m.checkpoint
-        return ModelView(
+        info = model_info(
+            c,
             name=m.name,
-            env_id=c.env_id,
-            observation_space=c.observation_space,
-            action_space=c.action_space,
-            context_length=c.config.context_length,
-            statistic=c.statistic,
-            goals=list(c.goals),
-            discrete_actions=c.config.discrete_actions,
             action_modes=m.engine.describe().action_modes,
-            preprocessing=c.preprocessing,
             switch_relabel_steps=m.engine.switch_relabel_steps,
+        )
+        return ModelView(
+            **{f.name: getattr(info, f.name) for f in fields(info)},
+            discrete_actions=c.config.discrete_actions,
             version=m.version,
             versions=tuple(
                 VersionView(v.version, self.store.local_count(v.key), v.state, v.fingerprint)

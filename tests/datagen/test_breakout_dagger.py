@@ -13,10 +13,9 @@ pytest.importorskip("cv2")
 from gmt.common.envs import make_env  # noqa: E402
 from gmt.datagen.breakout import LEVELS, CollectConfig, TrackingAgent, collect_breakout, read_ram  # noqa: E402
 from gmt.datagen.breakout_dagger import collect, merge, parse_goals  # noqa: E402
-from gmt.model.checkpoint import load_checkpoint  # noqa: E402
+from gmt.model.checkpoint import load_checkpoint, model_info  # noqa: E402
 from gmt.model.data.minari_io import load_dataset  # noqa: E402
 from gmt.model.data.relabel import GoalTable  # noqa: E402
-from gmt.model.evaluate_return import model_info  # noqa: E402
 
 CKPT = Path(__file__).resolve().parents[2] / "checkpoints" / "breakout5-gmt"
 
