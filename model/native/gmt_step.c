@@ -30,7 +30,7 @@ typedef struct {
 } Model;
 
 #define NB 32 /* output columns per tile (must match model/native/__init__.py TILE) */
-#define MB 4  /* rows per tile */
+#define MB 8  /* rows per tile: 8 x NB / 16 = 16 vector accumulators */
 
 /* y[m, n0:n0+nb] = b + x[m, :] . w[:, n] for up to MB rows; `wt` is the packed tile [K, NB]. */
 static inline __attribute__((always_inline)) void tile(const float *x, int64_t K, const float *wt, int64_t N,
@@ -58,6 +58,10 @@ static void linear(const float *x, int64_t M, int64_t K, const float *w, const f
         int64_t m = 0;
         for (; m + MB <= M; m += MB) tile(x + m * K, K, wt, N, b, y + m * N, n0, MB, nb);
         switch (M - m) { /* the last rows as one block */
+        case 7: tile(x + m * K, K, wt, N, b, y + m * N, n0, 7, nb); break;
+        case 6: tile(x + m * K, K, wt, N, b, y + m * N, n0, 6, nb); break;
+        case 5: tile(x + m * K, K, wt, N, b, y + m * N, n0, 5, nb); break;
+        case 4: tile(x + m * K, K, wt, N, b, y + m * N, n0, 4, nb); break;
         case 3: tile(x + m * K, K, wt, N, b, y + m * N, n0, 3, nb); break;
         case 2: tile(x + m * K, K, wt, N, b, y + m * N, n0, 2, nb); break;
         case 1: tile(x + m * K, K, wt, N, b, y + m * N, n0, 1, nb); break;
