@@ -18,12 +18,14 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from gmt.service.core import Core
 from gmt.service.errors import PayloadTooLarge, ServiceError
+from gmt.service.ids import echoed_id
 from gmt.service.observations import decode_base64, decode_tensor
 from gmt.service.records import Report, check_report
 from gmt.service.rest import media
 from gmt.service.rest import schemas as S
 from gmt.service.rest.answers import error_bytes, session_header, validation_message
 from gmt.service.settings import Settings
+from gmt.service.views import ActResult
 
 log = logging.getLogger("gmt.rest")
 
@@ -52,6 +54,19 @@ async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
     r = await core.act(session_id, observation(body), body.step, report(body))
     action = r.action if r.action is not None else r.discrete_action
     return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
+
+
+def many_answer(ids: list[str], results: list[ActResult | ServiceError]) -> bytes:
+    """`POST /act`'s JSON answer (`S.ActManyOut`, None fields left out), written by orjson: per item the act's
+    answer or its error (an id too long to name a session is answered as "")."""
+    out = []
+    for sid, r in zip(ids, results, strict=True):
+        if isinstance(r, ServiceError):
+            out.append({"session_id": echoed_id(sid), "error": {"code": r.code, "message": r.message}})
+        else:
+            action = r.action if r.action is not None else r.discrete_action
+            out.append({"session_id": r.session_id, "action": action, "step": r.step, "goal": r.goal})
+    return orjson.dumps({"results": out})
 
 
 async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:

@@ -143,7 +143,7 @@ async def act(session_id: str, request: Request, core: CoreDep) -> Response:
     tags=["sessions"],
     responses=errors(400, 413, 503),
 )
-async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
+async def act_many(body: S.ActMany, core: CoreDep) -> Response:
     """One step for each of many sessions in one forward pass; results in request order, a bad item fails alone
     (HTTP 200 for the call). A session may appear once per call."""
     items = []
@@ -155,9 +155,9 @@ async def act_many(body: S.ActMany, core: CoreDep) -> S.ActManyOut:
             obs = e
         items.append((r.session_id, obs, r.step, report))
     out = await core.act_many(items)
-    return S.ActManyOut(
-        results=[S.ActItemOut.of(r.session_id, o) for r, o in zip(body.requests, out, strict=True)]
-    )
+    # `S.ActManyOut` written by orjson in one pass (`act.many_answer`): three pydantic passes per item were ~5% of
+    # POST /act's time at 256 sessions.
+    return Response(act_path.many_answer([r.session_id for r in body.requests], out), media_type="application/json")
 
 
 @api.put(
