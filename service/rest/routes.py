@@ -157,7 +157,9 @@ async def act_many(body: S.ActMany, core: CoreDep) -> Response:
     out = await core.act_many(items)
     # `S.ActManyOut` written by orjson in one pass (`act.many_answer`): three pydantic passes per item were ~5% of
     # POST /act's time at 256 sessions.
-    return Response(act_path.many_answer([r.session_id for r in body.requests], out), media_type="application/json")
+    return Response(
+        act_path.many_answer([r.session_id for r in body.requests], out), media_type="application/json"
+    )
 
 
 @api.put(
