@@ -52,21 +52,28 @@ async def act_answer(core: Core, session_id: str, raw: bytes) -> bytes:
     """
     body = S.Act.model_validate_json(raw)
     r = await core.act(session_id, observation(body), body.step, report(body))
+    return orjson.dumps(act_fields(r))
+
+
+def act_fields(r: ActResult) -> dict:
+    """One act's answer (`S.ActOut`): the action (a list for Box spaces, an int for Discrete ones), step, goal, id."""
     action = r.action if r.action is not None else r.discrete_action
-    return orjson.dumps({"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id})
+    return {"action": action, "step": r.step, "goal": r.goal, "session_id": r.session_id}
 
 
 def many_answer(ids: list[str], results: list[ActResult | ServiceError]) -> bytes:
-    """`POST /act`'s JSON answer (`S.ActManyOut`, None fields left out), written by orjson: per item the act's
-    answer or its error (an id too long to name a session is answered as "")."""
-    out = []
-    for sid, r in zip(ids, results, strict=True):
-        if isinstance(r, ServiceError):
-            out.append({"session_id": echoed_id(sid), "error": {"code": r.code, "message": r.message}})
-        else:
-            action = r.action if r.action is not None else r.discrete_action
-            out.append({"session_id": r.session_id, "action": action, "step": r.step, "goal": r.goal})
-    return orjson.dumps({"results": out})
+    """`POST /act`'s JSON answer (`S.ActManyOut`, None fields left out), written by orjson in one pass: per item
+    the act's answer or its error (an id too long to name a session is answered as "")."""
+    return orjson.dumps(
+        {
+            "results": [
+                {"session_id": echoed_id(sid), "error": {"code": r.code, "message": r.message}}
+                if isinstance(r, ServiceError)
+                else act_fields(r)
+                for sid, r in zip(ids, results, strict=True)
+            ]
+        }
+    )
 
 
 async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:

@@ -26,11 +26,9 @@ from pydantic import (
 from gmt.common.spec import GoalInfo, ModelInfo, SessionInfo
 from gmt.model.checkpoint import VERSION_PATTERN
 from gmt.model.engine import MAX_BLEND_STEPS
-from gmt.service.errors import ServiceError
 from gmt.service.examples import Example
-from gmt.service.ids import echoed_id
 from gmt.service.records import MAX_INFO_KEYS, MAX_REPORTED
-from gmt.service.views import MAX_ACT_ITEMS, ActResult, ModelView, SessionView, TimelineView
+from gmt.service.views import MAX_ACT_ITEMS, ModelView, SessionView, TimelineView
 
 
 def _integral(v: object) -> object:
@@ -409,22 +407,13 @@ class ActMany(_Request):
 
 
 class ActOut(BaseModel):
-    """The action for the observation (a list for Box spaces, an int for Discrete ones)."""
+    """The action for the observation (a list for Box spaces, an int for Discrete ones); written by
+    `gmt.service.rest.act.act_fields`."""
 
     action: list[float] | int
     step: int
     goal: int
     session_id: str
-
-    @classmethod
-    def of(cls, r: ActResult) -> ActOut:
-        """From the core's result."""
-        return cls(
-            action=r.action if r.action is not None else r.discrete_action,
-            step=r.step,
-            goal=r.goal,
-            session_id=r.session_id,
-        )
 
 
 class ErrorBody(BaseModel):
@@ -442,20 +431,14 @@ class ErrorOut(BaseModel):
 
 class ActItemOut(BaseModel):
     """One item of `POST /act`'s answer: the action (as `POST /sessions/{id}/act` answers it) or the error that
-    failed this item alone (the same code and message that call would have answered)."""
+    failed this item alone (the same code and message that call would have answered); written by
+    `gmt.service.rest.act.many_answer`."""
 
     session_id: str
     action: list[float] | int | None = None
     step: int | None = None
     goal: int | None = None
     error: ErrorBody | None = None
-
-    @classmethod
-    def of(cls, session_id: str, r: ActResult | ServiceError) -> ActItemOut:
-        """From the core's result or error (an id too long to name a session is answered as "")."""
-        if isinstance(r, ServiceError):
-            return cls(session_id=echoed_id(session_id), error=ErrorBody(code=r.code, message=r.message))
-        return cls(**ActOut.of(r).model_dump())
 
 
 class ActManyOut(BaseModel):
