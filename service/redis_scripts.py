@@ -30,8 +30,10 @@ return -1
 # KEYS: per session its hash, then the lists its change appends to (its timeline, its recording: 0 to 2 keys, all
 # in the session's slot). ARGV: key TTL ms, then per session: the expected `ver` ('' = any), the number n of
 # fields, the number m of lists, the n field/value pairs, then per list the number c of values and the c values.
-# The fields are written and the values appended only if the compare-and-set passes. Returns per session 0 when
-# written, -1 when the session is gone (never revived), -2 when another writer came first.
+# The fields are written and the values appended only if the compare-and-set passes; an appended list's TTL is set
+# again, the hash's is not (each replica's sweep sets the TTLs of the sessions it served, `RedisSessionStore.sweep`:
+# a PEXPIRE per act cost a quarter of the script's time and one more command for every replica and the AOF).
+# Returns per session 0 when written, -1 when the session is gone (never revived), -2 when another writer came first.
 SAVE = """
 local ttl, a, k, out = ARGV[1], 2, 1, {}
 while k <= #KEYS do
@@ -41,7 +43,6 @@ while k <= #KEYS do
   local ok = cur and (expect == '' or cur == expect)
   if ok then
     redis.call('HSET', key, unpack(ARGV, a, a + 2 * n - 1))
-    redis.call('PEXPIRE', key, ttl)
   end
   a = a + 2 * n
   for j = 1, m do

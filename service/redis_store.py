@@ -15,7 +15,8 @@ Sentinel promotes has every acknowledged step (docs/reliability.md).
 
 Expiry follows each session's own `last_used`; `live`'s scores are refreshed by each replica's sweep (for the
 sessions it served), so they can be stale by one sweep period and the sweep checks the session itself before it
-expires one. Redis key TTLs only collect sessions nobody touched for twice the timeout.
+expires one. Redis key TTLs only collect sessions nobody touched for twice the timeout: the same sweep sets them
+again for the sessions it served (an act does not), so they run out at least the idle timeout after a last use.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ from gmt.service.redis_keys import TOMBSTONE_TTL_S, RedisKeys
 from gmt.service.redis_local import LocalView
 from gmt.service.sessions import Clock, Session, SessionStore, brief, expired_message, not_found_message
 from gmt.service.settings import Settings
+
+SEND_AHEAD = 64  # changes of one `save_many` sent to Redis as they are built (the rest with the turn's write)
 
 
 class RedisSessionStore(SessionStore):
@@ -233,18 +236,26 @@ class RedisSessionStore(SessionStore):
         self._saved(session, outcome)
 
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
-        entries, refused = [], {}
-        for i, (session, read_version) in enumerate(
-            items
-        ):  # all in this turn: one script call writes them all
+        # All in this turn. Every SEND_AHEAD changes go to Redis as they are built (`GroupCommit.send_now`), so
+        # Redis applies them while the rest are built; the last ones go with the turn's write (and its WAIT).
+        entries, refused, sent = [], {}, []
+        for i, (session, read_version) in enumerate(items):
             try:
                 entries.append(self._entry(session, read_version))
             except ServiceError as e:
                 refused[i] = e
-        try:
-            outcomes = iter(await self.commit.enqueue(entries) if entries else ())
-        except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
-            outcomes = iter([e] * len(entries))
+            if len(entries) == SEND_AHEAD and i < len(items) - 1:
+                sent.append((len(entries), self.commit.send_now(entries)))
+                entries = []
+        if entries or sent:  # (even none: the turn's write carries the WAIT that covers those sent ahead)
+            sent.append((len(entries), self.commit.enqueue(entries)))
+        outcomes_list: list = []
+        for n, fut in sent:
+            try:
+                outcomes_list += await fut
+            except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
+                outcomes_list += [e] * n
+        outcomes = iter(outcomes_list)
         out: list[ServiceError | None] = []
         for i, (session, _) in enumerate(items):
             if i in refused:
@@ -367,7 +378,13 @@ class RedisSessionStore(SessionStore):
         low = self.clock() - self.idle_timeout_s
         used = {sid: h.session.last_used for sid, h in held.items() if h.session.last_used > h.refreshed}
         if used:
-            await self._call(self.redis.zadd(live, used, xx=True, gt=True))
+            # Their keys' TTLs too: an act does not set them (`redis_scripts.SAVE`).
+            async with self.redis.pipeline(transaction=False) as p:
+                p.zadd(live, used, xx=True, gt=True)
+                for sid in used:
+                    for key in (self.layout.session(sid), *self.layout.lists(sid)):
+                        p.pexpire(key, self.layout.ttl_ms)
+                await self._call(p.execute())
             for sid, t in used.items():
                 held[sid].refreshed = t
         stale = [

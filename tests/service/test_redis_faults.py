@@ -305,3 +305,114 @@ def test_writes_sent_while_a_wait_is_in_flight_share_the_next_wait(tmp_path, eng
         assert (evals, waits) == (5, 2)
     finally:
         _stop(primary, replica)
+
+
+def test_a_many_session_write_goes_out_in_parts_as_it_is_built_and_one_wait_covers_them(tmp_path, engine):
+    """`save_many` with `min_replicas`: each SEND_AHEAD changes go to Redis as soon as they are built, and the turn's
+    write carries the one WAIT that covers them all, even when the items after the last full part were all refused
+    (the turn's write then has no change of its own). Every change is acknowledged and held by the replica; Redis
+    ran one script per part but one WAIT."""
+    import asyncio
+
+    import redis
+
+    from gmt.service.errors import Aborted
+    from gmt.service.redis_store import SEND_AHEAD, RedisSessionStore
+    from gmt.service.sessions import Session
+
+    port, replica_port = free_port(), free_port()
+    primary = _redis_node(port, tmp_path / "primary", aof=False)
+    replica = _redis_node(
+        replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port), aof=False
+    )
+    n, refused = 2 * SEND_AHEAD, 10
+    try:
+        _poll(
+            lambda: cluster._replica_in_sync("127.0.0.1", replica_port, port), 10, "the replica did not sync"
+        )
+
+        async def scenario() -> tuple:
+            store = RedisSessionStore(
+                f"redis://127.0.0.1:{port}/0", 60, n + refused, time.time, min_replicas=1, wait_timeout_s=20
+            )
+            sids = [f"s{i:03d}" for i in range(n + refused)]
+            items = []
+            for sid in sids:
+                await store.create(
+                    Session(sid, "tiny-gmt", engine.new_context(0, key=sid), time.time(), time.time())
+                )
+                got = await store.get(sid)
+                read = got.ctx.version
+                got.ctx = engine.from_stored(got.ctx, key=sid)
+                engine.act([got.ctx], [np.zeros(17, np.float32)])
+                items.append((got, read if len(items) < n else read + 1))  # the last ones: a stale version
+            await store.save(*items[0])  # opens the store's own connection (the fast path)
+            items = items[1:]
+            with redis.Redis(port=port) as r:
+                r.config_resetstat()
+                results = await store.save_many(items)
+                stats = r.info("commandstats")
+            await store.close()
+            return results, stats["cmdstat_eval"]["calls"], stats["cmdstat_wait"]["calls"], sids
+
+        results, evals, waits, sids = asyncio.run(scenario())
+        assert results[: n - 1] == [None] * (n - 1)
+        assert all(isinstance(e, Aborted) for e in results[n - 1 :]) and len(results) == n - 1 + refused
+        # n - 1 changes: one part of SEND_AHEAD sent ahead, the rest (and the refused ones) with the turn's write.
+        assert (evals, waits) == (2, 1)
+        with redis.Redis(port=replica_port) as rr:  # the replica holds every acknowledged step
+            steps = [session_codec.decode(rr.hgetall(f"gmt:{{{sid}}}:s")).ctx.step for sid in sids]
+        assert steps == [1] * n + [0] * refused
+    finally:
+        _stop(primary, replica)
+
+
+def test_changes_sent_ahead_on_a_connection_that_then_closes_fail_instead_of_waiting_forever(tmp_path, engine):
+    """A part sent ahead (`GroupCommit.send_now`) is covered by the WAIT of the turn's write; if the connection
+    closes first, no WAIT on it will come: the part fails `unavailable` (unknown whether it was applied), and the
+    turn's write goes out on a fresh connection and is acknowledged."""
+    import asyncio
+
+    from gmt.service.errors import Unavailable
+    from gmt.service.redis_store import RedisSessionStore
+    from gmt.service.sessions import Session
+
+    port, replica_port = free_port(), free_port()
+    primary = _redis_node(port, tmp_path / "primary", aof=False)
+    replica = _redis_node(
+        replica_port, tmp_path / "replica", "--replicaof", "127.0.0.1", str(port), aof=False
+    )
+    try:
+        _poll(
+            lambda: cluster._replica_in_sync("127.0.0.1", replica_port, port), 10, "the replica did not sync"
+        )
+
+        async def scenario() -> list:
+            store = RedisSessionStore(
+                f"redis://127.0.0.1:{port}/0", 60, 10, time.time, min_replicas=1, wait_timeout_s=20
+            )
+            entries = []
+            for sid in ("a", "b"):
+                await store.create(
+                    Session(sid, "tiny-gmt", engine.new_context(0, key=sid), time.time(), time.time())
+                )
+                got = await store.get(sid)
+                got.ctx = engine.from_stored(got.ctx, key=sid)
+                for t in range(2):  # a step saved (opening the fast connection), then one to write
+                    read = got.ctx.version
+                    engine.act([got.ctx], [np.zeros(17, np.float32)])
+                    if t == 0:
+                        await store.save(got, read)
+                entries.append(store._entry(got, read))
+            ahead = store.commit.send_now([entries[0]])
+            store.commit.fast.close()
+            last = store.commit.enqueue([entries[1]])
+            out = await asyncio.wait_for(asyncio.gather(ahead, last, return_exceptions=True), 30)  # never hangs
+            await store.close()
+            return out
+
+        ahead, last = asyncio.run(scenario())
+        assert isinstance(ahead, Unavailable) and "closed before a WAIT covered" in str(ahead)
+        assert last == [0]
+    finally:
+        _stop(primary, replica)

@@ -270,3 +270,41 @@ def test_with_a_shared_store_a_replica_holds_a_slot_only_for_sessions_it_acts_fo
             assert http.delete(f"/sessions/{sid}").status_code == 204 and pool.live == 0
     finally:
         s.stop()
+
+
+def test_the_sweep_keeps_the_keys_of_a_session_in_use_from_their_ttl(redis_clean, engine, clock):
+    """Acts do not set the keys' TTL (`redis_scripts.SAVE`); the replica's sweep sets it again for every session it
+    served since its last sweep: the session hash and the lists beside it, so a session in use never loses them."""
+    import redis
+
+    from gmt.service.redis_store import RedisSessionStore
+
+    async def scenario() -> tuple:
+        store = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=4, clock=clock)
+        try:
+            ctx = engine.new_context(0, key="kept")
+            await store.create(Session("kept", "tiny-gmt", ctx, clock(), clock()))
+            keys = [store.layout.session("kept"), *store.layout.lists("kept")]
+            with redis.Redis.from_url(redis_clean) as r:
+                held = [k for k in keys if r.exists(k)]
+                for k in held:
+                    r.pexpire(k, 5_000)  # as if the session had been created long ago
+                got = await store.get("kept")
+                read = got.ctx.version
+                if not isinstance(got.ctx, type(ctx)):
+                    got.ctx = engine.from_stored(got.ctx, key="kept")
+                engine.act([got.ctx], [np.zeros(17, np.float32)])
+                clock.advance(1)
+                got.last_used = clock()
+                await store.save(got, read)
+                after_act = [r.pttl(k) for k in held]
+                await store.sweep()
+                after_sweep = [r.pttl(k) for k in held]
+        finally:
+            await store.close()
+        return held, after_act, after_sweep, store.layout.ttl_ms
+
+    held, after_act, after_sweep, ttl_ms = asyncio.run(scenario())
+    assert held and held[0].endswith(":s")
+    assert all(0 < t <= 5_000 for t in after_act)  # the act left the TTL alone
+    assert all(ttl_ms - 5_000 < t <= ttl_ms for t in after_sweep)  # the sweep set it again
