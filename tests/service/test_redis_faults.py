@@ -367,7 +367,9 @@ def test_a_many_session_write_goes_out_in_parts_as_it_is_built_and_one_wait_cove
         _stop(primary, replica)
 
 
-def test_changes_sent_ahead_on_a_connection_that_then_closes_fail_instead_of_waiting_forever(tmp_path, engine):
+def test_changes_sent_ahead_on_a_connection_that_then_closes_fail_instead_of_waiting_forever(
+    tmp_path, engine
+):
     """A part sent ahead (`GroupCommit.send_now`) is covered by the WAIT of the turn's write; if the connection
     closes first, no WAIT on it will come: the part fails `unavailable` (unknown whether it was applied), and the
     turn's write goes out on a fresh connection and is acknowledged."""
@@ -407,7 +409,9 @@ def test_changes_sent_ahead_on_a_connection_that_then_closes_fail_instead_of_wai
             ahead = store.commit.send_now([entries[0]])
             store.commit.fast.close()
             last = store.commit.enqueue([entries[1]])
-            out = await asyncio.wait_for(asyncio.gather(ahead, last, return_exceptions=True), 30)  # never hangs
+            out = await asyncio.wait_for(
+                asyncio.gather(ahead, last, return_exceptions=True), 30
+            )  # never hangs
             await store.close()
             return out
 
