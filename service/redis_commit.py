@@ -89,26 +89,6 @@ class GroupCommit:
                 loop.call_soon(self._flush)
         return fut
 
-    def send_now(self, entries: list[tuple[list, list]]) -> asyncio.Future:
-        """Send these changes at once, ahead of the turn's write, for a caller that has more of the turn's changes
-        still to build: Redis applies them while the caller builds the rest. Their future answers as `enqueue`'s
-        does; with replicas to wait for, the WAIT that the turn's write sends (or the next one) covers them.
-
-        The caller must `enqueue` its last changes in the same turn (that write sends the covering WAIT)."""
-        conn = self.fast
-        if conn is None or conn.closed:
-            return self.enqueue(entries)  # no open connection: the turn's write connects first
-        fut = asyncio.get_running_loop().create_future()
-        queue = [(entries, fut)]
-        command = save_command(entries, self._ttl_ms)
-        if not self.min_replicas:
-            conn.send(lambda replies: self._answer(queue, conn, replies), command)
-        else:
-            got: list = []
-            self.uncovered.append((queue, got))
-            conn.send(got.append, command)
-        return fut
-
     def _flush(self, spin_s: float = 0.0) -> None:
         """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
         them, one WAIT in flight at a time: the writes sent while one is in flight share the next, `_waited`): at
@@ -128,12 +108,10 @@ class GroupCommit:
                 self.uncovered.append((queue, got))
                 conn.send(got.append, *commands)
             else:
-                # This WAIT also covers the writes sent ahead of the turn's (`send_now`).
                 self.waiting_on = conn
-                group, self.uncovered = [*self.uncovered, (queue, None)], []
                 wait = ["WAIT", self.min_replicas, self.wait_ms]
                 conn.send(
-                    lambda replies: self._waited(conn, group, replies),
+                    lambda replies: self._waited(conn, [(queue, None)], replies),
                     *commands,
                     wait,
                     spin_s=spin_s,
@@ -141,25 +119,19 @@ class GroupCommit:
             return
         if self.min_replicas:
             commands.append(["WAIT", self.min_replicas, self.wait_ms])
-            # Writes sent ahead on a connection that has closed since: no WAIT on it will cover them.
-            uncovered, self.uncovered = self.uncovered, []
-            for early, _ in uncovered:
-                self._answer(
-                    early, conn, resp.ConnectionLost("the connection closed before a WAIT covered the write")
-                )
         task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
         task.add_done_callback(self._flushes.discard)
 
     def _waited(self, conn: resp.RespConnection, group: list[tuple[list, list | None]], replies) -> None:
         """Answer the writes a WAIT covered, from their script's replies and the WAIT's (`replies`: [script, WAIT]
-        for the write sent with it, the WAIT alone for those sent while another WAIT was in flight or ahead of the
-        turn's write); then send one WAIT for the writes sent meanwhile, or fail them with the connection."""
+        for the write sent with it, then the WAIT alone for those sent while another WAIT was in flight); then
+        send one WAIT for the writes sent meanwhile, or fail them with the connection."""
         for queue, got in group:
             if got is None or isinstance(replies, BaseException):
                 self._answer(queue, conn, replies)
             elif got and not isinstance(got[0], BaseException):
-                self._answer(queue, conn, [*got[0], replies[-1]])
+                self._answer(queue, conn, [*got[0], *replies])
             else:
                 self._answer(queue, conn, got[0] if got else resp.ConnectionLost("no reply to the write"))
         if self.waiting_on is not conn:

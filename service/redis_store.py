@@ -45,8 +45,6 @@ from gmt.service.redis_local import LocalView
 from gmt.service.sessions import Clock, Session, SessionStore, brief, expired_message, not_found_message
 from gmt.service.settings import Settings
 
-SEND_AHEAD = 64  # changes of one `save_many` sent to Redis as they are built (the rest with the turn's write)
-
 
 class RedisSessionStore(SessionStore):
     """A `SessionStore` over Redis: one server, or a primary that Redis Sentinel watches (redis-py asyncio client).
@@ -236,26 +234,18 @@ class RedisSessionStore(SessionStore):
         self._saved(session, outcome)
 
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
-        # All in this turn. Every SEND_AHEAD changes go to Redis as they are built (`GroupCommit.send_now`), so
-        # Redis applies them while the rest are built; the last ones go with the turn's write (and its WAIT).
-        entries, refused, sent = [], {}, []
-        for i, (session, read_version) in enumerate(items):
+        entries, refused = [], {}
+        for i, (session, read_version) in enumerate(
+            items
+        ):  # all in this turn: one script call writes them all
             try:
                 entries.append(self._entry(session, read_version))
             except ServiceError as e:
                 refused[i] = e
-            if len(entries) == SEND_AHEAD and i < len(items) - 1:
-                sent.append((len(entries), self.commit.send_now(entries)))
-                entries = []
-        if entries or sent:  # (even none: the turn's write carries the WAIT that covers those sent ahead)
-            sent.append((len(entries), self.commit.enqueue(entries)))
-        outcomes_list: list = []
-        for n, fut in sent:
-            try:
-                outcomes_list += await fut
-            except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
-                outcomes_list += [e] * n
-        outcomes = iter(outcomes_list)
+        try:
+            outcomes = iter(await self.commit.enqueue(entries) if entries else ())
+        except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
+            outcomes = iter([e] * len(entries))
         out: list[ServiceError | None] = []
         for i, (session, _) in enumerate(items):
             if i in refused:
