@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import functools
 import logging
-from collections.abc import Awaitable, Callable
+import types
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -57,7 +59,16 @@ async def run_whole(work: Awaitable[T], undo: Callable[[T], Awaitable[object]] |
     unit = Unit()
     token = _CURRENT.set(unit)
     try:
-        task = asyncio.ensure_future(work)  # the task copies the context: it runs with `unit` current
+        if isinstance(work, types.CoroutineType):
+            # Its first step runs here, as an eager task's would: a change that never waits (a lone session's act
+            # on the server that holds it) completes without a task and the two turns of the loop it costs.
+            try:
+                waits_for = work.send(None)
+            except StopIteration as done:
+                return done.value
+            task = asyncio.ensure_future(_Resumed(work, waits_for).run())
+        else:
+            task = asyncio.ensure_future(work)  # the task copies the context: it runs with `unit` current
     finally:
         _CURRENT.reset(token)
     try:
@@ -70,6 +81,32 @@ async def run_whole(work: Awaitable[T], undo: Callable[[T], Awaitable[object]] |
         elif not task.done():
             _orphan(task)
         raise
+
+
+class _Resumed:
+    """A coroutine that `run_whole` started, driven on from where it first waits, as its own task would drive it."""
+
+    __slots__ = ("coro", "waits_for")
+
+    def __init__(self, coro: Coroutine, waits_for: object) -> None:
+        self.coro, self.waits_for = coro, waits_for
+
+    async def run(self):
+        return await self
+
+    def __await__(self):
+        coro, waits_for = self.coro, self.waits_for
+        while True:
+            try:
+                sent = yield waits_for  # the task waits for what the coroutine waits for, then resumes it
+            except BaseException as e:  # noqa: BLE001 - thrown in by the task (a cancellation): passed on
+                step = functools.partial(coro.throw, e)
+            else:
+                step = functools.partial(coro.send, sent)
+            try:
+                waits_for = step()
+            except StopIteration as done:
+                return done.value
 
 
 async def _undone(task: asyncio.Future[T], undo: Callable[[T], Awaitable[object]]) -> None:
