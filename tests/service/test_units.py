@@ -51,27 +51,33 @@ def test_a_change_that_waits_goes_on_in_a_task_with_its_unit_and_answers():
     assert asyncio.run(caller()) == ("done", False)
 
 
+async def _start_then_give_up(change, reached: asyncio.Event, gate: asyncio.Event) -> None:
+    """Run `change()` as one unit, cancel its caller once it has `reached` its wait, then open its `gate`."""
+    call = asyncio.ensure_future(units.run_whole(change()))
+    await reached.wait()
+    call.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    gate.set()
+
+
 def test_a_caller_that_gives_up_before_the_point_of_no_return_drops_the_change():
     async def scenario():
-        gate, reached, finished = asyncio.Event(), asyncio.Event(), []
+        gate, reached, ended, finished = asyncio.Event(), asyncio.Event(), asyncio.Event(), []
 
         async def change():
             reached.set()
             try:
                 await gate.wait()
+                finished.append("completed")
             except asyncio.CancelledError:
                 finished.append("cancelled")
                 raise
-            finished.append("completed")
+            finally:
+                ended.set()
 
-        call = asyncio.ensure_future(units.run_whole(change()))
-        await reached.wait()
-        call.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await call
-        gate.set()
-        for _ in range(5):
-            await asyncio.sleep(0)
+        await _start_then_give_up(change, reached, gate)
+        await asyncio.wait_for(ended.wait(), 5)
         return finished
 
     assert asyncio.run(scenario()) == ["cancelled"]
@@ -86,14 +92,8 @@ def test_a_caller_that_gives_up_past_the_point_of_no_return_leaves_the_change_to
             reached.set()
             await gate.wait()
             done.set()
-            return "stored"
 
-        call = asyncio.ensure_future(units.run_whole(change()))
-        await reached.wait()
-        call.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await call
-        gate.set()
+        await _start_then_give_up(change, reached, gate)
         await asyncio.wait_for(done.wait(), 5)  # (raises TimeoutError if the change was dropped)
         return done.is_set()
 
