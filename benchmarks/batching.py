@@ -51,19 +51,25 @@ def commit_tree(commit: str, into: Path) -> Path:
 
 
 @contextlib.contextmanager
-def commit_servers(checkpoint: Path, commits: dict[str, str]) -> Iterator[dict]:
+def commit_servers(
+    checkpoint: Path, commits: dict[str, str], extra: dict[str, tuple[str, ...]] | None = None
+) -> Iterator[dict]:
     """`gmt serve` of each named commit at once, each from its own `git archive` tree (all the same way: a server
-    run from the editable install measured slower here than the same code run from such a tree): yields {name:
-    (process, its 'serving' log record)}; the servers are stopped and the trees removed on leaving."""
+    run from the editable install measured slower here than the same code run from such a tree), with `extra[name]`
+    added to its command line: yields {name: (process, its 'serving' log record)}; the servers are stopped and the
+    trees removed on leaving."""
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-commits-"))
     procs: dict = {}
+    trees: dict[str, Path] = {}
     try:
         for name, commit in commits.items():
-            root = commit_tree(commit, tmp / name)
+            if commit not in trees:
+                trees[commit] = commit_tree(commit, tmp / f"tree-{len(trees)}")
+            root = trees[commit]
             old_path = os.environ.get("PYTHONPATH")
             os.environ["PYTHONPATH"] = str(root)
             try:
-                procs[name] = start_server(checkpoint, naive=False)
+                procs[name] = start_server(checkpoint, naive=False, extra=(extra or {}).get(name, ()))
             finally:
                 if old_path is None:
                     os.environ.pop("PYTHONPATH")

@@ -12,6 +12,8 @@ SECTIONS = (
     "store",
     "batching",
     "stream",
+    "store-ab",
+    "store-ab-replicated",
     "records",
     "cluster",
     "soak",
@@ -36,7 +38,7 @@ def bench_command(
     markdown: Path = typer.Option(None, help="Also write the tables (as in docs/performance.md) here."),
     baseline: str = typer.Option(
         None,
-        help="The commit the batching and stream sections compare this checkout with (default: each's own).",
+        help="The commit the batching, stream and store-ab sections compare this checkout with (default: each's own).",
     ),
 ) -> None:
     """Engine, serving and training figures as JSON, every one beside the naive baseline of the same run.

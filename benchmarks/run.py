@@ -18,6 +18,7 @@ from gmt.bench.harness import SESSIONS, default_size_checkpoint
 from gmt.bench.records import bench_records
 from gmt.bench.serving import bench_serving
 from gmt.bench.store import bench_store
+from gmt.bench.store_ab import bench_store_ab
 from gmt.bench.stream import bench_stream
 from gmt.bench.training import bench_training
 
@@ -57,7 +58,7 @@ def run(
     baseline: str | None = None,
 ) -> dict:
     """Every requested section; a temporary default-size `window` checkpoint when none is given; `baseline`: the
-    commit the batching and stream sections compare with (None: each section's own)."""
+    commit the batching, stream and store-ab sections compare with (None: each section's own)."""
     against = {"baseline": baseline} if baseline else {}
     result: dict = {"machine": machine()}
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-"))
@@ -86,6 +87,21 @@ def run(
                 )
         if "stream" in sections:
             result["stream"] = bench_stream(checkpoint or _default(tmp), max(sessions), seconds, **against)
+        for section in ("store-ab", "store-ab-replicated"):
+            if section not in sections:
+                continue
+            if shutil.which("wrk") is None or shutil.which("redis-server") is None:
+                result[section] = {
+                    "skipped": "wrk and redis-server are needed (apt-get install wrk redis-server)"
+                }
+            else:
+                result[section] = bench_store_ab(
+                    checkpoint or _default(tmp),
+                    max(sessions),
+                    seconds,
+                    replicated=section.endswith("replicated"),
+                    **against,
+                )
         if "records" in sections:
             if shutil.which("wrk") is None or shutil.which("redis-server") is None:
                 result["records"] = {

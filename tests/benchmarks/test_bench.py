@@ -202,3 +202,25 @@ def test_grpc_client_counts_act_batch_items_that_failed(window_ckpt):
         proc.terminate()
         proc.wait(30)
     assert res["sessions"] == 3 and res["errors"] > 0 and res["acts_per_s"] > 0
+
+
+def test_store_ab_section_runs_four_servers_and_takes_each_rounds_ratio(window_ckpt):
+    from gmt.bench.store_ab import bench_store_ab
+
+    res = bench_store_ab(window_ckpt, sessions=3, seconds=2.0, rounds=2, baseline="HEAD", current="HEAD")
+    assert set(res["servers"]) == {"current-memory", "current-redis", "baseline-memory", "baseline-redis"}
+    for name, loads in res["servers"].items():
+        for load in ("rest", "rest_batch"):
+            row = loads[load]
+            assert len(row["rounds"]) == 2 and row["errors"] == 0 and row["acts_per_s"] > 0, (name, load, row)
+    for load in ("rest", "rest_batch"):
+        for c in ("current", "baseline"):
+            mem, red = res["servers"][f"{c}-memory"][load], res["servers"][f"{c}-redis"][load]
+            want = [
+                round(b["acts_per_s"] / a["acts_per_s"], 3)
+                for a, b in zip(mem["rounds"], red["rounds"], strict=True)
+            ]
+            assert res["ratios"][load][c]["rounds"] == want
+        d = res["difference"][load]
+        cur, base = res["ratios"][load]["current"]["mean"], res["ratios"][load]["baseline"]["mean"]
+        assert d["current_minus_baseline"] == round(cur - base, 3) and d["standard_error"] >= 0
