@@ -13,15 +13,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from gmt.bench import harness
 from gmt.bench.batching import commit_servers, over_commits
-from gmt.bench.harness import (
-    bench_rest,
-    bench_rest_batch,
-    close_sessions,
-    open_sessions,
-    redis_server,
-    replicated_redis,
-)
 
 LOADS = ("rest", "rest_batch")
 
@@ -47,10 +40,10 @@ def bench_store_ab(
     redis_procs, urls = [], {}
     for name in ("current", "baseline"):
         if replicated:
-            procs, url = replicated_redis(tmp / name)
+            procs, url = harness.replicated_redis(tmp / name)
             urls[name] = ("--redis-url", url, "--store-min-replicas", "1")
         else:
-            proc, url = redis_server()
+            proc, url = harness.redis_server()
             procs = [proc]
             urls[name] = ("--redis-url", url)
         redis_procs += procs
@@ -64,11 +57,11 @@ def bench_store_ab(
                 n: (f"http://127.0.0.1:{info['rest_port']}", info["models"][0])
                 for n, (_, info) in procs.items()
             }
-            sids = {n: open_sessions(url, model, sessions) for n, (url, model) in at.items()}
+            sids = {n: harness.open_sessions(url, model, sessions) for n, (url, model) in at.items()}
             for r in range(rounds):
                 for n, (url, _) in at.items():
-                    rows[n]["rest"].append(bench_rest(url, sids[n], per_round))
-                    rows[n]["rest_batch"].append(bench_rest_batch(url, sids[n], per_round))
+                    rows[n]["rest"].append(harness.bench_rest(url, sids[n], per_round))
+                    rows[n]["rest_batch"].append(harness.bench_rest_batch(url, sids[n], per_round))
                 print(
                     f"[bench] store-ab round {r + 1}/{rounds}: "
                     + ", ".join(
@@ -78,7 +71,7 @@ def bench_store_ab(
                     file=sys.stderr,
                 )
             for n, (url, _) in at.items():
-                close_sessions(url, sids[n])
+                harness.close_sessions(url, sids[n])
     finally:
         for p in redis_procs:
             p.terminate()
