@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-import functools
 import logging
 import types
 from collections.abc import Awaitable, Callable, Coroutine
@@ -98,15 +97,14 @@ class _Resumed:
         coro, waits_for = self.coro, self.waits_for
         while True:
             try:
-                sent = yield waits_for  # the task waits for what the coroutine waits for, then resumes it
+                yield waits_for  # the task waits for what the coroutine waits for ...
             except BaseException as e:  # noqa: BLE001 - thrown in by the task (a cancellation): passed on
-                step = functools.partial(coro.throw, e)
-            else:
-                step = functools.partial(coro.send, sent)
-            try:
-                waits_for = step()
-            except StopIteration as done:
-                return done.value
+                try:
+                    waits_for = coro.throw(e)
+                except StopIteration as done:
+                    return done.value
+                continue
+            return (yield from coro.__await__())  # ... then resumes it, and the task drives it from there
 
 
 async def _undone(task: asyncio.Future[T], undo: Callable[[T], Awaitable[object]]) -> None:
