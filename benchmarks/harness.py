@@ -62,8 +62,17 @@ def start_server(
         extra: More `gmt serve` flags.
         tuning: More tuning knobs, as GMT_* environment variables.
     """
-    exe = Path(sys.executable).parent / "gmt"
-    args = [str(exe), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
+    exe = Path(sys.executable).parent / "gmt"  # else the package installed with --target (a device machine)
+    args = [
+        *([str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]),
+        "serve",
+        "-c",
+        str(checkpoint),
+        "--rest-port",
+        "0",
+        "--grpc-port",
+        "0",
+    ]
     args += ["--log-level", "INFO", "--max-sessions", "4096", *extra]
     env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
     # Tuning knobs are environment variables only (`gmt.service.settings.TUNING`).
@@ -196,13 +205,17 @@ def obs_json() -> str:
     return json.dumps([round(float(x), 4) for x in np.random.default_rng(0).normal(size=OBS_DIM) * 0.1])
 
 
-def bench_rest(url: str, sids: list[str], seconds: float, extra: dict | None = None) -> dict:
-    """One call per act, one connection per session; `extra` adds fields to every act's body."""
+def bench_rest(
+    url: str, sids: list[str], seconds: float, extra: dict | None = None, observation: list | None = None
+) -> dict:
+    """One call per act, one connection per session; `extra` adds fields to every act's body; `observation`:
+    what every act sends (default `obs_json()`'s)."""
     ids = ",".join(f'"{s}"' for s in sids)
     more = "".join(f', "{k}": {json.dumps(v)}' for k, v in (extra or {}).items())
+    obs = obs_json() if observation is None else json.dumps(observation, separators=(",", ":"))
     script = f"""
 local ids = {{{ids}}}
-local body = '{{"observation": {obs_json()}{more}}}'
+local body = '{{"observation": {obs}{more}}}'
 local i = 0
 request = function()
   i = i + 1
@@ -220,10 +233,10 @@ end
     }
 
 
-def bench_rest_batch(url: str, sids: list[str], seconds: float) -> dict:
-    """Every session's observation in one `POST /act` call, one connection."""
-    obs = obs_json()
-    body = json.dumps({"requests": [{"session_id": s, "observation": json.loads(obs)} for s in sids]})
+def bench_rest_batch(url: str, sids: list[str], seconds: float, observation: list | None = None) -> dict:
+    """Every session's observation in one `POST /act` call, one connection; `observation`: as `bench_rest`'s."""
+    obs = json.loads(obs_json()) if observation is None else observation
+    body = json.dumps({"requests": [{"session_id": s, "observation": obs} for s in sids]})
     # The routing key a game server (and gmt.client's act_many) sends: behind nginx every call goes to one replica.
     key = min(sids)
     script = f"""

@@ -12,6 +12,7 @@ from gmt.bench.alternatives import bench_alternatives
 from gmt.bench.batching import bench_batching
 from gmt.bench.cluster import bench_cluster, bench_scaleout
 from gmt.bench.console import bench_console
+from gmt.bench.device import bench_device
 from gmt.bench.engine import bench_engine
 from gmt.bench.failover import bench_failover
 from gmt.bench.harness import SESSIONS, default_size_checkpoint
@@ -56,9 +57,12 @@ def run(
     seconds: float,
     sessions: tuple[int, ...] = SESSIONS,
     baseline: str | None = None,
+    device: str = "auto",
+    replicas: tuple[int, ...] = (1, 2),
 ) -> dict:
     """Every requested section; a temporary default-size `window` checkpoint when none is given; `baseline`: the
-    commit the batching, stream and store-ab sections compare with (None: each section's own)."""
+    commit the batching, stream and store-ab sections compare with (None: each section's own); `device`: where
+    the device section serves; `replicas`: the cluster section's deployments."""
     against = {"baseline": baseline} if baseline else {}
     result: dict = {"machine": machine()}
     tmp = Path(tempfile.mkdtemp(prefix="gmt-bench-"))
@@ -109,8 +113,13 @@ def run(
                 }
             else:
                 result["records"] = bench_records(checkpoint or _default(tmp), 64, seconds)
+        if "device" in sections:
+            if shutil.which("wrk") is None:
+                result["device"] = {"skipped": "wrk is not installed (apt-get install wrk)"}
+            else:
+                result["device"] = bench_device(checkpoint or _default(tmp), sessions, seconds, device)
         if "cluster" in sections:
-            result["cluster"] = bench_scaleout(checkpoint or _default(tmp), max(sessions), seconds)
+            result["cluster"] = bench_scaleout(checkpoint or _default(tmp), max(sessions), seconds, replicas)
         if "soak" in sections:
             result["soak"] = bench_cluster(
                 checkpoint or _default(tmp), max(sessions), 120.0 if seconds >= 8 else seconds
