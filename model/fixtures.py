@@ -15,6 +15,24 @@ from gmt.model.gmt import GMT
 from gmt.model.tokens import ActionCodec, ObsNormalizer
 
 GOAL_NAMES = ("low", "medium", "high")
+# HalfCheetah-v5's spaces, for a machine without the simulator (a GPU machine running the engine's tests).
+_HALFCHEETAH_SPACES = (
+    gym.spaces.Box(-np.inf, np.inf, (17,), np.float64),
+    gym.spaces.Box(-1.0, 1.0, (6,), np.float32),
+)
+
+
+def _spaces(env_id: str) -> tuple[gym.spaces.Space, gym.spaces.Space]:
+    """`env_id`'s observation and action spaces (HalfCheetah-v5's known ones where MuJoCo is not installed)."""
+    try:
+        env = gym.make(env_id)
+    except gym.error.DependencyNotInstalled:
+        if env_id != "HalfCheetah-v5":
+            raise
+        return _HALFCHEETAH_SPACES
+    spaces = env.observation_space, env.action_space
+    env.close()
+    return spaces
 
 
 def tiny_checkpoint(
@@ -45,9 +63,8 @@ def tiny_checkpoint(
         import ale_py
 
         gym.register_envs(ale_py)
-    env = gym.make(env_id)
-    obs_space, act_space = observation_space or env.observation_space, env.action_space
-    env.close()
+    env_obs, act_space = _spaces(env_id)
+    obs_space = observation_space or env_obs
     discrete = isinstance(act_space, gym.spaces.Discrete)
     obs_shape = obs_space.shape if len(obs_space.shape) != 2 else (1, *obs_space.shape)
     cfg = GMTConfig(
@@ -124,9 +141,7 @@ class SyntheticDataset:
     """
 
     def __init__(self, n_episodes: int = 12, length: int = 40, n_goals: int = 3, seed: int = 0) -> None:
-        env = gym.make("HalfCheetah-v5")
-        self.observation_space, self.action_space = env.observation_space, env.action_space
-        env.close()
+        self.observation_space, self.action_space = _spaces("HalfCheetah-v5")
         rng = np.random.default_rng(seed)
         self.env_id, self.dataset_id, self.fingerprint = "HalfCheetah-v5", "synthetic", f"synthetic-{seed}"
         self.preprocessing = None  # raw observations

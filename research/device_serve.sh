@@ -28,7 +28,7 @@ if [ "${INSTALL:-1}" = 1 ]; then
   export PYTHONPATH=/tmp/site
 fi
 export PYTHONUNBUFFERED=1 PATH=$PWD/.devbin/bin:$PATH
-gmt() { python3 -m gmt.service.cli "$@"; }
+GMT="python3 -m gmt.service.cli"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
 nproc
 python3 -c "import gmt, torch, grpc, fastapi; print(gmt.__file__, 'torch', torch.__version__, 'grpc', grpc.__version__, torch.cuda.is_available() and torch.cuda.get_device_name())" || exit 1
@@ -42,12 +42,12 @@ part() {  # name limit_s command...: one part, its stderr to $OUT/<name>.log, bo
   grep '^\[bench\]' "$OUT/$name.log" | tail -20
 }
 log "parity test"
-python3 -m pytest -q -o addopts="" -p no:cacheprovider tests/model/test_device.py 2>&1 | tail -5
-part device-halfcheetah 240 gmt bench --checkpoint checkpoints/halfcheetah-gmt --sections device --device "$DEVICE" \
+python3 -m pytest -q -o addopts="" -p no:cacheprovider --tb=short tests/model/test_device.py 2>&1 | tail -30
+part device-halfcheetah 200 $GMT bench --checkpoint checkpoints/halfcheetah-gmt --sections device --device "$DEVICE" \
   --sessions "$HC_SESSIONS" --seconds "$SECONDS_PER" --out "$OUT/device-halfcheetah.json"
-part device-breakout 120 gmt bench --checkpoint checkpoints/breakout-gmt --sections device --device "$DEVICE" \
+part device-breakout 100 $GMT bench --checkpoint checkpoints/breakout-gmt --sections device --device "$DEVICE" \
   --sessions "$BO_SESSIONS" --seconds "$SECONDS_PER" --out "$OUT/device-breakout.json"
-part cluster 200 gmt bench --checkpoint checkpoints/halfcheetah-gmt --sections cluster --replicas "$REPLICAS" \
+part cluster 180 $GMT bench --checkpoint checkpoints/halfcheetah-gmt --sections cluster --replicas "$REPLICAS" \
   --sessions 256 --seconds "$SECONDS_PER" --out "$OUT/cluster.json"
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader || true
 ls -la "$OUT"
