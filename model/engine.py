@@ -266,6 +266,15 @@ class PolicyEngine:
             p.cache.clear(torch.tensor([slot]))
         return Context(p, slot, key)
 
+    def warm_up(self) -> None:
+        """One act of a throwaway session, released at once: a device's lazy start (its context, its kernels'
+        first launch: ~0.5 s on a GPU) is paid here rather than by the first session's first act."""
+        ctx = self.new_context(0, seed=0)
+        try:
+            self.act([ctx], [np.zeros(self.cfg.obs_shape, np.float32)])
+        finally:
+            self.release(ctx)
+
     @_locked
     def release(self, ctx: Context) -> None:
         p = self.pool

@@ -53,11 +53,14 @@ def engine_for(
 ) -> PolicyEngine:
     """The engine serving a checkpoint: incremental for `window` models, the reference recompute otherwise or when
     `naive`; on `device` (`PolicyEngine`), whose session pool is allocated for `n_slots` sessions up front when it
-    is not the CPU."""
+    is not the CPU, and warmed up there (one throwaway act) so that no session's first act pays the device's start."""
     on_cpu = resolve_device(device) == "cpu"
-    return PolicyEngine(
+    engine = PolicyEngine(
         checkpoint, incremental=False if naive else None, device=device, n_slots=16 if on_cpu else n_slots
     )
+    if not on_cpu:
+        engine.warm_up()
+    return engine
 
 
 def canary_draw(version: str, sid: str) -> float:

@@ -9,6 +9,7 @@ import pytest
 from service_harness import RunningServer, ServeProcess, make_settings
 
 from gmt.bench.cluster import bench_cluster
+from gmt.bench.device import bench_device
 from gmt.bench.engine import bench_engine
 from gmt.bench.harness import rss_bytes
 from gmt.bench.serving import bench_serving
@@ -76,6 +77,29 @@ def test_rss_bytes_sees_memory_being_touched():
     grown = rss_bytes(os.getpid()) - before
     assert before > 2**20 and 60 * 2**20 <= grown <= 80 * 2**20, (before, grown)
     del block
+
+
+@pytest.mark.skipif(shutil.which("wrk") is None, reason="wrk is not installed (apt-get install wrk)")
+def test_device_section_times_both_engines_and_alternates_two_live_servers(window_ckpt):
+    """On a machine without a GPU the device is the CPU's torch step: the same code as on `cuda`."""
+    res = bench_device(window_ckpt, sessions=(1, 3), seconds=1.0, device="cpu", rounds=2, steps=3)
+    assert res["device"] == "cpu" and res["device_name"] == "cpu"
+    assert {(r["path"], r["batch"]) for r in res["engine"]} == {
+        (p, b) for p in ("default", "device") for b in (1, 3)
+    }
+    assert {r["kernel"] for r in res["engine"] if r["path"] == "device"} == {"torch"}
+    for r in res["engine"]:
+        assert r["acts_per_s"] == pytest.approx(r["batch"] / r["ms_per_step"] * 1000, rel=0.02)
+    for server in ("cpu", "device"):
+        for load in ("rest_batch", "rest"):
+            rows = res["served"][server][load]
+            assert [r["sessions"] for r in rows] == [1, 3]
+            for r in rows:  # two rounds each, merged by their median
+                assert r["errors"] == 0 and len(r["rounds"]) == 2 and min(r["rounds"]) > 0, r
+                assert r["acts_per_s"] == pytest.approx(sum(r["rounds"]) / 2, abs=0.1)
+    for load in ("rest_batch", "rest"):
+        cpu, dev = res["served"]["cpu"][load][1], res["served"]["device"][load][1]
+        assert res["device_vs_cpu"][load]["3"] == round(dev["acts_per_s"] / cpu["acts_per_s"], 3)
 
 
 @pytest.mark.skipif(shutil.which("wrk") is None, reason="wrk is not installed (apt-get install wrk)")

@@ -71,3 +71,18 @@ def test_device_names():
     else:
         with pytest.raises(ValueError, match="torch sees no CUDA GPU here"):
             PolicyEngine(_window(), device="cuda")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_warm_up_leaves_no_session_behind_and_changes_no_answer(device):
+    """`engine_for` warms a device engine up with one throwaway act: its slot is free again and the next session
+    answers exactly as on an engine that was never warmed up."""
+    warmed = PolicyEngine(_window(), device=device, native=False, n_slots=4)
+    cold = PolicyEngine(_window(), device=device, native=False, n_slots=4)
+    warmed.warm_up()
+    assert warmed.pool.live == 0 and sorted(warmed.pool.free) == [0, 1, 2, 3]
+    a, b = warmed.new_context(1, seed=3), cold.new_context(1, seed=3)
+    assert a.slot == b.slot  # the same slot, whose cache the warm-up wrote into
+    obs = np.random.default_rng(2).normal(size=(8, 17))
+    for o in obs:
+        np.testing.assert_array_equal(warmed.act([a], [o])[0], cold.act([b], [o])[0])
