@@ -12,7 +12,12 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's
   observation to `POST /act`, p50/p99 per call); gRPC load from a separate client process.
 - `cluster`: {sessions, cores, points: [{deployment, rest, rest_batch}]}: one in-memory `gmt serve`, then
-  `gmt cluster` with 1 and 2 replicas behind nginx (Redis with Sentinel), same load, same run.
+  `gmt cluster` with each of `--replicas` (default 1 and 2) replicas behind nginx (Redis with Sentinel), same load,
+  same run.
+- `device`: {model, device, device_name, sessions, engine: [{path (default | device), device, kernel, batch,
+  ms_per_step, acts_per_s}], served: {cpu | device: {rest_batch | rest: [{sessions, acts_per_s, p50_ms, p99_ms,
+  errors, rounds}]}}, device_vs_cpu}: the checkpoint's engine and `gmt serve --device` (`--device`, default auto)
+  against the default CPU path, both servers up at once, rounds alternated.
 - `soak`: wrk's REST load through `gmt cluster` (nginx, two replicas) for 120 s: errors, latency, each
   replica's memory through two waves of sessions.
 - `console`: {rounds: [{without_console, with_console, console_events, console_listings}], median_acts_per_s,
@@ -36,6 +41,6 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   servers as `batching`, both up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
-One module per section (`engine`, `serving`, `store`, `batching`, `stream`, `cluster`, `failover`, `training`, `alternatives`), what
+One module per section (`engine`, `serving`, `store`, `batching`, `stream`, `device`, `cluster`, `failover`, `training`, `alternatives`), what
 they share in `harness`, the whole run in `run`, its tables in `report`, the command in `cli`.
 """
