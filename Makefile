@@ -46,7 +46,7 @@ demo: $(VENV)/.installed-run
 
 # A Redis primary (redis) and two replicas (redis-replica, redis-replica-2) watched by three sentinels (sentinel-1..3,
 # quorum 2: a failed primary is replaced by a replica), two gmt replicas (gmt-1, gmt-2: --redis-url redis+sentinel://...,
-# --store-min-replicas 1) and nginx (docker/nginx.conf), all on loopback; REST :$(REST_PORT) and gRPC :$(GRPC_PORT)
+# --store-min-replicas 1) and nginx (cluster/nginx.conf), all on loopback; REST :$(REST_PORT) and gRPC :$(GRPC_PORT)
 # through nginx. Returns once all are ready (Redis replicas in sync, sentinels agreeing). Pids, logs, Redis data and
 # sentinel configs in run/cluster/. Needs nginx and redis-server (apt-get install nginx redis-server).
 # More `gmt serve` flags: make cluster CLUSTER_ARGS="-- --idle-timeout 60"; tuning knobs by environment: GMT_MAX_BATCH=32 make cluster

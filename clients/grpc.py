@@ -57,7 +57,7 @@ def _is_connection_error(e: BaseException) -> bool:
 
 
 SESSION_METADATA = (
-    "x-session-id"  # what a proxy routes on (docker/nginx.conf): session ids are in the messages
+    "x-session-id"  # what a proxy routes on (cluster/nginx.conf): session ids are in the messages
 )
 SERVED_BY = "x-served-by"  # the replica that answered: initial metadata, and trailing metadata of its status
 

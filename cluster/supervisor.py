@@ -5,7 +5,7 @@ The session store has no single point of failure: a Redis primary (`redis`) and 
 (`sentinel-1..3`, quorum 2) that promote a replica when the primary fails. Two `gmt serve` replicas (`gmt-1`,
 `gmt-2`) reach the primary through the sentinels (`--redis-url redis+sentinel://...`) and acknowledge a step only
 once a Redis replica holds it (`--store-min-replicas 1`); two Redis replicas, so that one is still there to
-acknowledge after the other was promoted. nginx is in front with `docker/nginx.conf` rendered for loopback
+acknowledge after the other was promoted. nginx is in front with `cluster/nginx.conf` rendered for loopback
 addresses: REST on :8000 and gRPC on :50051 by default (docs/cluster.md; `docker/compose.yaml` is the same
 topology in containers). `up` returns once every process is ready (the Redis replicas in sync, the sentinels
 agreeing on the primary and knowing each other and the replicas, nginx answering on both ports); each
@@ -38,7 +38,8 @@ from pathlib import Path
 
 import typer
 
-NGINX_TEMPLATE = Path(__file__).resolve().parents[1] / "docker" / "nginx.conf"
+# Package data (pyproject.toml): `gmt cluster` runs from an installed wheel too.
+NGINX_TEMPLATE = Path(__file__).with_name("nginx.conf")
 DEFAULT_RUN_DIR = Path("run/cluster")
 REPLICAS = ("gmt-1", "gmt-2")  # the default cluster's gmt replicas (`up(replicas=N)` names gmt-1 .. gmt-N)
 REDIS_NODES = ("redis", "redis-replica", "redis-replica-2")  # the primary `up` starts, then its replicas
@@ -164,7 +165,7 @@ _UPSTREAM_SERVER = re.compile(
 
 
 def for_replicas(text: str, n: int) -> str:
-    """`docker/nginx.conf`'s text with each upstream's `server ${GMT_REST_i} ...` lines repeated for `n` replicas
+    """`cluster/nginx.conf`'s text with each upstream's `server ${GMT_REST_i} ...` lines repeated for `n` replicas
     (the template, like `docker/compose.yaml`, names two)."""
 
     def block(m: re.Match) -> str:
@@ -179,7 +180,7 @@ def for_replicas(text: str, n: int) -> str:
 
 
 def render_nginx_conf(values: Mapping[str, str], template: Path = NGINX_TEMPLATE) -> str:
-    """`docker/nginx.conf` with every `${GMT_*}` placeholder replaced by `values[name]`.
+    """`cluster/nginx.conf` with every `${GMT_*}` placeholder replaced by `values[name]`.
 
     Raises:
         ClusterError: a placeholder without a value (or a value for no placeholder).

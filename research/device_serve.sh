@@ -26,8 +26,6 @@ if [ "${INSTALL:-1}" = 1 ]; then
   log "install"
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
   export PYTHONPATH=/tmp/site
-  # `gmt cluster` renders docker/nginx.conf, found beside the package (a wheel does not carry it)
-  mkdir -p /tmp/site/gmt/docker && cp docker/nginx.conf /tmp/site/gmt/docker/
 fi
 export PYTHONUNBUFFERED=1 PATH=$PWD/.devbin/bin:$PATH
 GMT="python3 -m gmt.service.cli"

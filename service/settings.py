@@ -57,7 +57,7 @@ class Settings(BaseSettings):
         log_level: Python logging level name.
         shutdown_grace_s: Time in-flight calls get to finish on SIGTERM / SIGINT.
         keep_alive_s: An idle HTTP keep-alive connection is closed after this long. Longer than a proxy's
-            upstream keep-alive (60 s in docker/nginx.conf), so that the proxy never reuses a connection the
+            upstream keep-alive (60 s in cluster/nginx.conf), so that the proxy never reuses a connection the
             server is just closing (which it answers with a 502).
         header_timeout_s: A REST request's headers must arrive within this long of its first byte (of the
             connection, for its first request), else 408 and the connection is closed (nginx:

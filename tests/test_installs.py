@@ -200,6 +200,7 @@ def test_an_install_puts_one_import_package_into_site_packages(thin_venv, tmp_pa
     entries = {f.split("/")[0] for f in info["files"] if not f.startswith("..")}  # (bin/gmt lies outside)
     assert entries == {"gmt", f"gmt_service-{info['version']}.dist-info"}, entries
     assert info["top"] == ["gmt"] and not info["others"], info
+    assert "gmt/cluster/nginx.conf" in info["files"]  # `gmt cluster` renders it: an install runs clusters too
     assert Path(info["gmt"]).parent == Path(info["site"]) / "gmt"
     assert info["version"] == PYPROJECT["project"].get("version", info["version"])
 

@@ -1,5 +1,5 @@
 """The scale-out topology for real (docs/cluster.md): `gmt cluster up` starts a Redis primary, two Redis
-replicas and three sentinels, two `gmt serve` replicas and nginx with the shipped docker/nginx.conf on free
+replicas and three sentinels, two `gmt serve` replicas and nginx with the shipped cluster/nginx.conf on free
 loopback ports. nginx routes each session to one replica, and when that replica is killed (SIGKILL) while a
 request is in flight, the clients' retries (with the expected step) continue the episode on the other one with
 exactly the actions of an uninterrupted twin. (The Redis primary killed: tests/service/test_failover.py.)"""
@@ -59,7 +59,7 @@ def test_shipped_nginx_conf_passes_nginx_t(tmp_path):
 
 
 def test_the_template_and_compose_agree():
-    """docker/compose.yaml fills exactly the placeholders of docker/nginx.conf, and the native renderer too."""
+    """docker/compose.yaml fills exactly the placeholders of cluster/nginx.conf, and the native renderer too."""
     text = cluster.NGINX_TEMPLATE.read_text()
     placeholders = set(re.findall(r"\$\{(GMT_[A-Z0-9_]+)\}", text))
     assert set(_loopback_values(Path("/tmp"))) == placeholders

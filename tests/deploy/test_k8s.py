@@ -1,4 +1,4 @@
-"""The Kubernetes manifests (deploy/k8s) hang together and route as docker/nginx.conf does: selectors match their
+"""The Kubernetes manifests (deploy/k8s) hang together and route as cluster/nginx.conf does: selectors match their
 pods, Services name ports that exist, the gmt Deployment is ready on /readyz and reaches the store through every
 sentinel, the sentinels watch it as `gmt cluster up` does, and ingress-nginx hashes on the same session keys.
 
