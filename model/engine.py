@@ -187,6 +187,9 @@ class PolicyEngine:
             )
         self._native = self._native_step(native) if self.incremental else None
         self._predict = Predictor(self.model, self.pool, self.incremental, self._native, self.device)
+        # Slots adopted from a stored form whose key/value cache is rebuilt at their next step: the sessions a
+        # call adopts together are replayed together (`Predictor.rebuild_caches`).
+        self._stale: set[int] = set()
 
     def _native_step(self, native: bool | None):
         """The native step for this model, or None (torch step). Raises if `native` is True and it cannot run."""
@@ -264,6 +267,7 @@ class PolicyEngine:
         p.mode[slot], p.seed[slot] = MODES.index(mode), int(seed)
         if p.cache is not None:
             p.cache.clear(torch.tensor([slot]))
+        self._stale.discard(slot)
         return Context(p, slot, key)
 
     def warm_up(self) -> None:
@@ -281,6 +285,7 @@ class PolicyEngine:
         if ctx.key is not None and p.keys.get(ctx.key) == ctx.slot:
             del p.keys[ctx.key]
         p.release(ctx.slot)
+        self._stale.discard(ctx.slot)
 
     def forget(self, key: str) -> None:
         """Release the slot registered under `key`, if any."""
@@ -316,6 +321,7 @@ class PolicyEngine:
         p.version[s] += 1
         if p.cache is not None:
             p.cache.clear(torch.tensor([s]))
+        self._stale.discard(s)
 
     @_locked
     def set_goal(self, ctx: Context, goal: int, blend_steps: int = 0) -> int:
@@ -351,6 +357,7 @@ class PolicyEngine:
             p.h_blend_w[s, pos] = 0.0
             if p.cache is not None:
                 self._predict.rebuild_cache(s)
+                self._stale.discard(s)
         return n
 
     @_locked
@@ -367,7 +374,7 @@ class PolicyEngine:
         slot = self._slot_for(key)
         p.load(slot, stored, mode)
         if p.cache is not None:
-            self._predict.rebuild_cache(slot)
+            self._stale.add(slot)  # rebuilt at its next step, with the others adopted meanwhile
         return Context(p, slot, key)
 
     # ----- observations -------------------------------------------------------------------------------------
@@ -466,6 +473,11 @@ class PolicyEngine:
 
     def _step(self, slots: np.ndarray, states: np.ndarray) -> tuple[list, np.ndarray]:
         p = self.pool
+        if self._stale:
+            due = [s for s in slots.tolist() if s in self._stale]
+            if due:
+                self._predict.rebuild_caches(due)
+                self._stale.difference_update(due)
         if self._native is not None and not self.discrete:  # all of it in one native call
             taken, ok = self._native.act(p, slots, states, self.noise_var, MODES.index("sample"))
             return list(self.ckpt.action_codec.decode(taken)), ok

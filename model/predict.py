@@ -100,6 +100,36 @@ class Predictor:
             cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
         cache.tok[slot, ring.to(cache.device)] = tok.to(cache.device)
 
+    def rebuild_caches(self, slots: list[int]) -> None:
+        """`rebuild_cache` of each slot. With the native step the slots' stored steps are replayed together, one
+        batched call per step index: the step is batch invariant, so each row's cache is what its own replay
+        writes, at the cost of one call per stored step instead of one per stored step and slot."""
+        if self.native is None or len(slots) == 1:
+            for slot in slots:
+                self.rebuild_cache(slot)
+            return
+        p = self.pool
+        rows = np.asarray(slots, dtype=np.int64)  # [B]
+        p.cache.clear(torch.from_numpy(rows))
+        t = p.step[rows].astype(np.int64)  # [B] steps taken
+        n = np.minimum(t, p.H)  # [B] steps stored
+        for i in range(int(n.max(initial=0))):
+            live = n > i  # [B] rows that still have a stored step i
+            r, s = rows[live], (t - n)[live] + i  # [b] slots, [b] the step each replays now
+            pos = s % p.H  # [b] ring positions
+            # The action before each row's oldest stored step is not stored: zeros, as `_replay_cache` does.
+            prev = p.h_action[r, (s - 1) % p.H] if i else np.zeros_like(p.h_action[r, 0])  # [b, A]
+            self.native(
+                prev,
+                p.h_goal[r, pos],
+                p.h_state[r, pos],
+                s,
+                p.cache,
+                r,
+                p.h_blend_to[r, pos],
+                p.h_blend_w[r, pos],
+            )
+
     def _replay_cache(self, slot: int, t: int, n: int) -> None:
         """Run the stored steps t - n .. t - 1 of `slot` through the native step, oldest first.
 

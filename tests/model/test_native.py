@@ -154,6 +154,39 @@ def test_a_session_rebuilt_from_its_stored_form_continues_bit_for_bit(move_at):
         assert np.array_equal(x, y), t
 
 
+def test_sessions_adopted_together_are_replayed_together_and_continue_bit_for_bit(monkeypatch):
+    """Six sessions of different ages (shorter and longer than the receptive field, one mid-blend, one never
+    stepped) move to another engine and act there in one batch: their caches are replayed in one batched call per
+    stored step, and every action is the one of the same session left in place."""
+    from gmt.bench.harness import default_size_checkpoint
+    from gmt.model.predict import Predictor
+
+    ckpt = default_size_checkpoint(None, K=5)
+    stay, dst = PolicyEngine(ckpt), PolicyEngine(ckpt)
+    H = stay.pool.H  # 13
+    ages = [0, 1, 4, H - 1, H + 7, 40]
+    here = [stay.new_context(i % 3, seed=i) for i in range(len(ages))]
+    rng = np.random.default_rng(4)
+    for t in range(max(ages)):
+        if t == 36:
+            stay.set_goal(here[5], 2, blend_steps=6)  # still blending when it moves
+        acting = [c for c, age in zip(here, ages, strict=True) if t >= max(ages) - age]
+        stay.act(acting, list(rng.normal(size=(len(acting), 17))))
+    replays = []
+    real = Predictor.rebuild_caches
+    monkeypatch.setattr(
+        Predictor, "rebuild_caches", lambda self, slots: (replays.append(list(slots)), real(self, slots))
+    )
+    dst.new_context(0)  # the moved sessions land in other slots than they had
+    moved = [dst.from_stored(c.to_stored(), key=f"m{i}") for i, c in enumerate(here)]
+    for t in range(8):
+        obs = list(rng.normal(size=(len(ages), 17)))
+        want, got = stay.act(here, obs), dst.act(moved, obs)
+        for i, (x, y) in enumerate(zip(want, got, strict=True)):
+            assert np.array_equal(x, y), (t, ages[i])
+    assert replays == [[c.slot for c in moved]]  # one replay of all six, at their first step
+
+
 def test_the_pool_grows_safely_while_acts_run_in_another_thread():
     """New sessions (the pool doubling) arrive on one thread while another acts: every act commits to the
     arrays in use (the engine lock orders them); before the lock the native step wrote into freed arrays."""
