@@ -13,7 +13,6 @@ default CPU path, same checkpoint, same run.
 from __future__ import annotations
 
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gmt.bench import harness
+from gmt.bench.store import _over_rounds
 
 REST_UP_TO = 256  # one connection per session beyond this measures wrk and the accept queue, not the server
 
@@ -138,7 +138,7 @@ def bench_device(
                         fn = harness.bench_rest_batch if load == "rest_batch" else harness.bench_rest
                         per[n, load].append(fn(url, sids[n], seconds / rounds, observation=obs))
             for (n, load), rows in per.items():
-                served[n][load].append(_merge(rows))
+                served[n][load].append(_over_rounds(rows))
             for n, (url, _) in at.items():
                 harness.close_sessions(url, sids[n])
             print(
@@ -168,15 +168,3 @@ def bench_device(
         ratios["p50_1_session"] = round(one[0][1]["p50_ms"] / one[0][0]["p50_ms"], 3)
     out["device_vs_cpu"] = ratios
     return out
-
-
-def _merge(rows: list[dict]) -> dict:
-    """One load's rounds: the median acts/s and p50, the worst p99, every error, and the rounds themselves."""
-    return {
-        "sessions": rows[0]["sessions"],
-        "acts_per_s": round(statistics.median(r["acts_per_s"] for r in rows), 1),
-        "p50_ms": round(statistics.median(r["p50_ms"] for r in rows), 3),
-        "p99_ms": max(r["p99_ms"] for r in rows),
-        "errors": sum(r["errors"] for r in rows),
-        "rounds": [r["acts_per_s"] for r in rows],
-    }
