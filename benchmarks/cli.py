@@ -79,7 +79,7 @@ def bench_command(
 
         try:
             resolve_device(device)
-        except (RuntimeError, ValueError) as e:
+        except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--device") from None
     if not seconds > 0:
         raise typer.BadParameter("must be positive", param_hint="--seconds")

@@ -62,17 +62,9 @@ def start_server(
         extra: More `gmt serve` flags.
         tuning: More tuning knobs, as GMT_* environment variables.
     """
-    exe = Path(sys.executable).parent / "gmt"  # else the package installed with --target (a device machine)
-    args = [
-        *([str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]),
-        "serve",
-        "-c",
-        str(checkpoint),
-        "--rest-port",
-        "0",
-        "--grpc-port",
-        "0",
-    ]
+    from gmt.cluster.supervisor import gmt_command
+
+    args = [*gmt_command(), "serve", "-c", str(checkpoint), "--rest-port", "0", "--grpc-port", "0"]
     args += ["--log-level", "INFO", "--max-sessions", "4096", *extra]
     env = {k: v for k, v in os.environ.items() if not k.startswith("GMT_")}
     # Tuning knobs are environment variables only (`gmt.service.settings.TUNING`).

@@ -179,6 +179,13 @@ def for_replicas(text: str, n: int) -> str:
     return _UPSTREAM_SERVER.sub(block, text)
 
 
+def gmt_command() -> list[str]:
+    """How to run `gmt` from this interpreter: its `gmt` script, else the module (an install without scripts,
+    e.g. `pip install --target`)."""
+    exe = Path(sys.executable).parent / "gmt"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]
+
+
 def render_nginx_conf(values: Mapping[str, str], template: Path = NGINX_TEMPLATE) -> str:
     """`cluster/nginx.conf` with every `${GMT_*}` placeholder replaced by `values[name]`.
 
@@ -523,8 +530,7 @@ def up(
             conf.write_text(sentinel_conf(host, ports[name], redis_port, run_dir / name))
             pids[name] = _spawn(name, [redis_exe, str(conf.resolve()), "--sentinel"], run_dir)
 
-        exe = Path(sys.executable).parent / "gmt"
-        gmt = [str(exe)] if exe.exists() else [sys.executable, "-m", "gmt.service.cli"]
+        gmt = gmt_command()
         ckpt = [a for c in checkpoints for a in ("--checkpoints", str(c))]
         started = []
         for name, (rest, grpc_) in zip(names, gmt_ports, strict=True):

@@ -356,7 +356,7 @@ class PolicyEngine:
             p.h_blend_to[s, pos] = goal
             p.h_blend_w[s, pos] = 0.0
             if p.cache is not None:
-                self._predict.rebuild_cache(s)
+                self._predict.rebuild_caches([s])
                 self._stale.discard(s)
         return n
 

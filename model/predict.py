@@ -7,7 +7,7 @@
   through the network, heads at the last position only.
 
 Both give the same actions (fp32, to rounding). A session adopted from a store gets its cache rebuilt from its
-stored steps (`Predictor.rebuild_cache`).
+stored steps (`Predictor.rebuild_caches`).
 """
 
 from __future__ import annotations
@@ -64,21 +64,47 @@ class Predictor:
         )  # (a no-op on the CPU)
 
     @torch.inference_mode()
-    def rebuild_cache(self, slot: int) -> None:
-        """Recompute a slot's key/value cache from its history (a session adopted from a store).
+    def rebuild_caches(self, slots: list[int]) -> None:
+        """Recompute the slots' key/value caches from their histories (sessions adopted from a store).
 
-        With the native step the stored steps are replayed through it (the kernel that computed the cache in
-        the first place, so the session continues bit for bit); else by one reference forward over them.
+        With the native step the stored steps are replayed through it (the kernel that computed the caches in
+        the first place, so a session continues bit for bit), every slot at once: one batched call per step index,
+        the step being batch invariant, so each row's cache is what its own replay would write. The action
+        before a slot's oldest stored step is not stored: a zero stands in for it, which changes only keys that
+        no later step attends to (the stored history spans the receptive field). Without the native step, one
+        reference forward over each slot's stored steps.
         """
+        p = self.pool
+        rows = np.asarray(slots, dtype=np.int64)  # [B]
+        p.cache.clear(torch.from_numpy(rows))
+        if self.native is None:
+            for slot in slots:
+                self._forward_cache(slot)
+            return
+        t = p.step[rows].astype(np.int64)  # [B] steps taken
+        n = np.minimum(t, p.H)  # [B] steps stored
+        for i in range(int(n.max(initial=0))):
+            live = n > i  # [B] rows that still have a stored step i
+            r, s = rows[live], (t - n)[live] + i  # [b] slots, [b] the step each replays now
+            pos = s % p.H  # [b] ring positions
+            prev = p.h_action[r, (s - 1) % p.H] if i else np.zeros_like(p.h_action[r, 0])  # [b, A]
+            self.native(
+                prev,
+                p.h_goal[r, pos],
+                p.h_state[r, pos],
+                s,
+                p.cache,
+                r,
+                p.h_blend_to[r, pos],
+                p.h_blend_w[r, pos],
+            )
+
+    def _forward_cache(self, slot: int) -> None:
+        """One (cleared) slot's cache by the reference forward over its stored steps."""
         p, cache = self.pool, self.pool.cache
-        sl = torch.tensor([slot])
-        cache.clear(sl)
         t = int(p.step[slot])
         n = min(t, p.H)
         if n == 0:
-            return
-        if self.native is not None:
-            self._replay_cache(slot, t, n)
             return
         pos = np.arange(t - n, t) % p.H
         kv: list = []
@@ -99,59 +125,6 @@ class Predictor:
         for layer, (k, v) in enumerate(kv):
             cache.write(layer, slot, ring, k[0, -keep:], v[0, -keep:])
         cache.tok[slot, ring.to(cache.device)] = tok.to(cache.device)
-
-    def rebuild_caches(self, slots: list[int]) -> None:
-        """`rebuild_cache` of each slot. With the native step the slots' stored steps are replayed together, one
-        batched call per step index: the step is batch invariant, so each row's cache is what its own replay
-        writes, at the cost of one call per stored step instead of one per stored step and slot."""
-        if self.native is None or len(slots) == 1:
-            for slot in slots:
-                self.rebuild_cache(slot)
-            return
-        p = self.pool
-        rows = np.asarray(slots, dtype=np.int64)  # [B]
-        p.cache.clear(torch.from_numpy(rows))
-        t = p.step[rows].astype(np.int64)  # [B] steps taken
-        n = np.minimum(t, p.H)  # [B] steps stored
-        for i in range(int(n.max(initial=0))):
-            live = n > i  # [B] rows that still have a stored step i
-            r, s = rows[live], (t - n)[live] + i  # [b] slots, [b] the step each replays now
-            pos = s % p.H  # [b] ring positions
-            # The action before each row's oldest stored step is not stored: zeros, as `_replay_cache` does.
-            prev = p.h_action[r, (s - 1) % p.H] if i else np.zeros_like(p.h_action[r, 0])  # [b, A]
-            self.native(
-                prev,
-                p.h_goal[r, pos],
-                p.h_state[r, pos],
-                s,
-                p.cache,
-                r,
-                p.h_blend_to[r, pos],
-                p.h_blend_w[r, pos],
-            )
-
-    def _replay_cache(self, slot: int, t: int, n: int) -> None:
-        """Run the stored steps t - n .. t - 1 of `slot` through the native step, oldest first.
-
-        The action before the oldest stored step is not stored: a zero stands in for it, which changes only
-        keys that no later step attends to (the stored history spans the receptive field).
-        """
-        p = self.pool
-        slots = np.array([slot])
-        for s in range(t - n, t):
-            pos = s % p.H
-            prev = p.h_action[slot, (s - 1) % p.H][None] if s > t - n else np.zeros_like(p.h_action[slot, :1])
-            w = p.h_blend_w[slot, pos : pos + 1]
-            self.native(
-                prev,
-                p.h_goal[slot, pos : pos + 1],
-                p.h_state[slot, pos : pos + 1],
-                np.array([s]),
-                p.cache,
-                slots,
-                p.h_blend_to[slot, pos : pos + 1],
-                w,
-            )
 
     def _native_step(self, slots, t, g, goal, w, states) -> np.ndarray:
         """The incremental step by the native kernel: batch invariant by construction, so no lone-row or
