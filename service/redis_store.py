@@ -41,7 +41,7 @@ from gmt.service.errors import (
 )
 from gmt.service.redis_commit import GroupCommit
 from gmt.service.redis_keys import TOMBSTONE_TTL_S, RedisKeys
-from gmt.service.redis_local import LocalView
+from gmt.service.redis_local import Held, LocalView
 from gmt.service.sessions import Clock, Session, SessionStore, brief, expired_message, not_found_message
 from gmt.service.settings import Settings
 
@@ -234,14 +234,7 @@ class RedisSessionStore(SessionStore):
         self._saved(session, outcome)
 
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
-        entries, refused = [], {}
-        for i, (session, read_version) in enumerate(
-            items
-        ):  # all in this turn: one script call writes them all
-            try:
-                entries.append(self._entry(session, read_version))
-            except ServiceError as e:
-                refused[i] = e
+        entries, refused = self._entries(items)  # all in this turn: one script call writes them all
         try:
             outcomes = iter(await self.commit.enqueue(entries) if entries else ())
         except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
@@ -267,13 +260,44 @@ class RedisSessionStore(SessionStore):
         Raises:
             Aborted: this replica's copy is not the version read (another request changed it meanwhile).
         """
+        held = self._held(session, read_version)
+        return self._script_entry(session, held.version, read_version, session_codec.change_fields(session, held.step))
+
+    def _entries(self, items: list[tuple[Session, int | None]]) -> tuple[list, dict[int, ServiceError]]:
+        """`_entry` of each (session, read version), their fields built together (`change_fields_many`): the
+        entries of those that can be written, and the error of each that cannot, by index."""
+        ok, held, refused = [], [], {}
+        for i, (session, read_version) in enumerate(items):
+            try:
+                held.append(self._held(session, read_version))
+                ok.append(i)
+            except ServiceError as e:
+                refused[i] = e
+        changes = session_codec.change_fields_many([items[i][0] for i in ok], [h.step for h in held])
+        entries = [
+            self._script_entry(items[i][0], h.version, items[i][1], fields)
+            for i, h, fields in zip(ok, held, changes, strict=True)
+        ]
+        return entries, refused
+
+    def _held(self, session: Session, read_version: int | None) -> Held:
+        """This replica's record of the session as last written.
+
+        Raises:
+            Aborted: this replica's copy is not the version read (another request changed it meanwhile).
+        """
         held = self.local.held.get(session.id)
         if held is None or held.session is not session:
             raise ValueError(f"session {session.id!r} was not read from this store")
         if read_version is not None and read_version != held.version:
             raise Aborted(_aborted(session.id))
-        fields = session_codec.change_fields(session, held.step)
-        expect = session_codec.cas_token(session, held.version) if read_version is not None else b""
+        return held
+
+    def _script_entry(
+        self, session: Session, held_version: int, read_version: int | None, fields: dict[str, bytes]
+    ) -> tuple[list, list]:
+        """The save script's (keys, arguments) writing `fields` (compared with the held version when read)."""
+        expect = session_codec.cas_token(session, held_version) if read_version is not None else b""
         keys, args = [self.layout.session(session.id)], [expect, len(fields), 0, *redis_scripts.flat(fields)]
         for key, values in zip(self.layout.lists(session.id), session_codec.appends(session), strict=True):
             if values:

@@ -143,6 +143,59 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     return out
 
 
+_COLUMNS = ("goal", "step", "blend_from", "blend_steps", "blend_done", "mode", "seed", "version")
+
+
+def change_fields_many(sessions: list[Session], since_steps: list[int]) -> list[dict[str, bytes]]:
+    """`change_fields` of many sessions, the same bytes: the sessions whose change is one act (one new held step
+    since `since_step`, nothing relabelled) are read from their pool a column at a time, and their step records
+    built as one array; the others one by one."""
+    out: list = [None] * len(sessions)
+    pools: dict[int, tuple] = {}  # id(pool) -> (pool, indices into sessions)
+    for i, (s, since) in enumerate(zip(sessions, since_steps, strict=True)):
+        ctx = s.ctx
+        if isinstance(ctx, Context) and s.relabelled_from is None and since >= 0 and ctx.step == since + 1:
+            pools.setdefault(id(ctx.pool), (ctx.pool, []))[1].append(i)
+        else:
+            out[i] = change_fields(s, since)
+    for pool, idx in pools.values():
+        slots = np.fromiter((sessions[i].ctx.slot for i in idx), np.int64, len(idx))  # [n]
+        cols = {name: getattr(pool, name)[slots] for name in _COLUMNS}  # each [n]
+        t = cols["step"] - 1  # [n] the new held step
+        pos = t % pool.H  # [n]
+        rec = np.empty(len(idx), _record_of(pool.h_state.dtype.str, pool.h_state.shape[2:],
+                                            pool.h_action.dtype.str, pool.h_action.shape[2:]))  # fmt: skip
+        rec["t"], rec["goal"] = t, pool.h_goal[slots, pos]
+        rec["blend_to"], rec["blend_w"] = pool.h_blend_to[slots, pos], pool.h_blend_w[slots, pos]
+        rec["state"], rec["action"] = pool.h_state[slots, pos], pool.h_action[slots, pos]  # [n, *shape]
+        raw, size = rec.tobytes(), rec.dtype.itemsize
+        lists = {name: c.tolist() for name, c in cols.items()}
+        modes = [pool.modes[m] for m in lists["mode"]]
+        keys = [f"r:{p}" for p in pos.tolist()]
+        for j, i in enumerate(idx):
+            s = sessions[i]
+            version = lists["version"][j]
+            st = {
+                "goal": lists["goal"][j],
+                "step": lists["step"][j],
+                "blend_from": lists["blend_from"][j],
+                "blend_steps": lists["blend_steps"][j],
+                "blend_done": lists["blend_done"][j],
+                "action_mode": modes[j],
+                "seed": lists["seed"][j],
+                "version": version,
+                "last_used": s.last_used,
+                "activity": s.activity.dump(),
+                "lg": s.ledger.state(),
+            }
+            fields = {"ver": cas_token(s, version), "st": orjson.dumps(st)}
+            if s.ledger.last_changed:
+                fields["tl"] = orjson.dumps(s.ledger.last)
+            fields[keys[j]] = raw[j * size : (j + 1) * size]
+            out[i] = fields
+    return out
+
+
 def decode(fields: dict[bytes | str, bytes]) -> Session:
     """The session the fields describe (keys may be bytes, as redis-py returns them), its context stored.
 

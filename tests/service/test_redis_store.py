@@ -72,6 +72,39 @@ def test_codec_writes_what_changed_and_reads_back_exactly(cartpole):
     _same_stored(ctx.to_stored(), session_codec.decode(stored).ctx)
 
 
+def test_changes_built_together_are_the_changes_built_one_by_one(cartpole, engine, monkeypatch):
+    rng = np.random.default_rng(3)
+    sessions, since = [], []
+    for eng, dim, name in ((engine, engine.pool.h_state.shape[2], "tiny-gmt"), (cartpole, 4, "tiny-cartpole")):
+        for i in range(6):
+            mode = eng.action_modes[i % len(eng.action_modes)]
+            ctx = eng.new_context(i % 2, action_mode=mode, seed=i, key=f"{name}{i}")
+            s = Session(f"{name}{i}", name, ctx, 1.0 + i, 2.5 + i / 3)
+            for _ in range(3 + i):
+                eng.act([ctx], [rng.normal(size=dim).astype(np.float32)])
+            held = ctx.step
+            if i == 1:  # blending toward a new goal, then one act
+                eng.set_goal(ctx, 0, blend_steps=3)
+            if i == 2:  # a reset: no record
+                eng.reset(ctx)
+            if i != 2:
+                eng.act([ctx], [rng.normal(size=dim).astype(np.float32)])
+            if i == 3:  # two acts since the held step: both records
+                eng.act([ctx], [rng.normal(size=dim).astype(np.float32)])
+            if i == 4:  # a goal change that relabelled held steps
+                s.relabelled_from = held - 2
+            sessions.append(s)
+            since.append(held)
+    want = [session_codec.change_fields(s, t) for s, t in zip(sessions, since, strict=True)]
+    one_by_one = []
+    real = session_codec.change_fields
+    monkeypatch.setattr(session_codec, "change_fields", lambda s, t: one_by_one.append(s.id) or real(s, t))
+    got = session_codec.change_fields_many(sessions, since)
+    assert got == want  # the same fields, bit for bit
+    # Only the changes that are not one act went one by one (reset, two acts, relabelled): 3 per pool.
+    assert sorted(one_by_one) == sorted(f"{n}{i}" for n in ("tiny-gmt", "tiny-cartpole") for i in (2, 3, 4))
+
+
 def test_codec_refuses_foreign_and_broken_data(cartpole):
     with pytest.raises(session_codec.CodecError):
         session_codec.decode({b"meta": b"\x80\x04K\x01."})  # a pickle
