@@ -73,8 +73,8 @@ class GroupCommit:
             "answered without stepping twice)"
         )
 
-    def enqueue(self, entries: list[tuple[list, list]]) -> asyncio.Future:
-        """Queue changes (save script (keys, arguments) entries) for this turn's write; the future answers, per
+    def enqueue(self, entries: list[tuple[list, bytes, int]]) -> asyncio.Future:
+        """Queue changes (save script entries: keys, encoded arguments, their count) for this turn's write; the future answers, per
         change, the script's result for it or the error that failed it (one future per caller, not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
@@ -203,7 +203,7 @@ class GroupCommit:
         if conn is None:
             async with self._client.redis.pipeline(transaction=False) as p:
                 for c in commands:
-                    p.execute_command(*c)
+                    p.execute_command(*(resp.parse(c)[0] if isinstance(c, resp.Encoded) else c))
                 try:
                     return await p.execute()
                 except self._errors as e:

@@ -7,6 +7,8 @@ replica needs no script loaded.
 
 from __future__ import annotations
 
+from gmt.service import resp
+
 # KEYS: live, session hash, its timeline list, its recording list. ARGV: now, max sessions, id, key TTL ms, the
 # number c of timeline entries, the c entries, then field/value pairs. Returns -1 when created, -2 when a live
 # session has the id, else the live count that made the store full.
@@ -80,8 +82,8 @@ def flat(fields: dict[str, bytes]) -> list:
     return out
 
 
-def save_command(entries: list[tuple[list, list]], ttl_ms: int) -> list:
-    """One `SAVE` call writing every (keys, arguments) entry (`RedisSessionStore._entry`)."""
-    keys = [k for ks, _ in entries for k in ks]
-    argv = [a for _, args in entries for a in args]
-    return ["EVAL", SAVE, len(keys), *keys, ttl_ms, *argv]
+def save_command(entries: list[tuple[list, bytes, int]], ttl_ms: int) -> resp.Encoded:
+    """One `SAVE` call writing every (keys, encoded arguments, their count) entry (`RedisSessionStore._entry`)."""
+    keys = [k for ks, _, _ in entries for k in ks]
+    head = resp.bulk(["EVAL", SAVE, len(keys), *keys, ttl_ms])
+    return resp.command(len(keys) + 4 + sum(n for _, _, n in entries), head, *(a for _, a, _ in entries))

@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 import orjson
 
-from gmt.service import redis_scripts, session_codec
+from gmt.service import redis_scripts, resp, session_codec
 from gmt.service.activity import Activity, SessionBrief
 from gmt.service.errors import (
     Aborted,
@@ -254,7 +254,7 @@ class RedisSessionStore(SessionStore):
                 out.append(e)
         return out
 
-    def _entry(self, session: Session, read_version: int | None) -> tuple[list, list]:
+    def _entry(self, session: Session, read_version: int | None) -> tuple[list, bytes, int]:
         """The (keys, arguments) of the session's change in the save script.
 
         Raises:
@@ -295,16 +295,19 @@ class RedisSessionStore(SessionStore):
 
     def _script_entry(
         self, session: Session, held_version: int, read_version: int | None, fields: dict[str, bytes]
-    ) -> tuple[list, list]:
-        """The save script's (keys, arguments) writing `fields` (compared with the held version when read)."""
+    ) -> tuple[list, bytes, int]:
+        """The save script's entry writing `fields` (compared with the held version when read): its keys, its
+        arguments as RESP bulk strings, and how many."""
         expect = session_codec.cas_token(session, held_version) if read_version is not None else b""
         keys, args = [self.layout.session(session.id)], [expect, len(fields), 0, *redis_scripts.flat(fields)]
-        for key, values in zip(self.layout.lists(session.id), session_codec.appends(session), strict=True):
-            if values:
-                keys.append(key)
-                args += [len(values), *values]
-        args[2] = len(keys) - 1
-        return keys, args
+        timeline, records = session_codec.appends(session)
+        if timeline or records:
+            for key, values in zip(self.layout.lists(session.id), (timeline, records), strict=True):
+                if values:
+                    keys.append(key)
+                    args += [len(values), *values]
+            args[2] = len(keys) - 1
+        return keys, resp.bulk(args), len(args)
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
         self.local.forget(

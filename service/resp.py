@@ -28,18 +28,28 @@ class _Incomplete(Exception):
     """The buffer ends inside a reply."""
 
 
-def encode(*commands: list) -> bytes:
-    """Commands (lists of bytes / str / int / float arguments) as RESP arrays of bulk strings."""
+class Encoded(bytes):
+    """A whole command already in RESP form (`command`): `encode` writes it as it is."""
+
+
+def bulk(args: list) -> bytes:
+    """Arguments (bytes / str / int / float) as RESP bulk strings, without the array's header."""
     out: list[bytes] = []
-    for args in commands:
-        out.append(b"*%d\r\n" % len(args))
-        for a in args:
-            if not isinstance(a, bytes):
-                a = str(a).encode()
-            out.append(b"$%d\r\n" % len(a))
-            out.append(a)
-            out.append(b"\r\n")
+    for a in args:
+        if a.__class__ is not bytes:
+            a = str(a).encode()
+        out.append(b"$%d\r\n%b\r\n" % (len(a), a))
     return b"".join(out)
+
+
+def command(count: int, *parts: bytes) -> Encoded:
+    """One command of `count` arguments whose bulk strings (`bulk`) are `parts`, in order."""
+    return Encoded(b"*%d\r\n%b" % (count, b"".join(parts)))
+
+
+def encode(*commands: list | Encoded) -> bytes:
+    """Commands (lists of bytes / str / int / float arguments, or `Encoded`) as RESP arrays of bulk strings."""
+    return b"".join(c if isinstance(c, Encoded) else b"*%d\r\n%b" % (len(c), bulk(c)) for c in commands)
 
 
 def parse(buf: bytes | bytearray, pos: int = 0) -> tuple[object, int]:

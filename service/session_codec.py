@@ -49,7 +49,13 @@ class CodecError(ValueError):
 
 def cas_token(session: Session, version: int) -> bytes:
     """The value of `ver` for `session` at `version`."""
-    return f"{version}@{session.created_at!r}".encode()
+    return b"%d%b" % (version, _stamp(session.created_at))
+
+
+@functools.lru_cache(maxsize=1 << 16)
+def _stamp(created_at: float) -> bytes:
+    """`@<created_at>` of `cas_token` (the float's repr: the same token whatever the version)."""
+    return f"@{created_at!r}".encode()
 
 
 def _record_dtype(layout: dict) -> np.dtype:
