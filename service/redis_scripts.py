@@ -82,6 +82,21 @@ def flat(fields: dict[str, bytes]) -> list:
     return out
 
 
+def save_entry(expect: bytes, fields: dict[str, bytes], lists: list[list[bytes]]) -> tuple[bytes, int]:
+    """One session's `SAVE` arguments (after its keys: the hash, then one per list in `lists`, each list's values
+    appended), as RESP bulk strings, and how many: the expected `ver`, n, m, the n field/value pairs, per list c and
+    its c values."""
+    n = b"%d" % len(fields)
+    out = [b"$%d\r\n%b\r\n$%d\r\n%b\r\n$1\r\n%d\r\n" % (len(expect), expect, len(n), n, len(lists))]
+    for k, v in fields.items():
+        out.append(b"$%d\r\n%s\r\n$%d\r\n%b\r\n" % (len(k), k.encode(), len(v), v))
+    count = 3 + 2 * len(fields)
+    for values in lists:
+        out.append(resp.bulk([len(values), *values]))
+        count += 1 + len(values)
+    return b"".join(out), count
+
+
 def save_command(entries: list[tuple[list, bytes, int]], ttl_ms: int) -> resp.Encoded:
     """One `SAVE` call writing every (keys, encoded arguments, their count) entry (`RedisSessionStore._entry`)."""
     keys = [k for ks, _, _ in entries for k in ks]

@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 import orjson
 
-from gmt.service import redis_scripts, resp, session_codec
+from gmt.service import redis_scripts, session_codec
 from gmt.service.activity import Activity, SessionBrief
 from gmt.service.errors import (
     Aborted,
@@ -261,7 +261,9 @@ class RedisSessionStore(SessionStore):
             Aborted: this replica's copy is not the version read (another request changed it meanwhile).
         """
         held = self._held(session, read_version)
-        return self._script_entry(session, held.version, read_version, session_codec.change_fields(session, held.step))
+        return self._script_entry(
+            session, held.version, read_version, session_codec.change_fields(session, held.step)
+        )
 
     def _entries(self, items: list[tuple[Session, int | None]]) -> tuple[list, dict[int, ServiceError]]:
         """`_entry` of each (session, read version), their fields built together (`change_fields_many`): the
@@ -299,15 +301,14 @@ class RedisSessionStore(SessionStore):
         """The save script's entry writing `fields` (compared with the held version when read): its keys, its
         arguments as RESP bulk strings, and how many."""
         expect = session_codec.cas_token(session, held_version) if read_version is not None else b""
-        keys, args = [self.layout.session(session.id)], [expect, len(fields), 0, *redis_scripts.flat(fields)]
+        keys, lists = [self.layout.session(session.id)], []
         timeline, records = session_codec.appends(session)
         if timeline or records:
             for key, values in zip(self.layout.lists(session.id), (timeline, records), strict=True):
                 if values:
                     keys.append(key)
-                    args += [len(values), *values]
-            args[2] = len(keys) - 1
-        return keys, resp.bulk(args), len(args)
+                    lists.append(values)
+        return (keys, *redis_scripts.save_entry(expect, fields, lists))
 
     def _failed(self, session: Session, e: ServiceError) -> ServiceError:
         self.local.forget(

@@ -75,7 +75,10 @@ def test_codec_writes_what_changed_and_reads_back_exactly(cartpole):
 def test_changes_built_together_are_the_changes_built_one_by_one(cartpole, engine, monkeypatch):
     rng = np.random.default_rng(3)
     sessions, since = [], []
-    for eng, dim, name in ((engine, engine.pool.h_state.shape[2], "tiny-gmt"), (cartpole, 4, "tiny-cartpole")):
+    for eng, dim, name in (
+        (engine, engine.pool.h_state.shape[2], "tiny-gmt"),
+        (cartpole, 4, "tiny-cartpole"),
+    ):
         for i in range(6):
             mode = eng.action_modes[i % len(eng.action_modes)]
             ctx = eng.new_context(i % 2, action_mode=mode, seed=i, key=f"{name}{i}")
@@ -103,6 +106,22 @@ def test_changes_built_together_are_the_changes_built_one_by_one(cartpole, engin
     assert got == want  # the same fields, bit for bit
     # Only the changes that are not one act went one by one (reset, two acts, relabelled): 3 per pool.
     assert sorted(one_by_one) == sorted(f"{n}{i}" for n in ("tiny-gmt", "tiny-cartpole") for i in (2, 3, 4))
+
+
+def test_a_save_entry_is_its_arguments_as_resp():
+    from gmt.service import redis_scripts, resp
+
+    fields = {f"r:{i}": bytes([i]) * (i + 1) for i in range(12)} | {"ver": b"7@1.5", "st": b"{}"}
+    for lists in ([], [[b"tl-1", b"tl-2"]], [[b"a"], [b"b" * 300, b"", b"c"]]):
+        for expect in (b"", b"6@1.5"):
+            got, count = redis_scripts.save_entry(expect, fields, lists)
+            args = [expect, len(fields), len(lists), *redis_scripts.flat(fields)]
+            for values in lists:
+                args += [len(values), *values]
+            assert (got, count) == (resp.bulk(args), len(args))
+            # ... and reads back as those arguments inside a whole command.
+            back, _ = resp.parse(resp.command(count + 1, resp.bulk(["EVAL"]), got))
+            assert back == [b"EVAL", *(a if isinstance(a, bytes) else str(a).encode() for a in args)]
 
 
 def test_codec_refuses_foreign_and_broken_data(cartpole):
