@@ -176,7 +176,8 @@ class Context:
         return np.arange(self.step - self.size, self.step)
 
     def scalars(self) -> dict:
-        """The stored form's scalar fields (goal, step, blend, mode, seed, version) as plain values, in one read."""
+        """The stored form's scalar fields (goal, step, blend, mode, seed, version) as plain values, in one read
+        (`scalars_of`: the same for many contexts at once)."""
         p, i = self.pool, self.slot
         return {
             "goal": int(p.goal[i]),
@@ -188,6 +189,27 @@ class Context:
             "seed": int(p.seed[i]),
             "version": int(p.version[i]),
         }
+
+    @staticmethod
+    def scalars_of(pool, slots: np.ndarray) -> list[dict]:
+        """`scalars` of the contexts at `slots` [n] of `pool`, each column read once for all of them."""
+        cols = [getattr(pool, n)[slots].tolist() for n in ("goal", "step", "blend_from", "blend_steps")]
+        cols += [getattr(pool, n)[slots].tolist() for n in ("blend_done", "mode", "seed", "version")]
+        return [
+            {
+                "goal": goal,
+                "step": step,
+                "blend_from": blend_from,
+                "blend_steps": blend_steps,
+                "blend_done": blend_done,
+                "action_mode": pool.modes[mode],
+                "seed": seed,
+                "version": version,
+            }
+            for goal, step, blend_from, blend_steps, blend_done, mode, seed, version in zip(
+                *cols, strict=True
+            )
+        ]
 
     def layout(self) -> dict:
         """How a held step is shaped: `H` (steps held at most), `state` and `action` as [dtype, shape]."""

@@ -74,8 +74,9 @@ class GroupCommit:
         )
 
     def enqueue(self, entries: list[tuple[list, bytes, int]]) -> asyncio.Future:
-        """Queue changes (save script entries: keys, encoded arguments, their count) for this turn's write; the future answers, per
-        change, the script's result for it or the error that failed it (one future per caller, not per session)."""
+        """Queue changes (save script entries: keys, encoded arguments, their count, `RedisSessionStore._entry`)
+        for this turn's write; the future answers, per change, the script's result for it or the error that failed
+        it (one future per caller, not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         first = not self._queue

@@ -255,7 +255,7 @@ class RedisSessionStore(SessionStore):
         return out
 
     def _entry(self, session: Session, read_version: int | None) -> tuple[list, bytes, int]:
-        """The (keys, arguments) of the session's change in the save script.
+        """The session's change as a save script entry (`_script_entry`).
 
         Raises:
             Aborted: this replica's copy is not the version read (another request changed it meanwhile).

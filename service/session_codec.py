@@ -78,8 +78,8 @@ def _record_of(sd: str, ss: tuple, ad: str, ash: tuple) -> np.dtype:
     )
 
 
-def _state(session: Session, ctx: Context) -> bytes:
-    st = ctx.scalars()
+def _state(session: Session, st: dict) -> bytes:
+    """`st`: the context's scalars (`Context.scalars`, taken over) with the session's own."""
     st["last_used"] = session.last_used
     st["activity"] = session.activity.dump()
     st["lg"] = session.ledger.state()
@@ -124,7 +124,7 @@ def create_fields(session: Session) -> dict[str, bytes]:
     out = {
         "meta": orjson.dumps(meta),
         "ver": cas_token(session, ctx.version),
-        "st": _state(session, ctx),
+        "st": _state(session, ctx.scalars()),
     }
     if session.ledger.last is not None:
         out["tl"] = orjson.dumps(session.ledger.last)
@@ -138,7 +138,7 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     ctx = session.ctx
     if not isinstance(ctx, Context):
         raise ValueError("only a live context has changes to write")
-    out = {"ver": cas_token(session, ctx.version), "st": _state(session, ctx)}
+    out = {"ver": cas_token(session, ctx.version), "st": _state(session, ctx.scalars())}
     if session.ledger.last_changed:
         out["tl"] = orjson.dumps(session.ledger.last)
     t1 = ctx.step
@@ -149,13 +149,10 @@ def change_fields(session: Session, since_step: int) -> dict[str, bytes]:
     return out
 
 
-_COLUMNS = ("goal", "step", "blend_from", "blend_steps", "blend_done", "mode", "seed", "version")
-
-
 def change_fields_many(sessions: list[Session], since_steps: list[int]) -> list[dict[str, bytes]]:
     """`change_fields` of many sessions, the same bytes: the sessions whose change is one act (one new held step
-    since `since_step`, nothing relabelled) are read from their pool a column at a time, and their step records
-    built as one array; the others one by one."""
+    since `since_step`, nothing relabelled) are read from their pool a column at a time (`Context.scalars_of`), and
+    their step records built as one array; the others one by one."""
     out: list = [None] * len(sessions)
     pools: dict[int, tuple] = {}  # id(pool) -> (pool, indices into sessions)
     for i, (s, since) in enumerate(zip(sessions, since_steps, strict=True)):
@@ -166,8 +163,7 @@ def change_fields_many(sessions: list[Session], since_steps: list[int]) -> list[
             out[i] = change_fields(s, since)
     for pool, idx in pools.values():
         slots = np.fromiter((sessions[i].ctx.slot for i in idx), np.int64, len(idx))  # [n]
-        cols = {name: getattr(pool, name)[slots] for name in _COLUMNS}  # each [n]
-        t = cols["step"] - 1  # [n] the new held step
+        t = pool.step[slots] - 1  # [n] the new held step
         pos = t % pool.H  # [n]
         rec = np.empty(len(idx), _record_of(pool.h_state.dtype.str, pool.h_state.shape[2:],
                                             pool.h_action.dtype.str, pool.h_action.shape[2:]))  # fmt: skip
@@ -175,26 +171,10 @@ def change_fields_many(sessions: list[Session], since_steps: list[int]) -> list[
         rec["blend_to"], rec["blend_w"] = pool.h_blend_to[slots, pos], pool.h_blend_w[slots, pos]
         rec["state"], rec["action"] = pool.h_state[slots, pos], pool.h_action[slots, pos]  # [n, *shape]
         raw, size = rec.tobytes(), rec.dtype.itemsize
-        lists = {name: c.tolist() for name, c in cols.items()}
-        modes = [pool.modes[m] for m in lists["mode"]]
         keys = [f"r:{p}" for p in pos.tolist()]
-        for j, i in enumerate(idx):
+        for j, (i, st) in enumerate(zip(idx, Context.scalars_of(pool, slots), strict=True)):
             s = sessions[i]
-            version = lists["version"][j]
-            st = {
-                "goal": lists["goal"][j],
-                "step": lists["step"][j],
-                "blend_from": lists["blend_from"][j],
-                "blend_steps": lists["blend_steps"][j],
-                "blend_done": lists["blend_done"][j],
-                "action_mode": modes[j],
-                "seed": lists["seed"][j],
-                "version": version,
-                "last_used": s.last_used,
-                "activity": s.activity.dump(),
-                "lg": s.ledger.state(),
-            }
-            fields = {"ver": cas_token(s, version), "st": orjson.dumps(st)}
+            fields = {"ver": cas_token(s, st["version"]), "st": _state(s, st)}
             if s.ledger.last_changed:
                 fields["tl"] = orjson.dumps(s.ledger.last)
             fields[keys[j]] = raw[j * size : (j + 1) * size]
