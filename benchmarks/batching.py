@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from gmt.bench.harness import bench_rest, bench_rest_batch, close_sessions, open_sessions, start_server
-from gmt.bench.store import _over_rounds
+from gmt.bench.store import over_rounds
 
 # The import package `gmt` as pyproject.toml's package-dir builds it: (name inside gmt, folder in the repository).
 _PACKAGE_DIRS = (
@@ -96,7 +96,7 @@ def over_commits(
         "current": commits[1],
         "seconds_per_round": per_round,
         "rounds": rounds,
-        "servers": {s: {load: _over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
+        "servers": {s: {load: over_rounds(r) for load, r in by.items()} for s, by in rows.items()},
     }
 
 

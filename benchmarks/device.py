@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gmt.bench import harness
-from gmt.bench.store import _over_rounds
+from gmt.bench.store import over_rounds
 
 REST_UP_TO = 256  # one connection per session beyond this measures wrk and the accept queue, not the server
 
@@ -138,7 +138,7 @@ def bench_device(
                         fn = harness.bench_rest_batch if load == "rest_batch" else harness.bench_rest
                         per[n, load].append(fn(url, sids[n], seconds / rounds, observation=obs))
             for (n, load), rows in per.items():
-                served[n][load].append(_over_rounds(rows))
+                served[n][load].append(over_rounds(rows))
             for n, (url, _) in at.items():
                 harness.close_sessions(url, sids[n])
             print(

@@ -85,7 +85,7 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rou
         for r in (redis, *replicated):
             r.wait(30)
         shutil.rmtree(sock_dir, ignore_errors=True)
-    out["stores"] = {s: {load: _over_rounds(r) for load, r in loads.items()} for s, loads in rows.items()}
+    out["stores"] = {s: {load: over_rounds(r) for load, r in loads.items()} for s, loads in rows.items()}
     m = out["stores"]["memory"]
     for store, key in (
         ("redis", "redis_vs_memory"),
@@ -105,7 +105,7 @@ def bench_store(checkpoint: Path, sessions: int = 256, seconds: float = 8.0, rou
     return out
 
 
-def _over_rounds(rows: list[dict]) -> dict:
+def over_rounds(rows: list[dict]) -> dict:
     """One load's figures over its rounds (see `bench_store`), the rounds kept."""
     return {
         "sessions": rows[0]["sessions"],

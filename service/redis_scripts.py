@@ -86,10 +86,7 @@ def save_entry(expect: bytes, fields: dict[str, bytes], lists: list[list[bytes]]
     """One session's `SAVE` arguments (after its keys: the hash, then one per list in `lists`, each list's values
     appended), as RESP bulk strings, and how many: the expected `ver`, n, m, the n field/value pairs, per list c and
     its c values."""
-    n, m = b"%d" % len(fields), b"%d" % len(lists)
-    out = [b"$%d\r\n%b\r\n$%d\r\n%b\r\n$%d\r\n%b\r\n" % (len(expect), expect, len(n), n, len(m), m)]
-    for k, v in fields.items():
-        out.append(b"$%d\r\n%s\r\n$%d\r\n%b\r\n" % (len(k), k.encode(), len(v), v))
+    out = [resp.bulk([expect, b"%d" % len(fields), b"%d" % len(lists)]), resp.pairs(fields)]
     count = 3 + 2 * len(fields)
     for values in lists:
         out.append(resp.bulk([len(values), *values]))

@@ -42,6 +42,15 @@ def bulk(args: list) -> bytes:
     return b"".join(out)
 
 
+def pairs(fields: dict[str, bytes]) -> bytes:
+    """Field / value pairs (str names, bytes values) as RESP bulk strings (`bulk` of the flattened pairs, one
+    format per pair)."""
+    out: list[bytes] = []
+    for k, v in fields.items():
+        out.append(b"$%d\r\n%s\r\n$%d\r\n%b\r\n" % (len(k), k.encode(), len(v), v))
+    return b"".join(out)
+
+
 def command(count: int, *parts: bytes) -> Encoded:
     """One command of `count` arguments whose bulk strings (`bulk`) are `parts`, in order."""
     return Encoded(b"*%d\r\n%b" % (count, b"".join(parts)))
