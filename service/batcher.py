@@ -5,7 +5,8 @@ within the last `active_window_s` (a session has at most one request in flight, 
 on its way). An idle session, one that never acted or stopped acting, is never waited for, so idle neighbours cost
 an acting session nothing; with none acting beside it, a request runs as soon as the engine is free, with what
 arrived while it was busy. A batch closes when it holds `max_batch` requests, when every acting session has a
-request queued, or at the deadline.
+request queued, or at the deadline. When many sessions act one at a time (`SPLIT_FROM` or more), a pass takes at
+most half of them: the event loop then parses and answers one half while the engine runs the other.
 The forward runs in a worker thread so that the event loop keeps serving (a lone session's may run on the loop,
 see `inline_alone`).
 """
@@ -30,6 +31,10 @@ from gmt.service.errors import Unavailable
 log = logging.getLogger("gmt.batcher")
 
 ACTIVE_S = 1.0  # a session answered within this long (or twice the batch wait, if longer) counts as acting
+# From this many sessions acting one at a time, a pass takes at most half of them (rounded up), so that the loop's
+# work for one half overlaps the engine's for the other. On 2 cores, 256 sessions over REST at max_batch 256:
+# 4,476-4,890 acts/s in whole passes, 6,080-6,353 in halves (docs/performance.md).
+SPLIT_FROM = 64
 
 
 @dataclass
@@ -65,6 +70,8 @@ class MicroBatcher:
         active_window_s: How long after its last answer a session counts as acting: `ACTIVE_S`, or twice
             `max_wait_s` if that is longer.
         waits: Batches that waited for an acting session (instrumentation: idle sessions never add to it).
+        split: Whether a pass takes at most half of the acting sessions when `SPLIT_FROM` or more act (True
+            when the forward runs off the loop, on `executor`; with none, nothing would overlap it).
     """
 
     def __init__(
@@ -94,6 +101,7 @@ class MicroBatcher:
         self._active: dict[object, float] = {}
         self._missing: set = set()  # acting sessions the batch being gathered still waits for
         self.waits = 0
+        self.split = executor is not None
 
     def start(self) -> None:
         """Start the (supervised) batching task on the running loop."""
@@ -227,12 +235,20 @@ class MicroBatcher:
             self._pending.popleft()
         return self.queued
 
-    async def _gather(self) -> None:
-        """Wait (up to `max_wait_s`) for the acting sessions that have no request queued; none: return at once."""
+    def _cap(self) -> int:
+        """Most single-session requests in the next pass: `max_batch`, or half the acting sessions if fewer."""
+        acting = len(self._active)
+        if not self.split or acting < SPLIT_FROM:
+            return self.max_batch
+        return min(self.max_batch, -(-acting // 2))
+
+    async def _gather(self, cap: int) -> None:
+        """Wait (up to `max_wait_s`) for the acting sessions that have no request queued, until `cap` are queued;
+        none missing: return at once."""
         loop = asyncio.get_running_loop()
         now = loop.time()
         n = self._live()
-        if n == 0 or n >= self.max_batch or self.max_wait_s <= 0 or not self._active:
+        if n == 0 or n >= cap or self.max_wait_s <= 0 or not self._active:
             return
         self._missing = self._acting(self.clock())
         if not self._missing:
@@ -240,7 +256,7 @@ class MicroBatcher:
         self.waits += 1
         deadline = now + self.max_wait_s
         try:
-            while self._missing and self._live() < self.max_batch:
+            while self._missing and self._live() < cap:
                 remaining = deadline - loop.time()
                 if remaining <= 0:
                     return
@@ -260,10 +276,11 @@ class MicroBatcher:
                 self._wake.clear()
                 await self._wake.wait()
                 continue
-            await self._gather()
+            cap = self._cap()
+            await self._gather(cap)
             batch: list[_Item] = []
             while self._pending and (
-                len(batch) < self.max_batch or (batch[-1].group and self._pending[0].group == batch[-1].group)
+                len(batch) < cap or (batch[-1].group and self._pending[0].group == batch[-1].group)
             ):
                 item = self._pending.popleft()
                 if not item.future.done():

@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from service_harness import FakeClock
 
-from gmt.service.batcher import MicroBatcher
+from gmt.service.batcher import SPLIT_FROM, MicroBatcher
 
 
 class RecordingEngine:
@@ -138,6 +138,42 @@ def test_cancelled_request_is_dropped_before_the_forward(pool):
     assert eng.batches[-1] == ["kept", "last"]
 
 
+@pytest.mark.parametrize("acting", [SPLIT_FROM - 1, SPLIT_FROM, 2 * SPLIT_FROM + 1])
+def test_many_acting_sessions_are_taken_half_per_pass(pool, acting):
+    """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most half of them even below `max_batch`
+    (the loop answers one half while the engine runs the other); fewer acting sessions go in one pass. No wait
+    here: a round's sessions are all queued before its first pass."""
+    eng = RecordingEngine()
+    names = [f"s{i}" for i in range(acting)]
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=1024, max_wait_s=0)
+        b.start()
+        await asyncio.wait_for(in_step(b, names, rounds=3), 10)
+        await b.close()
+
+    run(main())
+    assert len(eng.batches[0]) == acting  # nobody had acted yet: one pass
+    later = [len(x) for x in eng.batches[1:]]
+    half = -(-acting // 2) if acting >= SPLIT_FROM else acting
+    assert sum(later) == 2 * acting and max(later) == half, later
+
+
+def test_without_an_executor_passes_are_not_split():
+    """The naive server's forward runs on the loop, which nothing would overlap: whole passes."""
+    eng = RecordingEngine()
+    names = [f"s{i}" for i in range(2 * SPLIT_FROM)]
+
+    async def main():
+        b = MicroBatcher(eng, None, max_batch=1024, max_wait_s=10)
+        b.start()
+        await asyncio.wait_for(in_step(b, names, rounds=3), 10)
+        await b.close()
+
+    run(main())
+    assert [len(x) for x in eng.batches] == [2 * SPLIT_FROM] * 3
+
+
 def test_requests_arriving_during_a_forward_form_the_next_batch(pool):
     eng = RecordingEngine()
     eng.gate.clear()
@@ -187,10 +223,10 @@ def test_a_crashed_batcher_fails_its_calls_as_unavailable_and_restarts(pool):
         real_gather = b._gather
         crashes = [RuntimeError("bug in the batching loop")]
 
-        async def gather_once_broken():
+        async def gather_once_broken(cap):
             if crashes:
                 raise crashes.pop()
-            await real_gather()
+            await real_gather(cap)
 
         b._gather = gather_once_broken
         with pytest.raises(Unavailable, match="the batcher failed \\(RuntimeError\\); retry"):
