@@ -43,6 +43,9 @@ class _Item:
     obs: np.ndarray
     future: asyncio.Future | None
     group: int = 0  # items of one many-session call (> 0) go through one forward pass together
+    solo: bool = (
+        False  # its group runs in a pass of its own (a part of a call split to overlap its answering)
+    )
     unit: units.Unit | None = None  # the change it belongs to: no longer cancellable once its forward starts
 
 
@@ -208,8 +211,14 @@ class MicroBatcher:
             raise action
         return action
 
-    async def act_many(self, ctxs: list[Context], obs: list[np.ndarray]) -> list:
+    async def act_many(self, ctxs: list[Context], obs: list[np.ndarray], solo: bool = False) -> list:
         """Actions for many sessions at once, in one forward pass (never split by `max_batch`).
+
+        Args:
+            ctxs: The sessions' contexts.
+            obs: Their prepared observations.
+            solo: Run them in a pass of their own, with no other request (for the parts of one call that is
+                answered part by part while the engine runs the next part).
 
         Returns per item the action or the exception that failed that item alone.
         """
@@ -219,7 +228,8 @@ class MicroBatcher:
         self._groups += 1
         unit = units.current()
         items = [
-            _Item(c, o, loop.create_future(), self._groups, unit) for c, o in zip(ctxs, obs, strict=True)
+            _Item(c, o, loop.create_future(), self._groups, solo=solo, unit=unit)
+            for c, o in zip(ctxs, obs, strict=True)
         ]
         self._pending.extend(items)
         self._wake.set()
@@ -279,10 +289,15 @@ class MicroBatcher:
             cap = self._cap()
             await self._gather(cap)
             batch: list[_Item] = []
-            while self._pending and (
-                len(batch) < cap or (batch[-1].group and self._pending[0].group == batch[-1].group)
-            ):
-                item = self._pending.popleft()
+            while self._pending:
+                item = self._pending[0]
+                if batch:
+                    last = batch[-1]
+                    if not (last.group and item.group == last.group) and (
+                        len(batch) >= cap or last.solo or item.solo
+                    ):
+                        break
+                self._pending.popleft()
                 if not item.future.done():
                     units.point_of_no_return(
                         item.unit

@@ -4,6 +4,7 @@ answer (a retry of the last step is answered again), written back with compare-a
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import time
@@ -12,6 +13,7 @@ import numpy as np
 
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed
+from gmt.service.batcher import SPLIT_FROM
 from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, ServiceError
 from gmt.service.ids import check_session_id, short_id
@@ -201,31 +203,60 @@ class Acts(CoreState):
             for r in ready:
                 by_model.setdefault(r[2].key, []).append(r)
             for rows in by_model.values():
-                steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]
-                actions = await self._batcher(rows[0][2]).act_many([r[3] for r in rows], [r[4] for r in rows])
-                now = self.clock()
-                stepped = []
-                for (i, s, m, ctx, _, obs, report), (step, goal, version), a in zip(
-                    rows, steps, actions, strict=True
-                ):
-                    if isinstance(a, StepFailed):
-                        out[i] = InvalidArgument(str(a))
-                        continue
-                    if isinstance(a, BaseException):
-                        raise a
-                    s.last_used = now
-                    self._note_step(m, s, ctx, step, obs, a, report)
-                    stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal), report))
-                # Every write at once: a shared store sends them in one round trip (group commit).
-                point_of_no_return()
-                saved = await self.store.save_many([(s, version) for _, s, _, version, _, _ in stepped])
-                for (i, s, m, _, result, report), e in zip(stepped, saved, strict=True):
-                    if e is not None:
-                        m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
-                    else:
-                        self._acted(s, result, t0, report)
-                    out[i] = e if e is not None else result
+                await self._act_rows(rows, out, t0)
         return out
+
+    async def _act_rows(self, rows: list[tuple], out: list, t0: float) -> None:
+        """One model's rows of an `act_many` call: their forward pass, then their answers and writes.
+
+        From `SPLIT_FROM` rows the call goes in two parts, each in a pass of its own: the first part is answered
+        and written while the engine runs the second (the event loop and the store wait on the engine no more
+        than one part's time).
+        """
+        batcher = self._batcher(rows[0][2])
+        steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]  # before the engine advances them
+        half = (len(rows) + 1) // 2 if batcher.split and len(rows) >= SPLIT_FROM else len(rows)
+        parts = (
+            [(rows[:half], steps[:half]), (rows[half:], steps[half:])]
+            if half < len(rows)
+            else [(rows, steps)]
+        )
+        passes = [
+            asyncio.ensure_future(batcher.act_many([r[3] for r in p], [r[4] for r in p], solo=len(parts) > 1))
+            for p, _ in parts
+        ]
+        try:
+            for (part, part_steps), forward in zip(parts, passes, strict=True):
+                await self._answer_rows(part, part_steps, await forward, out, t0)
+        finally:  # no pass may outlive the call (its sessions' locks): wait for any not awaited (an error)
+            await asyncio.gather(*passes, return_exceptions=True)
+
+    async def _answer_rows(
+        self, rows: list[tuple], steps: list[tuple], actions: list, out: list, t0: float
+    ) -> None:
+        """Note the rows' steps and write them back (one group commit); their answers (or errors) into `out`."""
+        now = self.clock()
+        stepped = []
+        for (i, s, m, ctx, _, obs, report), (step, goal, version), a in zip(
+            rows, steps, actions, strict=True
+        ):
+            if isinstance(a, StepFailed):
+                out[i] = InvalidArgument(str(a))
+                continue
+            if isinstance(a, BaseException):
+                raise a
+            s.last_used = now
+            self._note_step(m, s, ctx, step, obs, a, report)
+            stepped.append((i, s, m, version, self._result(m, s.id, a, step, goal), report))
+        # Every write at once: a shared store sends them in one round trip (group commit).
+        point_of_no_return()
+        saved = await self.store.save_many([(s, version) for _, s, _, version, _, _ in stepped])
+        for (i, s, m, _, result, report), e in zip(stepped, saved, strict=True):
+            if e is not None:
+                m.engine.forget(s.id)  # the store holds the truth now: adopt it afresh next time
+            else:
+                self._acted(s, result, t0, report)
+            out[i] = e if e is not None else result
 
     async def _save(self, m: LoadedModel, s: Session, read_version: int) -> None:
         """Write the session back (compare-and-set on the version read); a lost race drops this replica's copy."""

@@ -10,6 +10,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gmt.model.checkpoint import load_checkpoint
+from gmt.service.batcher import SPLIT_FROM
 from gmt.service.views import MAX_ACT_ITEMS
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
@@ -363,3 +364,32 @@ def test_one_call_is_one_forward_pass_even_beyond_max_batch(make_server, ckpt_ro
     assert (
         batches[("gmt_batch_size_bucket", (("le", "4.0"), ("model", "tiny-gmt"), ("version", version)))] == 0
     )
+
+
+def test_a_large_call_runs_in_two_passes_with_the_answers_of_one_by_one_acts(make_server, ckpt_root):
+    """From `SPLIT_FROM` sessions of one model a call goes in two passes (its first half is answered and written
+    while the engine runs the second), each answer still that of its session acting alone."""
+    server = make_server()
+    n = SPLIT_FROM + 1
+    obs = observations_for([17] * n, 2, seed=21)
+    version = load_checkpoint(ckpt_root / "tiny-sampled").version
+    key = (("model", "tiny-sampled"), ("version", version))
+    with httpx.Client(base_url=server.url) as http:
+        many = [rest_create(http, "tiny-sampled", i % 3, seed=i) for i in range(n)]
+        single = [rest_create(http, "tiny-sampled", i % 3, seed=i) for i in range(n)]
+        for t in range(2):
+            before = metric_samples(http, "gmt_batch_size")
+            r = rest_act_many(http, zip(many, obs[t], strict=True))
+            assert r.status_code == 200, r.text
+            after = metric_samples(http, "gmt_batch_size")
+            passes = after[("gmt_batch_size_count", key)] - before.get(("gmt_batch_size_count", key), 0)
+            sizes = after[("gmt_batch_size_sum", key)] - before.get(("gmt_batch_size_sum", key), 0)
+            assert (passes, sizes) == (2, n)  # one pass would be (1, n)
+            results = r.json()["results"]
+            for sid, o, got in zip(single, obs[t], results, strict=True):
+                want = rest_act(http, sid, o).json()
+                assert (got["action"], got["step"], got["goal"]) == (
+                    want["action"],
+                    want["step"],
+                    want["goal"],
+                )
