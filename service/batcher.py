@@ -43,9 +43,7 @@ class _Item:
     obs: np.ndarray
     future: asyncio.Future | None
     group: int = 0  # items of one many-session call (> 0) go through one forward pass together
-    solo: bool = (
-        False  # its group runs in a pass of its own (a part of a call split to overlap its answering)
-    )
+    solo: bool = False  # its group runs in a pass of its own (a part of a call split in two)
     unit: units.Unit | None = None  # the change it belongs to: no longer cancellable once its forward starts
 
 
@@ -254,11 +252,11 @@ class MicroBatcher:
 
     async def _gather(self, cap: int) -> None:
         """Wait (up to `max_wait_s`) for the acting sessions that have no request queued, until `cap` are queued;
-        none missing: return at once."""
+        none missing, or a solo group first in line (which none of them could join): return at once."""
         loop = asyncio.get_running_loop()
         now = loop.time()
         n = self._live()
-        if n == 0 or n >= cap or self.max_wait_s <= 0 or not self._active:
+        if n == 0 or n >= cap or self.max_wait_s <= 0 or not self._active or self._pending[0].solo:
             return
         self._missing = self._acting(self.clock())
         if not self._missing:

@@ -275,3 +275,29 @@ def test_a_served_session_beside_idle_sessions_of_its_model_never_waits(make_ser
             r = http.post(f"/sessions/{sids[0]}/act", json={"observation": obs.tolist(), "step": t})
             assert r.status_code == 200, r.text
     assert [b.waits for b in srv.core._batchers.values()] == [0] * len(srv.core._batchers)
+
+
+def test_a_solo_group_runs_in_a_pass_of_its_own_without_waiting_for_acting_sessions(pool):
+    """Two solo groups queued together go in two passes (plain groups queued together share one), and a solo
+    group first in line does not wait for the acting sessions, which could not join its pass anyway."""
+    eng = RecordingEngine()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10)
+        b.start()
+        plain = await asyncio.wait_for(
+            asyncio.gather(b.act_many(["e"], ["e0"]), b.act_many(["f"], ["f0"])), 5
+        )
+        await in_step(b, ["x", "y"])  # x and y are acting sessions now
+        parts = await asyncio.wait_for(
+            asyncio.gather(
+                b.act_many(["a", "b"], ["a0", "b0"], solo=True),
+                b.act_many(["c", "d"], ["c0", "d0"], solo=True),
+            ),
+            5,  # far less than max_wait_s
+        )
+        await b.close()
+        return parts, plain, b.waits
+
+    assert run(main()) == ([["a0", "b0"], ["c0", "d0"]], [["e0"], ["f0"]], 0)
+    assert eng.batches == [["e0", "f0"], ["x0", "y0"], ["a0", "b0"], ["c0", "d0"]]
