@@ -424,7 +424,7 @@ class PolicyEngine:
     # ----- inference ----------------------------------------------------------------------------------------
     @_locked
     def act(
-        self, contexts: list[Context], observations: list, prepared: bool = False
+        self, contexts: list[Context], observations: list, prepared: bool = False, threads: int = 1
     ) -> list[np.ndarray | int | Exception]:
         """One step for each context: predict from the history plus the observation, then commit.
 
@@ -432,6 +432,8 @@ class PolicyEngine:
             contexts: The sessions' contexts (each at most once in a batch).
             observations: One observation per context: raw, or the output of `prepare_observation`.
             prepared: Whether `observations` are already prepared.
+            threads: Threads the native step may split the batch's rows between (the same answers; the torch
+                and device steps use their own threads).
 
         Returns:
             Per context: a float32 action (continuous, clipped to the space), an int (discrete), or the
@@ -460,7 +462,7 @@ class PolicyEngine:
         slots = np.fromiter((c.slot for c in contexts), dtype=np.int64, count=len(contexts))
         if len(slots) > 1 and len(np.unique(slots)) != len(slots):
             raise ValueError("a context may appear once per batch")
-        actions, ok = self._step(slots, np.stack(states))
+        actions, ok = self._step(slots, np.stack(states), threads)
         for j, i in enumerate(rows):
             out[i] = (
                 actions[j]
@@ -471,7 +473,7 @@ class PolicyEngine:
             )
         return out
 
-    def _step(self, slots: np.ndarray, states: np.ndarray) -> tuple[list, np.ndarray]:
+    def _step(self, slots: np.ndarray, states: np.ndarray, threads: int = 1) -> tuple[list, np.ndarray]:
         p = self.pool
         if self._stale:
             due = [s for s in slots.tolist() if s in self._stale]
@@ -479,7 +481,7 @@ class PolicyEngine:
                 self._predict.rebuild_caches(due)
                 self._stale.difference_update(due)
         if self._native is not None and not self.discrete:  # all of it in one native call
-            taken, ok = self._native.act(p, slots, states, self.noise_var, MODES.index("sample"))
+            taken, ok = self._native.act(p, slots, states, self.noise_var, MODES.index("sample"), threads)
             return list(self.ckpt.action_codec.decode(taken)), ok
         t = p.step[slots]  # [B]
         blending = p.blend_steps[slots] > p.blend_done[slots]  # [B]

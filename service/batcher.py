@@ -66,6 +66,8 @@ class MicroBatcher:
             (~0.3 ms here). For engines whose step is short (the native kernel: ~0.2 ms), so the loop is never
             held long.
         clock: Monotonic seconds, for the acting window.
+        call_threads: Threads the engine may split a pass of a many-session call between (`PolicyEngine.act`'s
+            `threads`); passes of single acts get one.
 
     Attributes:
         active_window_s: How long after its last answer a session counts as acting: `ACTIVE_S`, or twice
@@ -84,6 +86,7 @@ class MicroBatcher:
         observe: Callable[[int, float], None] | None = None,
         inline_alone: bool = False,
         clock: Callable[[], float] = time.monotonic,
+        call_threads: int = 1,
     ) -> None:
         self.engine = engine
         self.executor = executor
@@ -92,6 +95,7 @@ class MicroBatcher:
         self.observe = observe
         self.inline_alone = inline_alone
         self.clock = clock
+        self.call_threads = call_threads
         self._pending: collections.deque[_Item] = collections.deque()
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
@@ -310,7 +314,10 @@ class MicroBatcher:
                 if self.executor is None:
                     actions = self.engine.act(ctxs, obs, True)
                 else:
-                    actions = await loop.run_in_executor(self.executor, self.engine.act, ctxs, obs, True)
+                    threads = self.call_threads if batch[0].group else 1
+                    actions = await loop.run_in_executor(
+                        self.executor, self.engine.act, ctxs, obs, True, threads
+                    )
             except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
                 for it in batch:
                     if not it.future.done():

@@ -105,6 +105,7 @@ class Versions(CoreState):
             max_wait_s=0.0 if s.naive else s.batch_wait_ms / 1000.0,
             observe=lambda size, sec, n=m.name, v=m.version: self.metrics.observe_batch(n, v, size, sec),
             inline_alone=m.engine.describe().kernel == "native",
+            call_threads=s.call_threads,
         )
         b.start()
         self.metrics.track_queue(m.name, m.version, lambda b=b: b.queued)

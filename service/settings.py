@@ -35,6 +35,9 @@ class Settings(BaseSettings):
         batch_wait_ms: Longest time a request waits for others to join its batch.
         max_batch: Most requests in one forward pass.
         inference_threads: Worker threads running forward passes (and torch intra-op threads).
+        call_threads: Threads the native step of one many-session call's pass (`POST /act`, `ActBatch`; from 64
+            rows) splits its rows between, the same answers. Such a pass runs while the event loop mostly waits
+            for it; single acts' passes keep one thread, as the loop is busy beside them (1 = never split).
         max_request_bytes: Largest REST body / gRPC message accepted.
         auth_token: Bearer token required on every call except health checks (None = no auth); with
             auth_tokens, one more key, named `default`.
@@ -107,6 +110,7 @@ class Settings(BaseSettings):
     batch_wait_ms: float = Field(2.0, ge=0)
     max_batch: int = Field(64, ge=1)
     inference_threads: int = Field(1, ge=1)
+    call_threads: int = Field(2, ge=1, le=64)
     max_request_bytes: int = Field(1 << 20, ge=1024)
     auth_token: SecretStr | None = None
     auth_tokens: Path | None = None
@@ -221,6 +225,7 @@ TUNING = frozenset(
     {
         "batch_wait_ms",
         "max_batch",
+        "call_threads",
         "store_wait_timeout_s",
         "store_spin_us",
         "shutdown_grace_s",

@@ -8,12 +8,14 @@ and the engine keeps the torch step.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import logging
 import os
 import platform
 import subprocess
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,7 @@ log = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("gmt_step.c")
 TILE = 32  # NB in gmt_step.c: output columns per packed weight tile
+ROWS_PER_THREAD = 32  # `act(threads=n)` splits a pass only where each thread gets at least this many rows
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -289,10 +292,20 @@ class NativeStep:
         return out
 
     def act(
-        self, pool, slots: np.ndarray, states: np.ndarray, noise_var: np.ndarray | None, sample_mode: int
+        self,
+        pool,
+        slots: np.ndarray,
+        states: np.ndarray,
+        noise_var: np.ndarray | None,
+        sample_mode: int,
+        threads: int = 1,
     ):
         """`PolicyEngine._step` for continuous actions, in one native call: the step, the noise of `sample`
         rows, clipping and the commit of the rows that succeeded to `pool` (a `gmt.model.pool.SessionPool`).
+
+        With `threads` > 1 the rows are split into that many contiguous parts (each of at least
+        `ROWS_PER_THREAD` rows, else fewer parts), one native call each, run at once: the step is batch invariant
+        and the parts' slots are distinct, so the answers and the pool are the same bit for bit.
 
         Returns:
             (model-space actions [B, A] float32, ok [B] bool).
@@ -307,16 +320,23 @@ class NativeStep:
         states = np.ascontiguousarray(states, dtype=np.float32)
         taken = np.empty((B, self.cfg.act_dim), dtype=np.float32)
         ok = np.empty(B, dtype=np.bool_)
-        rc = self._lib.gmt_act(
-            self._model_ref,
-            self._pool_ref,
-            B,
-            slots.ctypes.data,
-            states.ctypes.data,
-            taken.ctypes.data,
-            ok.ctypes.data,
-        )
-        if rc != 0:
+        parts = max(1, min(threads, B // ROWS_PER_THREAD))
+        bounds = [B * i // parts for i in range(parts + 1)]
+        calls = [
+            (
+                self._model_ref,
+                self._pool_ref,
+                hi - lo,
+                slots.ctypes.data + slots.itemsize * lo,
+                states.ctypes.data + states.strides[0] * lo,
+                taken.ctypes.data + taken.strides[0] * lo,
+                ok.ctypes.data + ok.itemsize * lo,
+            )
+            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
+        ]
+        others = [_helpers(parts - 1).submit(self._lib.gmt_act, *c) for c in calls[1:]]
+        rcs = [self._lib.gmt_act(*calls[0])] + [f.result() for f in others]  # ctypes lets go of the GIL
+        if any(rcs):
             raise MemoryError("the native step could not allocate its scratch memory")
         return taken, ok
 
@@ -347,3 +367,9 @@ class NativeStep:
         st.kc, st.vc, st.tok, st.W = cache.k.data_ptr(), cache.v.data_ptr(), cache.tok.data_ptr(), cache.width
         self._pool_ref = ctypes.byref(st)
         return st
+
+
+@functools.cache
+def _helpers(n: int) -> ThreadPoolExecutor:
+    """The threads that run all but the first part of a split native step (`NativeStep.act(threads=n + 1)`)."""
+    return ThreadPoolExecutor(n, thread_name_prefix="gmt-step")

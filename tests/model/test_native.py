@@ -100,6 +100,30 @@ def test_native_and_torch_kernels_agree_in_the_engine():
         np.testing.assert_allclose(x, y, atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("threads, rows", [(2, 64), (3, 100), (4, 70)])
+def test_a_pass_split_between_threads_is_the_pass_in_one_call(threads, rows):
+    """`act(threads=n)` splits the rows into parts of at least ROWS_PER_THREAD (70 rows: two parts, not four) run at
+    once: the answers and every session's later answers (its pool slot, key/value cache) are the same bit for bit,
+    goal blends and sampled rows included."""
+    ckpt = tiny_checkpoint(attention="window", calibrated=True)
+    one, split = PolicyEngine(ckpt), PolicyEngine(ckpt)
+    ctx_one = [one.new_context(i % 3, seed=i) for i in range(rows)]
+    ctx_split = [split.new_context(i % 3, seed=i) for i in range(rows)]
+    rng = np.random.default_rng(7)
+    for t in range(6):
+        if t == 2:
+            for e, c in ((one, ctx_one), (split, ctx_split)):
+                e.set_goal(c[5], 2, blend_steps=3)
+        obs = [rng.normal(size=17) for _ in range(rows)]
+        a, b = one.act(ctx_one, obs), split.act(ctx_split, obs, threads=threads)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    for name in ("step", "goal", "h_goal", "h_state", "h_action"):
+        np.testing.assert_array_equal(getattr(one.pool, name), getattr(split.pool, name))
+    assert torch.equal(one.pool.cache.k, split.pool.cache.k) and torch.equal(
+        one.pool.cache.v, split.pool.cache.v
+    )
+
+
 def test_native_sampling_noise_is_the_numpy_construction():
     from gmt.model import native, sampling
 

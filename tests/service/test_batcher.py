@@ -21,9 +21,11 @@ class RecordingEngine:
         self.entered = threading.Event()
         self.fail = False
         self.threads: list[str] = []
+        self.split: list[int] = []  # the `threads` each pass was given
 
-    def act(self, contexts, observations, prepared=False):
+    def act(self, contexts, observations, prepared=False, threads=1):
         self.threads.append(threading.current_thread().name)
+        self.split.append(threads)
         self.entered.set()
         self.gate.wait(30)
         self.batches.append(list(observations))
@@ -283,7 +285,7 @@ def test_a_solo_group_runs_in_a_pass_of_its_own_without_waiting_for_acting_sessi
     eng = RecordingEngine()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10)
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=10, call_threads=3)
         b.start()
         plain = await asyncio.wait_for(
             asyncio.gather(b.act_many(["e"], ["e0"]), b.act_many(["f"], ["f0"])), 5
@@ -301,3 +303,4 @@ def test_a_solo_group_runs_in_a_pass_of_its_own_without_waiting_for_acting_sessi
 
     assert run(main()) == ([["a0", "b0"], ["c0", "d0"]], [["e0"], ["f0"]], 0)
     assert eng.batches == [["e0", "f0"], ["x0", "y0"], ["a0", "b0"], ["c0", "d0"]]
+    assert eng.split == [3, 1, 3, 3]  # a call's pass may use call_threads; single acts' passes one
