@@ -140,21 +140,25 @@ def test_cancelled_request_is_dropped_before_the_forward(pool):
     assert eng.batches[-1] == ["kept", "last"]
 
 
+def three_rounds(eng: RecordingEngine, executor, names: list[str], max_wait_s: float) -> None:
+    """Every named session acts at once, three rounds, through a batcher with room for all of them."""
+
+    async def main():
+        b = MicroBatcher(eng, executor, max_batch=1024, max_wait_s=max_wait_s)
+        b.start()
+        await asyncio.wait_for(in_step(b, names, rounds=3), 10)
+        await b.close()
+
+    run(main())
+
+
 @pytest.mark.parametrize("acting", [SPLIT_FROM - 1, SPLIT_FROM, 2 * SPLIT_FROM + 1])
 def test_many_acting_sessions_are_taken_half_per_pass(pool, acting):
     """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most half of them even below `max_batch`
     (the loop answers one half while the engine runs the other); fewer acting sessions go in one pass. No wait
     here: a round's sessions are all queued before its first pass."""
     eng = RecordingEngine()
-    names = [f"s{i}" for i in range(acting)]
-
-    async def main():
-        b = MicroBatcher(eng, pool, max_batch=1024, max_wait_s=0)
-        b.start()
-        await asyncio.wait_for(in_step(b, names, rounds=3), 10)
-        await b.close()
-
-    run(main())
+    three_rounds(eng, pool, [f"s{i}" for i in range(acting)], max_wait_s=0)
     assert len(eng.batches[0]) == acting  # nobody had acted yet: one pass
     later = [len(x) for x in eng.batches[1:]]
     half = -(-acting // 2) if acting >= SPLIT_FROM else acting
@@ -164,15 +168,7 @@ def test_many_acting_sessions_are_taken_half_per_pass(pool, acting):
 def test_without_an_executor_passes_are_not_split():
     """The naive server's forward runs on the loop, which nothing would overlap: whole passes."""
     eng = RecordingEngine()
-    names = [f"s{i}" for i in range(2 * SPLIT_FROM)]
-
-    async def main():
-        b = MicroBatcher(eng, None, max_batch=1024, max_wait_s=10)
-        b.start()
-        await asyncio.wait_for(in_step(b, names, rounds=3), 10)
-        await b.close()
-
-    run(main())
+    three_rounds(eng, None, [f"s{i}" for i in range(2 * SPLIT_FROM)], max_wait_s=10)
     assert [len(x) for x in eng.batches] == [2 * SPLIT_FROM] * 3
 
 
