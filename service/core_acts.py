@@ -225,11 +225,23 @@ class Acts(CoreState):
             asyncio.ensure_future(batcher.act_many([r[3] for r in p], [r[4] for r in p], solo=len(parts) > 1))
             for p, _ in parts
         ]
+        failed: Exception | None = None
         try:
             for (part, part_steps), forward in zip(parts, passes, strict=True):
-                await self._answer_rows(part, part_steps, await forward, out, t0)
-        finally:  # no pass may outlive the call (its sessions' locks): wait for any not awaited (an error)
+                try:
+                    await self._answer_rows(part, part_steps, await forward, out, t0)
+                except Exception as e:  # noqa: BLE001 - its pass failed as a whole: the other part is still answered
+                    failed = (
+                        failed or e
+                    )  # and written (it may have run already), then the call fails as before
+        except BaseException:  # cancelled: only while no pass has started (`units`), so neither may run later
+            for forward in passes:
+                forward.cancel()
+            raise
+        finally:  # no pass may outlive the call (its sessions' locks)
             await asyncio.gather(*passes, return_exceptions=True)
+        if failed is not None:
+            raise failed
 
     async def _answer_rows(
         self, rows: list[tuple], steps: list[tuple], actions: list, out: list, t0: float

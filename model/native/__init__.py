@@ -15,6 +15,7 @@ import os
 import platform
 import subprocess
 import tempfile
+from concurrent import futures
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -305,7 +306,8 @@ class NativeStep:
 
         With `threads` > 1 the rows are split into that many contiguous parts (each of at least
         `ROWS_PER_THREAD` rows, else fewer parts), one native call each, run at once: the step is batch invariant
-        and the parts' slots are distinct, so the answers and the pool are the same bit for bit.
+        and the parts' slots are distinct, so the answers and the pool are the same bit for bit. (A part that
+        cannot allocate its scratch memory changes nothing, but the others' rows are then committed.)
 
         Returns:
             (model-space actions [B, A] float32, ok [B] bool).
@@ -334,9 +336,14 @@ class NativeStep:
             )
             for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
         ]
-        others = [_helpers(parts - 1).submit(self._lib.gmt_act, *c) for c in calls[1:]]
-        rcs = [self._lib.gmt_act(*calls[0])] + [f.result() for f in others]  # ctypes lets go of the GIL
-        if any(rcs):
+        others = []
+        try:
+            for c in calls[1:]:
+                others.append(_helpers(parts - 1).submit(self._lib.gmt_act, *c))
+            rc = self._lib.gmt_act(*calls[0])  # ctypes lets go of the GIL: the parts run at once
+        finally:  # no part may outlive the arrays it writes
+            futures.wait(others)
+        if rc or any(f.result() for f in others):
             raise MemoryError("the native step could not allocate its scratch memory")
         return taken, ok
 

@@ -100,13 +100,31 @@ def test_native_and_torch_kernels_agree_in_the_engine():
         np.testing.assert_allclose(x, y, atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("threads, rows", [(2, 64), (3, 100), (4, 70)])
-def test_a_pass_split_between_threads_is_the_pass_in_one_call(threads, rows):
-    """`act(threads=n)` splits the rows into parts of at least ROWS_PER_THREAD (70 rows: two parts, not four) run at
-    once: the answers and every session's later answers (its pool slot, key/value cache) are the same bit for bit,
-    goal blends and sampled rows included."""
+class _CountingLib:
+    """A native library whose `gmt_act` calls are recorded (rows per call) and passed on."""
+
+    def __init__(self, lib) -> None:
+        self._lib, self.rows = lib, []
+
+    def __getattr__(self, name):
+        return getattr(self._lib, name)
+
+    def gmt_act(self, model, pool, rows, *rest):
+        self.rows.append(rows)
+        return self._lib.gmt_act(model, pool, rows, *rest)
+
+
+@pytest.mark.parametrize(
+    "threads, rows, parts", [(2, 64, [32, 32]), (3, 100, [33, 33, 34]), (4, 70, [35, 35])]
+)
+def test_a_pass_split_between_threads_is_the_pass_in_one_call(threads, rows, parts):
+    """`act(threads=n)` splits the rows into parts of at least ROWS_PER_THREAD (70 rows: two parts, not four), one
+    native call each, run at once: the answers and every session's later answers (its pool slot, key/value cache)
+    are the same bit for bit, goal blends and sampled rows included."""
     ckpt = tiny_checkpoint(attention="window", calibrated=True)
     one, split = PolicyEngine(ckpt), PolicyEngine(ckpt)
+    assert split.describe().kernel == "native"
+    split._native._lib = counting = _CountingLib(split._native._lib)
     ctx_one = [one.new_context(i % 3, seed=i) for i in range(rows)]
     ctx_split = [split.new_context(i % 3, seed=i) for i in range(rows)]
     rng = np.random.default_rng(7)
@@ -115,8 +133,10 @@ def test_a_pass_split_between_threads_is_the_pass_in_one_call(threads, rows):
             for e, c in ((one, ctx_one), (split, ctx_split)):
                 e.set_goal(c[5], 2, blend_steps=3)
         obs = [rng.normal(size=17) for _ in range(rows)]
+        counting.rows.clear()
         a, b = one.act(ctx_one, obs), split.act(ctx_split, obs, threads=threads)
         assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        assert sorted(counting.rows) == parts
     for name in ("step", "goal", "h_goal", "h_state", "h_action"):
         np.testing.assert_array_equal(getattr(one.pool, name), getattr(split.pool, name))
     assert torch.equal(one.pool.cache.k, split.pool.cache.k) and torch.equal(

@@ -1,16 +1,22 @@
 """Many sessions in one call (`POST /act`, gRPC `ActBatch`): the same actions as one-by-one `act`, per-item
 errors that leave every other item (and the failed session) alone, and one forward pass per call."""
 
+import asyncio
 import base64
+import threading
+import time
 
 import grpc
 import httpx
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
+from service_harness import make_settings
 
 from gmt.model.checkpoint import load_checkpoint
 from gmt.service.batcher import SPLIT_FROM
+from gmt.service.core import Core
+from gmt.service.redis_store import store_for
 from gmt.service.views import MAX_ACT_ITEMS
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
@@ -393,3 +399,57 @@ def test_a_large_call_runs_in_two_passes_with_the_answers_of_one_by_one_acts(mak
                     want["step"],
                     want["goal"],
                 )
+
+
+class _GatedEngine:
+    """An engine whose first pass waits at a gate (so the batcher holds what is queued behind it); counts passes."""
+
+    def __init__(self, engine) -> None:
+        self._engine, self.passes = engine, 0
+        self.gate, self.entered = threading.Event(), threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self._engine, name)
+
+    def act(self, *args, **kw):
+        self.passes += 1
+        self.entered.set()
+        self.gate.wait(30)
+        return self._engine.act(*args, **kw)
+
+
+def test_a_split_call_cancelled_before_its_passes_start_runs_neither_part(ckpt_root):
+    """A call in two parts can be cancelled only while neither part's pass has started (`gmt.service.units`): then
+    neither runs later, and no session of it steps."""
+
+    async def main():
+        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"])
+        core = Core(settings, store=store_for(settings, time.time), clock=time.time)
+        await core.start()
+        try:
+            sids = [
+                (await core.create_session("tiny-gmt", goal=0, seed=i)).session_id
+                for i in range(SPLIT_FROM + 1)
+            ]
+            (batcher,) = core._batchers.values()
+            batcher.inline_alone = False  # the first act goes through the batcher, to be held there
+            batcher.engine = gated = _GatedEngine(batcher.engine)
+            obs = np.zeros(17, dtype=np.float32)
+            held = asyncio.ensure_future(core.act(sids[0], obs))
+            assert await asyncio.to_thread(gated.entered.wait, 10)
+            call = asyncio.ensure_future(core.act_many([(sid, obs) for sid in sids[1:]]))
+            while batcher.queued < SPLIT_FROM:  # both parts wait behind the held pass
+                await asyncio.sleep(0)
+            call.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await call
+            gated.gate.set()
+            assert (await held).step == 0
+            while not batcher.idle:
+                await asyncio.sleep(0.001)
+            return gated.passes, [(await core.get_session(sid)).step for sid in sids]
+        finally:
+            await core.close()
+
+    passes, steps = asyncio.run(main())
+    assert passes == 1 and steps == [1] + [0] * SPLIT_FROM
