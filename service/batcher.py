@@ -247,6 +247,12 @@ class MicroBatcher:
             self._pending.popleft()
         return self.queued
 
+    def call_cut(self, rows: int) -> int:
+        """Where a many-session call of `rows` rows is cut into the two parts it runs in (`act_many(solo=True)`;
+        the first part is answered while the engine runs the second): half way from `SPLIT_FROM` rows when the
+        forward runs off the loop, else `rows` (one part)."""
+        return (rows + 1) // 2 if self.split and rows >= SPLIT_FROM else rows
+
     def _cap(self) -> int:
         """Most single-session requests in the next pass: `max_batch`, or half the acting sessions if fewer."""
         acting = len(self._active)

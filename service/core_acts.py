@@ -13,7 +13,6 @@ import numpy as np
 
 from gmt.model.context import Context
 from gmt.model.engine import InvalidObservation, StepFailed
-from gmt.service.batcher import SPLIT_FROM
 from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, ServiceError
 from gmt.service.ids import check_session_id, short_id
@@ -209,18 +208,14 @@ class Acts(CoreState):
     async def _act_rows(self, rows: list[tuple], out: list, t0: float) -> None:
         """One model's rows of an `act_many` call: their forward pass, then their answers and writes.
 
-        From `SPLIT_FROM` rows the call goes in two parts, each in a pass of its own: the first part is answered
-        and written while the engine runs the second (the event loop and the store wait on the engine no more
-        than one part's time).
+        A call of many rows goes in two parts (`MicroBatcher.call_cut`), each in a pass of its own: the first part
+        is answered and written while the engine runs the second (the event loop and the store wait on the engine
+        no more than one part's time).
         """
         batcher = self._batcher(rows[0][2])
         steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]  # before the engine advances them
-        half = (len(rows) + 1) // 2 if batcher.split and len(rows) >= SPLIT_FROM else len(rows)
-        parts = (
-            [(rows[:half], steps[:half]), (rows[half:], steps[half:])]
-            if half < len(rows)
-            else [(rows, steps)]
-        )
+        cut = batcher.call_cut(len(rows))
+        parts = [(rows[lo:hi], steps[lo:hi]) for lo, hi in ((0, cut), (cut, len(rows))) if lo < hi]
         passes = [
             asyncio.ensure_future(batcher.act_many([r[3] for r in p], [r[4] for r in p], solo=len(parts) > 1))
             for p, _ in parts
@@ -230,10 +225,9 @@ class Acts(CoreState):
             for (part, part_steps), forward in zip(parts, passes, strict=True):
                 try:
                     await self._answer_rows(part, part_steps, await forward, out, t0)
-                except Exception as e:  # noqa: BLE001 - its pass failed as a whole: the other part is still answered
-                    failed = (
-                        failed or e
-                    )  # and written (it may have run already), then the call fails as before
+                except Exception as e:  # noqa: BLE001 - its pass failed as a whole
+                    # The other part (which may have run already) is still answered and written; then the call fails.
+                    failed = failed or e
         except BaseException:  # cancelled: only while no pass has started (`units`), so neither may run later
             for forward in passes:
                 forward.cancel()

@@ -322,10 +322,9 @@ class NativeStep:
         states = np.ascontiguousarray(states, dtype=np.float32)
         taken = np.empty((B, self.cfg.act_dim), dtype=np.float32)
         ok = np.empty(B, dtype=np.bool_)
-        parts = max(1, min(threads, B // ROWS_PER_THREAD))
-        bounds = [B * i // parts for i in range(parts + 1)]
-        calls = [
-            (
+
+        def call(lo: int, hi: int) -> tuple:  # gmt_act's arguments for rows lo:hi
+            return (
                 self._model_ref,
                 self._pool_ref,
                 hi - lo,
@@ -334,18 +333,28 @@ class NativeStep:
                 taken.ctypes.data + taken.strides[0] * lo,
                 ok.ctypes.data + ok.itemsize * lo,
             )
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
-        ]
+
+        parts = min(threads, B // ROWS_PER_THREAD)
+        if parts <= 1:
+            failed = self._lib.gmt_act(*call(0, B)) != 0
+        else:
+            bounds = [B * i // parts for i in range(parts + 1)]
+            failed = self._run_parts([call(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)])
+        if failed:
+            raise MemoryError("the native step could not allocate its scratch memory")
+        return taken, ok
+
+    def _run_parts(self, calls: list[tuple]) -> bool:
+        """Run `gmt_act` once per argument tuple, the first here and the others on helper threads, all at once
+        (ctypes lets go of the GIL); whether any failed. Returns only once every part has."""
         others = []
         try:
             for c in calls[1:]:
-                others.append(_helpers(parts - 1).submit(self._lib.gmt_act, *c))
-            rc = self._lib.gmt_act(*calls[0])  # ctypes lets go of the GIL: the parts run at once
+                others.append(_helpers(len(calls) - 1).submit(self._lib.gmt_act, *c))
+            rc = self._lib.gmt_act(*calls[0])
         finally:  # no part may outlive the arrays it writes
             futures.wait(others)
-        if rc or any(f.result() for f in others):
-            raise MemoryError("the native step could not allocate its scratch memory")
-        return taken, ok
+        return rc != 0 or any(f.result() != 0 for f in others)
 
     def _pool_struct(self, pool, noise_var: np.ndarray | None, sample_mode: int) -> _Pool:
         """The pool's array addresses (valid until its arrays are replaced: `pool.generation` changes)."""
