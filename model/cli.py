@@ -177,6 +177,11 @@ def eval_command(
         help="Steps of context a goal change relabels with the new goal (0: none); default: the model's "
         "(its gmt.json `switch_relabel_steps`).",
     ),
+    precision: str = typer.Option(
+        "fp32",
+        help="fp32 (exact, the default) or bf16: the native step's block products in bfloat16, as "
+        "`GMT_PRECISION=bf16` serves them (a CPU with AVX-512 BF16).",
+    ),
 ) -> None:
     """Hold every goal, switch every ordered pair mid-episode, cycle goals every 300/200/100 steps.
 
@@ -195,9 +200,16 @@ def eval_command(
     for flag, path in (("--json", json_out), ("--markdown", markdown_out), ("--plot", plot)):
         if path is not None and path.is_dir():  # found before the evaluation runs, not after
             raise typer.BadParameter(f"{path} is a directory; name the file to write", param_hint=flag)
+    if precision not in ("fp32", "bf16"):
+        raise typer.BadParameter(f"must be fp32 or bf16, got {precision!r}", param_hint="--precision")
     torch.set_num_threads(threads)
     ckpt = load_checkpoint(checkpoint)
     dt = ckpt.config.conditioning == "return"
+    if precision != "fp32" and (dt or is_sum(ckpt.statistic)):
+        raise typer.BadParameter(
+            "bf16 is evaluated with the goal protocol (a mean statistic); this checkpoint uses another one",
+            param_hint="--precision",
+        )
     seed_list = list(range(first_seed, first_seed + seeds))
     modes = ("mean",) if dt else PolicyEngine(ckpt).action_modes
     if action_mode is not None and action_mode not in modes:
@@ -228,6 +240,7 @@ def eval_command(
             steps=steps,
             action_mode=action_mode,
             switch_relabel_steps=switch_relabel_steps,
+            precision=precision,
         )
     table = result.markdown()
     typer.echo(table)

@@ -126,6 +126,9 @@ class PolicyEngine:
         device: Where the network runs: `cpu` (the native step where it can, else torch), `cuda` (the torch step
             on the GPU, the key/value pool allocated there for `n_slots` sessions up front; the network is moved
             there) or `auto` (`cuda` when a GPU is visible, else `cpu`).
+        precision: `fp32` (exact: the reference arithmetic) or `bf16`: the native step computes the blocks'
+            matrix products in bfloat16 (AVX-512 BF16; faster batches, answers within the tolerance in
+            docs/performance.md). `bf16` needs the native step.
     """
 
     def __init__(
@@ -136,7 +139,11 @@ class PolicyEngine:
         native: bool | None = None,
         switch_relabel_steps: int | None = None,
         device: str = "cpu",
+        precision: str = "fp32",
     ) -> None:
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+        self.precision = precision
         if checkpoint.config.conditioning != "goal":
             raise ValueError(
                 "this checkpoint is a Decision Transformer (return-to-go conditioning): it is a baseline for "
@@ -186,6 +193,11 @@ class PolicyEngine:
                 f"switch_relabel_steps must be 0 to {self.pool.H} (the history kept), got {self.switch_relabel_steps}"
             )
         self._native = self._native_step(native) if self.incremental else None
+        if precision == "bf16" and self._native is None:
+            raise ValueError(
+                "precision 'bf16' runs in the native step, which this model does not use here (it needs a CPU "
+                "device, a vector-observation window model and the native library)"
+            )
         self._predict = Predictor(self.model, self.pool, self.incremental, self._native, self.device)
         # Slots adopted from a stored form whose key/value cache is rebuilt at their next step: the sessions a
         # call adopts together are replayed together (`Predictor.rebuild_caches`).
@@ -204,7 +216,7 @@ class PolicyEngine:
             if native:
                 raise RuntimeError("the native step is unavailable (no C compiler, or GMT_NATIVE=0)")
             return None
-        return native_kernel.NativeStep(self.model, lib)
+        return native_kernel.NativeStep(self.model, lib, bf16=self.precision == "bf16")
 
     def describe(self) -> EngineInfo:
         """Modes, history and compute path."""

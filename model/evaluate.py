@@ -140,6 +140,7 @@ class EvalResult:
     results: list[ConditionResult]
     wall_time_s: float
     switch_relabel_steps: int = 0  # steps of context each goal change relabelled (`PolicyEngine.set_goal`)
+    precision: str = "fp32"  # the engine's arithmetic (`PolicyEngine`'s `precision`)
 
     def to_dict(self) -> dict:
         """The documented JSON form."""
@@ -149,6 +150,7 @@ class EvalResult:
             "statistic": self.statistic,
             "action_mode": self.action_mode,
             "switch_relabel_steps": self.switch_relabel_steps,
+            **({"precision": self.precision} if self.precision != "fp32" else {}),
             "seeds": self.seeds,
             "episode_steps": self.episode_steps,
             "wall_time_s": round(self.wall_time_s, 1),
@@ -239,6 +241,7 @@ def evaluate(
     progress: bool = True,
     action_mode: str | None = None,
     switch_relabel_steps: int | None = None,
+    precision: str = "fp32",
 ) -> EvalResult:
     """Run every condition for every seed, all episodes in lockstep through one engine.
 
@@ -252,13 +255,14 @@ def evaluate(
             a condition seeds its sampler with seed i.
         switch_relabel_steps: Steps of context a goal change relabels (default: the checkpoint's, as the
             server uses).
+        precision: The engine's arithmetic (`PolicyEngine`'s `precision`: fp32 or bf16).
     """
     import gymnasium as gym
 
     get_statistic(ckpt.statistic)  # fail early on an unknown statistic
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
     conds = conditions or protocol(len(ckpt.goals), steps)
-    engine = PolicyEngine(ckpt, switch_relabel_steps=switch_relabel_steps)
+    engine = PolicyEngine(ckpt, switch_relabel_steps=switch_relabel_steps, precision=precision)
     runs = [(c, s) for c in conds for s in seed_list]
     envs = [gym.make(ckpt.env_id, max_episode_steps=steps) for _ in runs]
     t0 = time.time()
@@ -277,6 +281,7 @@ def evaluate(
         env.close()
     result = judge(ckpt, conds, seed_list, signal, terminated, mode, steps, time.time() - t0)
     result.switch_relabel_steps = engine.switch_relabel_steps
+    result.precision = engine.precision
     return result
 
 

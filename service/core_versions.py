@@ -92,8 +92,10 @@ class Versions(CoreState):
         return self._view_model(self.registry.entry(name))
 
     def _engine_placement(self) -> dict:
-        """Where a loaded version's engine runs: `--device`, its pool sized for `--max-sessions` off the CPU."""
-        return {"device": self.settings.device, "n_slots": self.settings.max_sessions}
+        """Where and how a loaded version's engine runs: `--device`, its pool sized for `--max-sessions` off the
+        CPU, and `--precision`."""
+        s = self.settings
+        return {"device": s.device, "n_slots": s.max_sessions, "precision": s.precision}
 
     def _start_batcher(self, m: LoadedModel) -> None:
         """Start the micro-batcher of a version newly in the registry."""

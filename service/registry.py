@@ -49,14 +49,23 @@ def discover(paths: list[Path]) -> list[Path]:
 
 
 def engine_for(
-    checkpoint: Checkpoint, naive: bool = False, device: str = "cpu", n_slots: int = 16
+    checkpoint: Checkpoint,
+    naive: bool = False,
+    device: str = "cpu",
+    n_slots: int = 16,
+    precision: str = "fp32",
 ) -> PolicyEngine:
     """The engine serving a checkpoint: incremental for `window` models, the reference recompute otherwise or when
     `naive`; on `device` (`PolicyEngine`), whose session pool is allocated for `n_slots` sessions up front when it
-    is not the CPU, and warmed up there (one throwaway act) so that no session's first act pays the device's start."""
+    is not the CPU, and warmed up there (one throwaway act) so that no session's first act pays the device's start;
+    with the native step's `precision` (fp32 for the naive server, whose recompute is the exactness oracle)."""
     on_cpu = resolve_device(device) == "cpu"
     engine = PolicyEngine(
-        checkpoint, incremental=False if naive else None, device=device, n_slots=16 if on_cpu else n_slots
+        checkpoint,
+        incremental=False if naive else None,
+        device=device,
+        n_slots=16 if on_cpu else n_slots,
+        precision="fp32" if naive else precision,
     )
     if not on_cpu:
         engine.warm_up()
@@ -146,13 +155,18 @@ class ModelRegistry:
 
     @classmethod
     def load(
-        cls, paths: list[Path], naive: bool = False, device: str = "cpu", n_slots: int = 16
+        cls,
+        paths: list[Path],
+        naive: bool = False,
+        device: str = "cpu",
+        n_slots: int = 16,
+        precision: str = "fp32",
     ) -> ModelRegistry:
         """Load every checkpoint found under `paths`, each the one version of the model named by its directory; a
         broken one is logged and skipped.
 
         `naive` serves every model by the reference recompute (the exactness oracle and benchmark baseline);
-        `device` and `n_slots` as in `engine_for`.
+        `device`, `n_slots` and `precision` as in `engine_for`.
         """
         reg = cls()
         for d in discover(paths):
@@ -164,7 +178,7 @@ class ModelRegistry:
                 log.error("checkpoint skipped", extra={"path": str(d), "error": reg.errors[str(d)]})
                 continue
             try:
-                m = load_model(name, d, naive, device=device, n_slots=n_slots)
+                m = load_model(name, d, naive, device=device, n_slots=n_slots, precision=precision)
             except CheckpointError as e:
                 reg.errors[str(d)] = str(e)
                 log.error("checkpoint failed to load", extra={"path": str(d), "error": str(e)})
@@ -362,6 +376,7 @@ def load_model(
     state: str = SERVING,
     device: str = "cpu",
     n_slots: int = 16,
+    precision: str = "fp32",
 ) -> LoadedModel:
     """Load the checkpoint at `path` as a version of model `name`, with its engine (slow: run it in a thread).
 
@@ -371,7 +386,7 @@ def load_model(
     """
     try:
         ckpt = load_checkpoint(path, name=name, expect_fingerprint=expect_fingerprint)
-        engine = engine_for(ckpt, naive, device, n_slots)
+        engine = engine_for(ckpt, naive, device, n_slots, precision)
     except CheckpointError:
         raise
     except Exception as e:  # noqa: BLE001 - whatever a malformed checkpoint makes torch or the engine raise
@@ -389,6 +404,7 @@ def load_model(
             "attention": ckpt.config.attention,
             "engine": info.path,
             "kernel": info.kernel,
+            "precision": engine.precision,
             "device": engine.device,
         },
     )

@@ -45,6 +45,14 @@ def serve_command(**flags: Any) -> None:
             resolve_device(settings.device)
         except ValueError as e:  # e.g. cuda on a machine without a GPU: say so before loading anything
             raise typer.BadParameter(str(e), param_hint="--device") from None
+    if settings.precision == "bf16" and not settings.naive:
+        from gmt.model import native
+
+        if not native.has_bf16():
+            raise typer.BadParameter(
+                "bf16 needs the native step built with AVX-512 BF16 (this CPU or compiler has none, or GMT_NATIVE=0)",
+                param_hint="--precision",
+            )
     logs.configure(settings.log_format, settings.log_level)
     try:
         if settings.event_loop == "uvloop":

@@ -88,6 +88,9 @@ class Settings(BaseSettings):
         device: Where the networks run: `cpu` (the native step), `cuda` (a batched torch step on the GPU, each
             model's key/value pool allocated there for --max-sessions sessions up front) or `auto` (`cuda` when
             torch sees a GPU, else `cpu`).
+        precision: The arithmetic of the native step's block products: `fp32` (exact: the reference's answers) or
+            `bf16` (bfloat16 products on a CPU with AVX-512 BF16: ~25% less time per act, actions within the
+            tolerance in docs/performance.md).
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
         replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC
@@ -136,6 +139,7 @@ class Settings(BaseSettings):
     grpc_write_timeout_s: float = Field(30.0, gt=0)
     event_loop: Literal["uvloop", "asyncio"] = "uvloop"
     device: str = Field("cpu", pattern=r"^(cpu|auto|cuda(:\d+)?)$")
+    precision: Literal["fp32", "bf16"] = "fp32"
     naive: bool = False
     replica_id: str = Field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")  # hostname:pid
     record_dir: Path | None = None

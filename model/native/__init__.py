@@ -41,6 +41,7 @@ CFLAGS = [
 
 _f32p = ctypes.POINTER(ctypes.c_float)
 _f32pp = ctypes.POINTER(_f32p)
+_u32pp = ctypes.POINTER(ctypes.POINTER(ctypes.c_uint32))
 _i64p = ctypes.POINTER(ctypes.c_int64)
 
 
@@ -50,6 +51,7 @@ _TABLES = ("goal_emb", "state_w", "state_b", "action_w", "action_b", "time_emb",
 _LAYERS = ("ln1_w", "ln1_b", "qkv_w", "qkv_b", "proj_w", "proj_b", "ln2_w", "ln2_b", "fc_w", "fc_b")
 _LAYERS += ("out_w", "out_b")
 _HEADS = ("ln_f_w", "ln_f_b", "head_w", "head_b")
+_BF16 = ("qkv_wb", "proj_wb", "fc_wb", "out_wb")  # the blocks' matrices in bfloat16 (NULL: fp32)
 
 
 class _Pool(ctypes.Structure):
@@ -72,6 +74,7 @@ class _Model(ctypes.Structure):
         + [(n, _f32p) for n in _TABLES]
         + [(n, _f32pp) for n in _LAYERS]
         + [(n, _f32p) for n in _HEADS]
+        + [(n, _u32pp) for n in _BF16]
     )
 
 
@@ -143,11 +146,19 @@ def load() -> ctypes.CDLL | None:
     lib.gmt_step.argtypes = [ctypes.POINTER(_Model), i64, *[vp] * 12, i64, i64, vp]
     lib.gmt_act.restype = ctypes.c_int
     lib.gmt_act.argtypes = [ctypes.POINTER(_Model), ctypes.POINTER(_Pool), i64, vp, vp, vp, vp]
+    lib.gmt_bf16.restype = ctypes.c_int
+    lib.gmt_bf16.argtypes = []
     lib.gmt_uniforms.restype = lib.gmt_normals.restype = None
     lib.gmt_uniforms.argtypes = [vp, vp, i64, i64, i64, vp]
     lib.gmt_normals.argtypes = [vp, vp, i64, i64, vp]
     _lib = lib
     return lib
+
+
+def has_bf16(lib: ctypes.CDLL | None = None) -> bool:
+    """Whether the native library (`load()` by default) was built with bfloat16 products (AVX-512 BF16)."""
+    lib = load() if lib is None else lib
+    return lib is not None and bool(lib.gmt_bf16())
 
 
 def uniforms(seed: np.ndarray, step: np.ndarray, n: int, stream: int = 0) -> np.ndarray | None:
@@ -186,6 +197,25 @@ def pack(w: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(padded.reshape(K, n_tiles, TILE).transpose(1, 0, 2))  # [tiles, K, TILE]
 
 
+def bf16_bits(a: np.ndarray) -> np.ndarray:
+    """float32 values as bfloat16 bit patterns (uint32, low 16 bits), rounded to nearest even, denormals flushed to
+    zero: what `vcvtne2ps2bf16` makes of them (`bf16_of` in gmt_step.c)."""
+    u = np.ascontiguousarray(a, np.float32).view(np.uint32)
+    out = ((u + np.uint32(0x7FFF) + ((u >> 16) & 1)) >> 16) & 0xFFFF
+    out = np.where((u & 0x7F800000) == 0, (u >> 16) & 0x8000, out)  # zero or denormal: signed zero
+    return np.where((u & 0x7FFFFFFF) > 0x7F800000, ((u >> 16) | 0x40) & 0xFFFF, out).astype(np.uint32)
+
+
+def pack_bf16(w: np.ndarray) -> np.ndarray:
+    """A matrix [K, N] (K even) as ceil(N / TILE) column tiles [K / 2, TILE] of bfloat16 pairs (rows k and k + 1 of
+    a column in one uint32, k in the low half), zero-padded: the layout `linear_bf16` in gmt_step.c streams."""
+    K, N = w.shape
+    if K % 2:
+        raise ValueError(f"bfloat16 products need an even inner dimension, got {K}")
+    bits = bf16_bits(pack(w))  # [tiles, K, TILE]
+    return np.ascontiguousarray(bits[:, 0::2, :] | (bits[:, 1::2, :] << 16))  # [tiles, K / 2, TILE]
+
+
 def _addr(a: np.ndarray | None) -> int | None:
     return None if a is None else a.ctypes.data
 
@@ -196,10 +226,17 @@ class NativeStep:
     Args:
         model: The model (its weights are copied, transposed, once).
         lib: The library from `load()`.
+        bf16: Compute the blocks' four matrix products in bfloat16 (weights and activations rounded to bfloat16,
+            fp32 sums: `vdpbf16ps`); the rest stays fp32. Needs a build with AVX-512 BF16 (`has_bf16`).
     """
 
-    def __init__(self, model: GMT, lib: ctypes.CDLL) -> None:
+    def __init__(self, model: GMT, lib: ctypes.CDLL, bf16: bool = False) -> None:
         cfg = model.cfg
+        if bf16 and not has_bf16(lib):
+            raise ValueError(
+                "bfloat16 products need a CPU with AVX-512 BF16 (and a compiler that targets it); this one has none"
+            )
+        self.bf16 = bf16
         if cfg.attention != "window" or cfg.is_image:
             raise ValueError("the native step serves window models with vector observations")
         self.cfg, self._lib = cfg, lib
@@ -240,6 +277,19 @@ class NativeStep:
         m.out_w, m.out_b = per_layer(lambda b: b.out.weight, True), per_layer(lambda b: b.out.bias)
         m.ln_f_w, m.ln_f_b = _ptr(arr(model.ln_f.weight)), _ptr(arr(model.ln_f.bias))
         m.head_w, m.head_b = _ptr(arr(model.action_head.weight, True)), _ptr(arr(model.action_head.bias))
+        if bf16:
+            for name, get in (
+                ("qkv_wb", lambda b: b.attn.qkv.weight),
+                ("proj_wb", lambda b: b.attn.proj.weight),
+                ("fc_wb", lambda b: b.fc.weight),
+                ("out_wb", lambda b: b.out.weight),
+            ):
+                tiles = [pack_bf16(get(b).detach().float().cpu().numpy().T) for b in model.blocks]
+                ptrs = (ctypes.POINTER(ctypes.c_uint32) * cfg.n_layer)(
+                    *(t.ctypes.data_as(ctypes.POINTER(ctypes.c_uint32)) for t in tiles)
+                )
+                self._keep += [*tiles, ptrs]
+                setattr(m, name, ctypes.cast(ptrs, _u32pp))
         self._model = m
         self._model_ref = ctypes.byref(m)
 

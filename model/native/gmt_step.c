@@ -27,6 +27,8 @@ typedef struct {
     const float *const *ln1_w, *const *ln1_b, *const *qkv_w, *const *qkv_b, *const *proj_w, *const *proj_b;
     const float *const *ln2_w, *const *ln2_b, *const *fc_w, *const *fc_b, *const *out_w, *const *out_b;
     const float *ln_f_w, *ln_f_b, *head_w, *head_b; /* action head [C, act_dim], [act_dim] */
+    /* The blocks' four matrices as bfloat16 pairs (`linear_bf16`), or NULL: the fp32 products above. */
+    const uint32_t *const *qkv_wb, *const *proj_wb, *const *fc_wb, *const *out_wb;
 } Model;
 
 #define NB 32 /* output columns per tile (must match model/native/__init__.py TILE) */
@@ -67,6 +69,102 @@ static void linear(const float *x, int64_t M, int64_t K, const float *w, const f
         case 1: tile(x + m * K, K, wt, N, b, y + m * N, n0, 1, nb); break;
         }
     }
+}
+
+#if defined(__AVX512BF16__) && defined(__AVX512F__)
+#include <immintrin.h>
+#define GMT_BF16 1
+#else
+#define GMT_BF16 0
+#endif
+
+/* Whether this build has the bfloat16 products (the CPU's AVX-512 BF16 `vdpbf16ps`). */
+int gmt_bf16(void) { return GMT_BF16; }
+
+#if GMT_BF16
+/* f as bfloat16, rounded to nearest even, denormals flushed to zero (as `vcvtne2ps2bf16`). */
+static inline uint32_t bf16_of(float f) {
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    if ((u & 0x7f800000u) == 0) return (u >> 16) & 0x8000u;             /* zero or denormal: signed zero */
+    if ((u & 0x7fffffffu) > 0x7f800000u) return ((u >> 16) | 0x40u) & 0xffffu; /* NaN stays NaN */
+    return ((u + 0x7fffu + ((u >> 16) & 1u)) >> 16) & 0xffffu;
+}
+
+/* xb [M, K / 2] = the rows of x [M, K] (K even) as bfloat16 pairs: element k in the low half, k + 1 in the high. */
+static void to_bf16_pairs(const float *x, int64_t M, int64_t K, uint32_t *xb) {
+    for (int64_t m = 0; m < M; m++) {
+        const float *r = x + m * K;
+        uint32_t *o = xb + m * (K / 2);
+        int64_t k = 0;
+        for (; k + 32 <= K; k += 32) {
+            __m512bh v = _mm512_cvtne2ps_pbh(_mm512_loadu_ps(r + k + 16), _mm512_loadu_ps(r + k));
+            _mm512_storeu_si512(o + k / 2, (__m512i)v);
+        }
+        for (; k < K; k += 2) o[k / 2] = bf16_of(r[k]) | (bf16_of(r[k + 1]) << 16);
+    }
+}
+
+/* `tile` in bfloat16: wt is the packed tile [K / 2, NB] of weight pairs, xb the rows' pairs; each output is
+ * one sequential chain of `vdpbf16ps` (two products and a sum per step, fp32 accumulation), whatever the batch. */
+static inline __attribute__((always_inline)) void tile_bf16(const uint32_t *xb, int64_t K2, const uint32_t *wt,
+                                                            int64_t N, const float *b, float *y, int64_t n0, int mb,
+                                                            int nb) {
+    __m512 acc[MB][2];
+    for (int r = 0; r < mb; r++) acc[r][0] = acc[r][1] = _mm512_setzero_ps();
+    for (int64_t k = 0; k < K2; k++) {
+        const __m512bh w0 = (__m512bh)_mm512_loadu_si512(wt + k * NB);
+        const __m512bh w1 = (__m512bh)_mm512_loadu_si512(wt + k * NB + 16);
+        for (int r = 0; r < mb; r++) {
+            const __m512bh xv = (__m512bh)_mm512_set1_epi32((int)xb[r * K2 + k]);
+            acc[r][0] = _mm512_dpbf16_ps(acc[r][0], xv, w0);
+            acc[r][1] = _mm512_dpbf16_ps(acc[r][1], xv, w1);
+        }
+    }
+    for (int r = 0; r < mb; r++) {
+        float o[NB];
+        _mm512_storeu_ps(o, acc[r][0]);
+        _mm512_storeu_ps(o + 16, acc[r][1]);
+        for (int j = 0; j < nb; j++) y[r * N + n0 + j] = o[j] + (b ? b[n0 + j] : 0.0f);
+    }
+}
+
+/* `linear` with x rounded to bfloat16 (into `xb`, [M, K / 2]) and w packed as ceil(N / NB) tiles [K / 2, NB] of
+ * bfloat16 pairs (model/native/__init__.py `pack_bf16`). */
+static void linear_bf16(const float *x, int64_t M, int64_t K, const uint32_t *w, const float *b, int64_t N,
+                        float *y, uint32_t *xb) {
+    const int64_t K2 = K / 2;
+    to_bf16_pairs(x, M, K, xb);
+    for (int64_t n0 = 0; n0 < N; n0 += NB) {
+        const int nb = (int)(N - n0 < NB ? N - n0 : NB);
+        const uint32_t *wt = w + n0 * K2;
+        int64_t m = 0;
+        for (; m + MB <= M; m += MB) tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, MB, nb);
+        switch (M - m) {
+        case 7: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 7, nb); break;
+        case 6: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 6, nb); break;
+        case 5: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 5, nb); break;
+        case 4: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 4, nb); break;
+        case 3: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 3, nb); break;
+        case 2: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 2, nb); break;
+        case 1: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 1, nb); break;
+        }
+    }
+}
+#endif
+
+/* One of a block's four products: in bfloat16 where the model has them (`wb`), else in fp32. */
+static void block_linear(const float *const *w, const uint32_t *const *wb, int64_t l, const float *x, int64_t M,
+                         int64_t K, const float *b, int64_t N, float *y, uint32_t *xb) {
+#if GMT_BF16
+    if (wb) {
+        linear_bf16(x, M, K, wb[l], b, N, y, xb);
+        return;
+    }
+#else
+    (void)wb, (void)xb;
+#endif
+    linear(x, M, K, w[l], b, N, y);
 }
 
 /* Sum of a[0:n] with 8 fixed lanes (vectorisable without reassociation). */
@@ -217,8 +315,9 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
     float *e = malloc(sizeof(float) * B * C);         /* state embeddings */
     float *att = malloc(sizeof(float) * (3 * W + C)); /* scores of 3 queries, then tmp */
     int64_t *idx = malloc(sizeof(int64_t) * M), *pos = malloc(sizeof(int64_t) * M);
-    if (!x || !h || !big || !y || !e || !att || !idx || !pos) {
-        free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos);
+    uint32_t *xb = md->qkv_wb ? malloc(sizeof(uint32_t) * M * 2 * C) : NULL; /* rows as bf16 pairs [M, 4C / 2] */
+    if (!x || !h || !big || !y || !e || !att || !idx || !pos || (md->qkv_wb && !xb)) {
+        free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos), free(xb);
         return -1;
     }
     float *tmp = att + 3 * W;
@@ -258,7 +357,7 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
 
     for (int64_t l = 0; l < md->n_layer; l++) {
         layer_norm(x, M, C, md->ln1_w[l], md->ln1_b[l], h, tmp);
-        linear(h, M, C, md->qkv_w[l], md->qkv_b[l], 3 * C, big); /* [M, 3C]: q | k | v */
+        block_linear(md->qkv_w, md->qkv_wb, l, h, M, C, md->qkv_b[l], 3 * C, big, xb); /* [M, 3C]: q | k | v */
         for (int64_t r = 0; r < B; r++) {
             const int64_t *tk = tok + slots[r] * W;
             for (int64_t hd = 0; hd < H; hd++) {
@@ -299,12 +398,12 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
                 }
             }
         }
-        linear(y, M, C, md->proj_w[l], md->proj_b[l], C, h);
+        block_linear(md->proj_w, md->proj_wb, l, y, M, C, md->proj_b[l], C, h, xb);
         for (int64_t i = 0; i < M * C; i++) x[i] += h[i];
         layer_norm(x, M, C, md->ln2_w[l], md->ln2_b[l], h, tmp);
-        linear(h, M, C, md->fc_w[l], md->fc_b[l], 4 * C, big);
+        block_linear(md->fc_w, md->fc_wb, l, h, M, C, md->fc_b[l], 4 * C, big, xb);
         MAP16(big, M * 4 * C, 0.0f, vgelu);
-        linear(big, M, 4 * C, md->out_w[l], md->out_b[l], C, h);
+        block_linear(md->out_w, md->out_wb, l, big, M, 4 * C, md->out_b[l], C, h, xb);
         for (int64_t i = 0; i < M * C; i++) x[i] += h[i];
     }
     /* Heads at the state token only. */
@@ -313,7 +412,7 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
     linear(h, B, C, md->head_w, md->head_b, md->act_dim, out);
     if (!md->discrete)
         for (int64_t i = 0; i < B * md->act_dim; i++) out[i] = tanhf(out[i]); /* exact libm tanh */
-    free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos);
+    free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos), free(xb);
     return 0;
 }
 
