@@ -3,10 +3,11 @@
 Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `engine`, `serving`, `store`,
 `batching`, `stream`, `cluster`, `soak`, `console`, `failover`, `training`, `alternatives`.
 
-- `engine`: [{K, path ("incremental" | "incremental_torch" | "recompute"), batch, ms_per_step, acts_per_s}] for
-  a random-weight `window` model of the default size (3 layers, 128 wide, HalfCheetah shapes), one torch thread;
-  `incremental` is the served path (the native kernel when it builds here), `incremental_torch` the same step
-  in torch operations.
+- `engine`: [{K, path ("incremental" | "incremental_bf16" | "incremental_torch" | "recompute"), batch,
+  ms_per_step, acts_per_s}] for a random-weight `window` model of the default size (3 layers, 128 wide,
+  HalfCheetah shapes), one torch thread; `incremental` is the served path (the native kernel when it builds here),
+  `incremental_bf16` the native step with bf16 products (`--precision bf16`; only where the CPU has AVX-512 BF16),
+  `incremental_torch` the same step in torch operations.
 - `serving`: {model, servers: {naive | default: {rest | rest_batch | grpc_unary | grpc_stream: [{sessions,
   acts_per_s, p50_ms, p99_ms, errors}]}}, memory: {rss_per_session_bytes}}. REST load comes
   from wrk (one thread, one connection per session; `rest_batch` is one connection posting every session's

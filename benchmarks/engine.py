@@ -10,19 +10,23 @@ from gmt.bench.harness import OBS_DIM, default_size_checkpoint
 
 
 def bench_engine(Ks=(10, 20, 50, 100), batches=(1, 64), steps: int = 60) -> list[dict]:
-    """ms per act step on the incremental and the recompute path, after a full history of warm-up."""
+    """ms per act step on the incremental and the recompute path, after a full history of warm-up; the native
+    step with bf16 products too (`incremental_bf16`) where this CPU has them."""
     import torch
 
+    from gmt.model import native as native_kernel
     from gmt.model.engine import PolicyEngine
 
     torch.set_num_threads(1)
     rows = []
     for K in Ks:
         ckpt = default_size_checkpoint(None, K=K)
-        paths = (("incremental", True, None), ("incremental_torch", True, False), ("recompute", False, None))
-        for path, incremental, native in paths:
+        paths = [("incremental", True, None, "fp32"), ("incremental_torch", True, False, "fp32")]
+        paths += [("incremental_bf16", True, None, "bf16")] if native_kernel.has_bf16() else []
+        paths += [("recompute", False, None, "fp32")]
+        for path, incremental, native, precision in paths:
             for B in batches:
-                engine = PolicyEngine(ckpt, incremental=incremental, native=native)
+                engine = PolicyEngine(ckpt, incremental=incremental, native=native, precision=precision)
                 ctxs = [engine.new_context(i % 3, seed=i) for i in range(B)]
                 obs = np.random.default_rng(0).normal(size=(B, OBS_DIM)).astype(np.float32)
                 states = [engine.prepare_observation(o) for o in obs]

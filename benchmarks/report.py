@@ -11,8 +11,10 @@ def to_markdown(result: dict) -> str:
     if "engine" in result:
         lines += ["### Engine: ms per act step (one torch thread, window model 3 x 128, full history)", ""]
         paths = ("incremental", "incremental_torch", "recompute")
+        if any(r["path"] == "incremental_bf16" for r in result["engine"]):
+            paths = ("incremental", "incremental_bf16", "incremental_torch", "recompute")
         lines += ["| K | " + " | ".join(f"{p}, batch {b}" for b in (1, 64) for p in paths) + " |"]
-        lines += ["|---|" + "---|" * 6]
+        lines += ["|---|" + "---|" * (2 * len(paths))]
         rows = {(r["K"], r["path"], r["batch"]): r["ms_per_step"] for r in result["engine"]}
         for K in sorted({r["K"] for r in result["engine"]}):
             cells = [rows.get((K, p, b), float("nan")) for b in (1, 64) for p in paths]
