@@ -47,7 +47,13 @@ def serve_command(**flags: Any) -> None:
             raise typer.BadParameter(str(e), param_hint="--device") from None
     if settings.precision == "bf16" and not settings.naive:
         from gmt.model import native
+        from gmt.model.engine import resolve_device
 
+        if resolve_device(settings.device) != "cpu":
+            raise typer.BadParameter(
+                f"bf16 runs in the CPU's native step; --device {settings.device} runs the torch step on a GPU",
+                param_hint="--precision",
+            )
         if not native.has_bf16():
             raise typer.BadParameter(
                 "bf16 needs the native step built with AVX-512 BF16 (this CPU or compiler has none, or GMT_NATIVE=0)",
