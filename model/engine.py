@@ -90,12 +90,14 @@ class EngineInfo:
         history_steps: Steps of history that determine an action (and that a stored context keeps).
         path: `incremental` (key/value cache, newest tokens only) or `recompute` (the reference forward).
         kernel: What computes the incremental step: `native` (`model/native/gmt_step.c`) or `torch`.
+        precision: The native step's block products: `fp32` or `bf16` (`PolicyEngine`'s `precision`).
     """
 
     action_modes: tuple[str, ...]
     history_steps: int
     path: str
     kernel: str = "torch"
+    precision: str = "fp32"
 
 
 def _locked(method):
@@ -225,6 +227,7 @@ class PolicyEngine:
             history_steps=self.pool.H,
             path="incremental" if self.incremental else "recompute",
             kernel="native" if self._native is not None else "torch",
+            precision=self.precision,
         )
 
     @property

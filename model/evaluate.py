@@ -177,7 +177,10 @@ class EvalResult:
         head = ("condition", "success", "segments: goal target ± tol -> achieved mean (std)")
         return (
             f"Evaluation of `{self.checkpoint}` on {self.env_id} ({self.statistic}), {n} seeds, "
-            f"{self.episode_steps} steps, action mode {self.action_mode}\n\n" + markdown_table(head, rows)
+            f"{self.episode_steps} steps, action mode {self.action_mode}"
+            + (f", precision {self.precision}" if self.precision != "fp32" else "")
+            + "\n\n"
+            + markdown_table(head, rows)
         )
 
 

@@ -49,7 +49,9 @@ class Versions(CoreState):
             )
             return
         roots = list(self.settings.checkpoints)
-        await restore(self.registry, saved, roots, self.settings.naive, self.checkpoint_path)
+        await restore(
+            self.registry, saved, roots, self.settings.naive, self.checkpoint_path, self._engine_placement()
+        )
 
     async def _save_model_state(self, name: str) -> None:
         """Keep model `name`'s default and canary for the next start (a failure is logged: the change stands)."""

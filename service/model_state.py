@@ -153,6 +153,7 @@ async def restore(
     roots: list[Path],
     naive: bool,
     under_roots: Callable[[str], Path],
+    placement: dict | None = None,
 ) -> list[LoadedModel]:
     """Make each saved default and canary current again, loading those not loaded yet; answers the versions it
     loaded. An entry that cannot be restored (its checkpoint gone or refused) is logged and the model keeps the
@@ -160,6 +161,8 @@ async def restore(
 
     Args:
         under_roots: Checks that a saved path is under the checkpoint roots (`Core.checkpoint_path`).
+        placement: `load_model`'s device, n_slots and precision (`Versions._engine_placement`): a restored
+            version runs as the versions loaded at start do.
     """
     added: list[LoadedModel] = []
     for name, entry in saved.items():
@@ -172,7 +175,15 @@ async def restore(
                 m = registry.find(name, version)
                 if m is None:
                     m = await asyncio.to_thread(
-                        _load, name, version, fp, str(ref.get("path", "")), roots, naive, under_roots
+                        _load,
+                        name,
+                        version,
+                        fp,
+                        str(ref.get("path", "")),
+                        roots,
+                        naive,
+                        under_roots,
+                        placement or {},
                     )
                     registry.add(m)
                     added.append(m)
@@ -195,9 +206,10 @@ def _load(
     roots: list[Path],
     naive: bool,
     under_roots: Callable[[str], Path],
+    placement: dict,
 ) -> LoadedModel:
-    """Load a saved version: from its saved path when that still holds it, else found under the roots by
-    fingerprint."""
+    """Load a saved version (with `placement`, as `restore`'s): from its saved path when that still holds it, else
+    found under the roots by fingerprint."""
     d: Path | None = None
     if path and Path(path).is_dir():
         d = under_roots(path)
@@ -207,4 +219,4 @@ def _load(
         raise CheckpointError(
             f"no checkpoint of version {version!r} (fingerprint {fp[:16]}...) under the roots"
         )
-    return load_model(name, d, naive, fp or None)
+    return load_model(name, d, naive, fp or None, **placement)

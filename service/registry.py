@@ -58,8 +58,18 @@ def engine_for(
     """The engine serving a checkpoint: incremental for `window` models, the reference recompute otherwise or when
     `naive`; on `device` (`PolicyEngine`), whose session pool is allocated for `n_slots` sessions up front when it
     is not the CPU, and warmed up there (one throwaway act) so that no session's first act pays the device's start;
-    with the native step's `precision` (fp32 for the naive server, whose recompute is the exactness oracle)."""
+    with the native step's `precision` (fp32 for the naive server, whose recompute is the exactness oracle, and for
+    models the native step does not serve: image or full-attention models, or off the CPU; logged)."""
     on_cpu = resolve_device(device) == "cpu"
+    cfg = checkpoint.config
+    if precision != "fp32" and not naive and (not on_cpu or cfg.is_image or cfg.attention != "window"):
+        # bf16 lives in the native step, which serves vector-observation window models on the CPU; the others
+        # (image models such as Breakout, full-attention models, a GPU) keep their own exact path.
+        log.warning(
+            "precision does not apply to this model: fp32",
+            extra={"model": checkpoint.name, "precision": precision, "device": device},
+        )
+        precision = "fp32"
     engine = PolicyEngine(
         checkpoint,
         incremental=False if naive else None,
@@ -404,7 +414,7 @@ def load_model(
             "attention": ckpt.config.attention,
             "engine": info.path,
             "kernel": info.kernel,
-            "precision": engine.precision,
+            "precision": info.precision,
             "device": engine.device,
         },
     )

@@ -148,11 +148,30 @@ def load() -> ctypes.CDLL | None:
     lib.gmt_act.argtypes = [ctypes.POINTER(_Model), ctypes.POINTER(_Pool), i64, vp, vp, vp, vp]
     lib.gmt_bf16.restype = ctypes.c_int
     lib.gmt_bf16.argtypes = []
+    lib.gmt_linear.restype = ctypes.c_int
+    lib.gmt_linear.argtypes = [vp, i64, i64, vp, vp, i64, vp, ctypes.c_int]
     lib.gmt_uniforms.restype = lib.gmt_normals.restype = None
     lib.gmt_uniforms.argtypes = [vp, vp, i64, i64, i64, vp]
     lib.gmt_normals.argtypes = [vp, vp, i64, i64, vp]
     _lib = lib
     return lib
+
+
+def linear(x: np.ndarray, w: np.ndarray, b: np.ndarray | None = None, bf16: bool = False) -> np.ndarray:
+    """x [M, K] @ w [K, N] + b as the native step computes one of a block's products (fp32, or bf16 products with
+    `bf16`): for tests. Raises where the library or its bf16 build is missing."""
+    lib = load()
+    if lib is None or (bf16 and not has_bf16(lib)):
+        raise RuntimeError("the native library (with bf16 products, if asked) is not available")
+    x = np.ascontiguousarray(x, np.float32)
+    packed = pack_bf16(w) if bf16 else pack(np.asarray(w, np.float32))
+    b = None if b is None else np.ascontiguousarray(b, np.float32)
+    y = np.empty((x.shape[0], w.shape[1]), np.float32)
+    rc = lib.gmt_linear(x.ctypes.data, x.shape[0], x.shape[1], packed.ctypes.data, _addr(b), w.shape[1],
+                        y.ctypes.data, int(bf16))  # fmt: skip
+    if rc != 0:
+        raise MemoryError("the native product could not allocate its scratch memory")
+    return y
 
 
 def has_bf16(lib: ctypes.CDLL | None = None) -> bool:

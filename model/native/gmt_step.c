@@ -167,6 +167,24 @@ static void block_linear(const float *const *w, const uint32_t *const *wb, int64
     linear(x, M, K, w[l], b, N, y);
 }
 
+/* y [M, N] = x [M, K] @ w + b as the step computes a block's product: w packed by `pack` (fp32) or, with `bf16`,
+ * by `pack_bf16` (K even). Returns -1 where bf16 is asked of a build without it or scratch cannot be had. For tests. */
+int gmt_linear(const float *x, int64_t M, int64_t K, const void *w, const float *b, int64_t N, float *y, int bf16) {
+#if GMT_BF16
+    if (bf16) {
+        uint32_t *xb = malloc(sizeof(uint32_t) * (M * K / 2 + 1));
+        if (!xb) return -1;
+        linear_bf16(x, M, K, (const uint32_t *)w, b, N, y, xb);
+        free(xb);
+        return 0;
+    }
+#else
+    if (bf16) return -1;
+#endif
+    linear(x, M, K, (const float *)w, b, N, y);
+    return 0;
+}
+
 /* Sum of a[0:n] with 8 fixed lanes (vectorisable without reassociation). */
 static float sum8(const float *a, int64_t n) {
     float l[8] = {0, 0, 0, 0, 0, 0, 0, 0};
@@ -315,8 +333,9 @@ int gmt_step(const Model *md, int64_t B, const float *prev_action, const int64_t
     float *e = malloc(sizeof(float) * B * C);         /* state embeddings */
     float *att = malloc(sizeof(float) * (3 * W + C)); /* scores of 3 queries, then tmp */
     int64_t *idx = malloc(sizeof(int64_t) * M), *pos = malloc(sizeof(int64_t) * M);
-    uint32_t *xb = md->qkv_wb ? malloc(sizeof(uint32_t) * M * 2 * C) : NULL; /* rows as bf16 pairs [M, 4C / 2] */
-    if (!x || !h || !big || !y || !e || !att || !idx || !pos || (md->qkv_wb && !xb)) {
+    const int bf = md->qkv_wb || md->proj_wb || md->fc_wb || md->out_wb;
+    uint32_t *xb = bf ? malloc(sizeof(uint32_t) * M * 2 * C) : NULL; /* rows as bf16 pairs [M, 4C / 2] */
+    if (!x || !h || !big || !y || !e || !att || !idx || !pos || (bf && !xb)) {
         free(x), free(h), free(big), free(y), free(e), free(att), free(idx), free(pos), free(xb);
         return -1;
     }

@@ -59,9 +59,13 @@ def test_naive_server_and_incremental_server_give_the_same_actions(window_ckpt):
 
 
 def test_engine_section_times_both_paths_for_every_K_and_batch():
+    from gmt.model import native
+
     rows = bench_engine(Ks=(4, 8), batches=(1, 3), steps=3)
+    paths = ("incremental", "incremental_torch", "recompute")
+    paths += ("incremental_bf16",) if native.has_bf16() else ()  # the bf16 products, where this CPU has them
     assert {(r["K"], r["path"], r["batch"]) for r in rows} == {
-        (K, p, B) for K in (4, 8) for p in ("incremental", "incremental_torch", "recompute") for B in (1, 3)
+        (K, p, B) for K in (4, 8) for p in paths for B in (1, 3)
     }
     for r in rows:  # acts/s is the batch over the time of one step
         assert r["ms_per_step"] > 0 and r["acts_per_s"] == pytest.approx(

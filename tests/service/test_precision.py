@@ -71,3 +71,33 @@ def test_serve_refuses_bf16_without_the_native_step_before_loading_anything(tmp_
     assert done.returncode == 2 and "AVX-512 BF16" in done.stderr and "--precision" in done.stderr, (
         done.stderr
     )
+
+
+@pytest.mark.skipif(
+    not native.has_bf16(), reason="this CPU has no AVX-512 BF16: the bfloat16 products are not built"
+)
+def test_models_the_native_step_does_not_serve_stay_fp32_and_a_restored_version_keeps_bf16(tmp_path):
+    """On a bf16 server a full-attention model loads (in fp32, as it would anywhere) instead of being refused; a
+    version promoted before a restart comes back in bf16 like the versions found at start."""
+    roots = tmp_path / "checkpoints"
+    tiny_checkpoint(roots / "tiny-window", name="tiny-window", attention="window", seed=4)
+    tiny_checkpoint(roots / "releases" / "v2", name="tiny-window", attention="window", seed=5)
+    tiny_checkpoint(roots / "tiny-full", name="tiny-full", seed=6)  # full attention: no native step
+    settings = make_settings(checkpoints=[roots], precision="bf16")
+    first = RunningServer(settings).start()
+    try:
+        precision = {m.name: m.engine.precision for m in first.core.registry.models.values()}
+        assert precision == {"tiny-window": "bf16", "tiny-full": "fp32"}
+        with httpx.Client(base_url=first.url, timeout=60) as http:
+            r = http.post("/models/tiny-window/versions", json={"path": "releases/v2"})
+            assert r.status_code == 201, r.text
+            v2 = r.json()["version"]
+            assert http.put("/models/tiny-window/default", json={"version": v2}).status_code == 200
+    finally:
+        first.stop()
+    again = RunningServer(settings).start()
+    try:
+        restored = again.core.registry.find("tiny-window", v2)
+        assert restored is not None and restored.engine.precision == "bf16"
+    finally:
+        again.stop()
