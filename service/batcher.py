@@ -35,6 +35,9 @@ ACTIVE_S = 1.0  # a session answered within this long (or twice the batch wait, 
 # work for one half overlaps the engine's for the other. On 2 cores, 256 sessions over REST at max_batch 256:
 # 4,476-4,890 acts/s in whole passes, 6,080-6,353 in halves (docs/performance.md).
 SPLIT_FROM = 64
+# A many-session call of at most this many rows runs right on the event loop when `inline_alone` would run a lone
+# act there (nothing queued or running, no session acting one at a time): ~0.5 ms of the loop at most.
+INLINE_ROWS = 8
 
 
 @dataclass
@@ -61,10 +64,10 @@ class MicroBatcher:
         max_batch: Most requests in one forward pass.
         max_wait_s: Longest time the first request of a batch waits for the acting sessions not yet queued.
         observe: Called with (batch size, forward seconds) after every forward pass.
-        inline_alone: When nothing is queued or running and no other session is acting, run an act
-            right away on the event loop: a lone session then pays no queue, batching task or thread hop
-            (~0.3 ms here). For engines whose step is short (the native kernel: ~0.2 ms), so the loop is never
-            held long.
+        inline_alone: When nothing is queued or running and no other session is acting, run an act (or a
+            many-session call of at most `INLINE_ROWS` rows) right away on the event loop: a lone session then
+            pays no queue, batching task or thread hop (~0.3 ms here). For engines whose step is short (the
+            native kernel: ~0.1 ms per session), so the loop is never held long.
         clock: Monotonic seconds, for the acting window.
         call_threads: Threads the engine may split a pass of a many-session call between (`PolicyEngine.act`'s
             `threads`); passes of single acts get one.
@@ -226,6 +229,15 @@ class MicroBatcher:
         """
         if self._task is None or self._task.done():
             raise RuntimeError("batcher is not running")
+        if (
+            self.inline_alone
+            and not solo
+            and len(ctxs) <= INLINE_ROWS
+            and not self._pending
+            and not self._running
+            and not self._acting(self.clock())
+        ):
+            return self._act_many_here(ctxs, obs)
         loop = asyncio.get_running_loop()
         self._groups += 1
         unit = units.current()
@@ -236,6 +248,22 @@ class MicroBatcher:
         self._pending.extend(items)
         self._wake.set()
         return await asyncio.gather(*(it.future for it in items), return_exceptions=True)
+
+    def _act_many_here(self, ctxs: list[Context], obs: list[np.ndarray]) -> list:
+        """A small call's pass, run right here on the loop (`act_many`'s answers: per row the action or the
+        exception that failed it)."""
+        units.point_of_no_return(units.current())  # its forward runs now: its caller can no longer cancel
+        t0 = time.perf_counter()
+        self._running = [_Item(c, o, None, group=-1) for c, o in zip(ctxs, obs, strict=True)]
+        try:
+            actions = self.engine.act(ctxs, obs, True)
+        except Exception as e:  # noqa: BLE001 - the whole pass failed: every row gets its error
+            return [e] * len(ctxs)
+        finally:
+            self._running = []
+        if self.observe is not None:
+            self.observe(len(ctxs), time.perf_counter() - t0)
+        return list(actions)
 
     @property
     def queued(self) -> int:

@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from service_harness import FakeClock
 
-from gmt.service.batcher import SPLIT_FROM, MicroBatcher
+from gmt.service.batcher import INLINE_ROWS, SPLIT_FROM, MicroBatcher
 
 
 class RecordingEngine:
@@ -256,6 +256,35 @@ def test_a_lone_session_runs_on_the_loop_only_when_asked_and_alone(pool, inline_
     assert eng.threads[0] == loop_thread if inline_alone else eng.threads[0] != loop_thread
     assert eng.threads[-1] != loop_thread
     assert eng.batches[0] == ["alone"] and eng.batches[-1] == ["x1", "y1"]
+
+
+def test_a_small_call_runs_on_the_loop_only_while_nothing_else_is_batched(pool):
+    """With `inline_alone`, a call of at most INLINE_ROWS rows on an idle batcher runs on the event loop's thread;
+    a larger call and a call while sessions act one at a time go through the executor; a failing pass run on the
+    loop answers as a batched one does (per row, the failure as its result)."""
+    eng = RecordingEngine()
+    clock = FakeClock()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0.5, inline_alone=True, clock=clock)
+        b.start()
+        small = await b.act_many([f"s{i}" for i in range(INLINE_ROWS)], [f"s{i}" for i in range(INLINE_ROWS)])
+        big = await b.act_many(
+            [f"b{i}" for i in range(INLINE_ROWS + 1)], [f"b{i}" for i in range(INLINE_ROWS + 1)]
+        )
+        await in_step(b, ["x", "y"])  # x and y act one at a time now
+        beside = await b.act_many(["c"], ["c0"])
+        clock.advance(b.active_window_s + 1)  # x and y stop counting as acting
+        eng.fail = True
+        failed = await b.act_many(["d"], ["d0"])
+        await b.close()
+        return threading.current_thread().name, small, big, beside, failed
+
+    loop_thread, small, big, beside, failed = run(main())
+    assert small == [f"s{i}" for i in range(INLINE_ROWS)] and len(big) == INLINE_ROWS + 1 and beside == ["c0"]
+    on_loop = {b[0]: t == loop_thread for b, t in zip(eng.batches, eng.threads, strict=True)}
+    assert (on_loop["s0"], on_loop["b0"], on_loop["c0"], on_loop["d0"]) == (True, False, False, True)
+    assert len(failed) == 1 and isinstance(failed[0], RuntimeError)
 
 
 def test_a_served_session_beside_idle_sessions_of_its_model_never_waits(make_server, observations):
