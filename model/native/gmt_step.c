@@ -51,23 +51,32 @@ static inline __attribute__((always_inline)) void tile(const float *x, int64_t K
         for (int j = 0; j < nb; j++) y[r * N + n0 + j] = acc[r][j] + (b ? b[n0 + j] : 0.0f);
 }
 
+/* TILE(m, mb) for each block of MB rows of M, then once for the last M % MB rows: every call has a constant
+ * row count, so each tile's loops unroll. */
+#define FOR_ROW_BLOCKS(M, TILE)                                                                               \
+    do {                                                                                                       \
+        int64_t m_ = 0;                                                                                        \
+        for (; m_ + MB <= (M); m_ += MB) TILE(m_, MB);                                                         \
+        switch ((M) - m_) {                                                                                    \
+        case 7: TILE(m_, 7); break;                                                                            \
+        case 6: TILE(m_, 6); break;                                                                            \
+        case 5: TILE(m_, 5); break;                                                                            \
+        case 4: TILE(m_, 4); break;                                                                            \
+        case 3: TILE(m_, 3); break;                                                                            \
+        case 2: TILE(m_, 2); break;                                                                            \
+        case 1: TILE(m_, 1); break;                                                                            \
+        }                                                                                                      \
+    } while (0)
+
 /* y [M, N] = x [M, K] @ w [K, N] + b, with w packed as ceil(N / NB) tiles [K, NB] (zero-padded columns):
  * each tile is read front to back, once per block of MB rows. */
 static void linear(const float *x, int64_t M, int64_t K, const float *w, const float *b, int64_t N, float *y) {
     for (int64_t n0 = 0; n0 < N; n0 += NB) {
         const int nb = (int)(N - n0 < NB ? N - n0 : NB);
         const float *wt = w + n0 * K; /* tile n0 / NB starts at (n0 / NB) * K * NB */
-        int64_t m = 0;
-        for (; m + MB <= M; m += MB) tile(x + m * K, K, wt, N, b, y + m * N, n0, MB, nb);
-        switch (M - m) { /* the last rows as one block */
-        case 7: tile(x + m * K, K, wt, N, b, y + m * N, n0, 7, nb); break;
-        case 6: tile(x + m * K, K, wt, N, b, y + m * N, n0, 6, nb); break;
-        case 5: tile(x + m * K, K, wt, N, b, y + m * N, n0, 5, nb); break;
-        case 4: tile(x + m * K, K, wt, N, b, y + m * N, n0, 4, nb); break;
-        case 3: tile(x + m * K, K, wt, N, b, y + m * N, n0, 3, nb); break;
-        case 2: tile(x + m * K, K, wt, N, b, y + m * N, n0, 2, nb); break;
-        case 1: tile(x + m * K, K, wt, N, b, y + m * N, n0, 1, nb); break;
-        }
+#define T(m, mb) tile(x + (m) * K, K, wt, N, b, y + (m) * N, n0, mb, nb)
+        FOR_ROW_BLOCKS(M, T);
+#undef T
     }
 }
 
@@ -138,17 +147,9 @@ static void linear_bf16(const float *x, int64_t M, int64_t K, const uint32_t *w,
     for (int64_t n0 = 0; n0 < N; n0 += NB) {
         const int nb = (int)(N - n0 < NB ? N - n0 : NB);
         const uint32_t *wt = w + n0 * K2;
-        int64_t m = 0;
-        for (; m + MB <= M; m += MB) tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, MB, nb);
-        switch (M - m) {
-        case 7: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 7, nb); break;
-        case 6: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 6, nb); break;
-        case 5: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 5, nb); break;
-        case 4: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 4, nb); break;
-        case 3: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 3, nb); break;
-        case 2: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 2, nb); break;
-        case 1: tile_bf16(xb + m * K2, K2, wt, N, b, y + m * N, n0, 1, nb); break;
-        }
+#define T(m, mb) tile_bf16(xb + (m) * K2, K2, wt, N, b, y + (m) * N, n0, mb, nb)
+        FOR_ROW_BLOCKS(M, T);
+#undef T
     }
 }
 #endif

@@ -9,11 +9,10 @@ import time
 import numpy as np
 import pytest
 import torch
+from random_models import random_window_model
 
-from gmt.model.config import GMTConfig
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
-from gmt.model.gmt import GMT
 from gmt.model.kv_cache import KVCache
 from gmt.model.native import NativeStep, load
 
@@ -27,22 +26,8 @@ if shutil.which(os.environ.get("CC", "cc")) is None:  # pragma: no cover - CI ha
 def test_native_step_matches_the_torch_step(discrete, n_head, n_embd):
     """Same keys, values and predictions (fp32 rounding) over 40 steps past the window, with blends and
     scattered slots; widths that are and are not multiples of the kernel's 16 lanes."""
-    torch.manual_seed(0)
-    cfg = GMTConfig(
-        obs_shape=(11,),
-        act_dim=5,
-        discrete_actions=discrete,
-        n_goals=4,
-        context_length=6,
-        n_layer=2,
-        n_head=n_head,
-        n_embd=n_embd,
-        max_timestep=30,  # timesteps past the table clamp to its last row
-        attention="window",
-    )
-    model = GMT(cfg).eval()
-    for p in model.parameters():
-        p.data.normal_(0.0, 0.3)
+    model = random_window_model(discrete, n_head, n_embd)
+    cfg = model.cfg
     lib = load()
     assert lib is not None
     native = NativeStep(model, lib)

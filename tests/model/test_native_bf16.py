@@ -8,9 +8,9 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from random_models import random_window_model
 
 from gmt.model import native
-from gmt.model.config import GMTConfig
 from gmt.model.engine import PolicyEngine
 from gmt.model.fixtures import tiny_checkpoint
 from gmt.model.gmt import GMT
@@ -99,22 +99,8 @@ def test_bf16_step_is_the_torch_step_with_its_products_rounded_to_bf16(discrete,
     ~2e-3), far nearer than to the fp32 kernel's;
     and they differ from the fp32 kernel's at every step. Widths that are and are not multiples of the
     conversion's 32 lanes."""
-    torch.manual_seed(0)
-    cfg = GMTConfig(
-        obs_shape=(11,),
-        act_dim=5,
-        discrete_actions=discrete,
-        n_goals=4,
-        context_length=6,
-        n_layer=2,
-        n_head=n_head,
-        n_embd=n_embd,
-        max_timestep=30,
-        attention="window",
-    )
-    model = GMT(cfg).eval()
-    for p in model.parameters():
-        p.data.normal_(0.0, 0.3)
+    model = random_window_model(discrete, n_head, n_embd)
+    cfg = model.cfg
     lib = native.load()
     bf16, fp32 = native.NativeStep(model, lib, bf16=True), native.NativeStep(model, lib)
     ref_model = GMT(cfg).eval()

@@ -140,6 +140,15 @@ def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
     assert "--host" in hint and "GMT_HOST" in hint and "port" not in hint
 
 
+def serve_refused(tmp_path, *flags: str, **env: str) -> subprocess.CompletedProcess:
+    """`gmt serve` with `flags` over an empty checkpoint directory, on free ports (a refusal comes first)."""
+    gmt = str(Path(sys.executable).parent / "gmt")
+    args = [gmt, "serve", "--checkpoints", str(tmp_path), *flags, "--rest-port", "0", "--grpc-port", "0"]
+    return subprocess.run(
+        args, capture_output=True, text=True, env=clean_env(COLUMNS="300", **env), timeout=60
+    )
+
+
 @pytest.mark.parametrize(
     ("device", "message"),
     [
@@ -148,18 +157,12 @@ def test_an_interface_this_machine_does_not_have_names_the_host_flag(tmp_path):
     ],
 )
 def test_serve_refuses_a_device_it_cannot_use_before_loading_anything(tmp_path, device, message):
-    gmt = str(Path(sys.executable).parent / "gmt")
-    args = [
-        gmt,
-        "serve",
-        "--checkpoints",
-        str(tmp_path),
-        "--device",
-        device,
-        "--rest-port",
-        "0",
-        "--grpc-port",
-        "0",
-    ]
-    done = subprocess.run(args, capture_output=True, text=True, env=clean_env(), timeout=60)
+    done = serve_refused(tmp_path, "--device", device)
     assert done.returncode == 2 and message in done.stderr and "device" in done.stderr, done.stderr
+
+
+def test_serve_refuses_bf16_without_the_native_step_before_loading_anything(tmp_path):
+    done = serve_refused(tmp_path, "--precision", "bf16", GMT_NATIVE="0")
+    assert done.returncode == 2 and "AVX-512 BF16" in done.stderr and "--precision" in done.stderr, (
+        done.stderr
+    )
