@@ -168,13 +168,10 @@ class MicroBatcher:
             raise RuntimeError("batcher is not running")
         loop = asyncio.get_running_loop()
         key = _key(ctx)
-        if (
-            self.inline_alone
-            and not self._pending
-            and not self._running
-            and not self._acting(self.clock(), key)
-        ):
-            action = self._act_alone(ctx, obs)
+        if self._may_run_here(key):
+            (action,) = self._run_here([ctx], [obs])
+            if isinstance(action, Exception):
+                raise action
             self._answered(key, self.clock())
             return action
         fut = loop.create_future()
@@ -202,20 +199,6 @@ class MicroBatcher:
             acting.difference_update(_key(it.ctx) for it in self._pending)
         return acting
 
-    def _act_alone(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
-        """A lone session's act, run right here on the loop: no queue, no batching task, no thread hop."""
-        t0 = time.perf_counter()
-        self._running = [_Item(ctx, obs, None)]
-        try:
-            (action,) = self.engine.act([ctx], [obs], True)
-        finally:
-            self._running = []
-        if self.observe is not None:
-            self.observe(1, time.perf_counter() - t0)
-        if isinstance(action, Exception):
-            raise action
-        return action
-
     async def act_many(self, ctxs: list[Context], obs: list[np.ndarray], solo: bool = False) -> list:
         """Actions for many sessions at once, in one forward pass (never split by `max_batch`).
 
@@ -229,15 +212,8 @@ class MicroBatcher:
         """
         if self._task is None or self._task.done():
             raise RuntimeError("batcher is not running")
-        if (
-            self.inline_alone
-            and not solo
-            and len(ctxs) <= INLINE_ROWS
-            and not self._pending
-            and not self._running
-            and not self._acting(self.clock())
-        ):
-            return self._act_many_here(ctxs, obs)
+        if not solo and len(ctxs) <= INLINE_ROWS and self._may_run_here():
+            return self._run_here(ctxs, obs)
         loop = asyncio.get_running_loop()
         self._groups += 1
         unit = units.current()
@@ -249,12 +225,22 @@ class MicroBatcher:
         self._wake.set()
         return await asyncio.gather(*(it.future for it in items), return_exceptions=True)
 
-    def _act_many_here(self, ctxs: list[Context], obs: list[np.ndarray]) -> list:
-        """A small call's pass, run right here on the loop (`act_many`'s answers: per row the action or the
-        exception that failed it)."""
+    def _may_run_here(self, exclude: object = None) -> bool:
+        """Whether a pass may run right here on the loop (`inline_alone`): nothing queued or running, and no session
+        but `exclude` acting one at a time (none that a batch would wait for)."""
+        return (
+            self.inline_alone
+            and not self._pending
+            and not self._running
+            and not self._acting(self.clock(), exclude)
+        )
+
+    def _run_here(self, ctxs: list[Context], obs: list[np.ndarray]) -> list:
+        """A lone act's or a small call's pass, run right here on the loop: no queue, no batching task, no thread
+        hop. Returns per row the action or the exception that failed it (the whole pass's, if it failed)."""
         units.point_of_no_return(units.current())  # its forward runs now: its caller can no longer cancel
         t0 = time.perf_counter()
-        self._running = [_Item(c, o, None, group=-1) for c, o in zip(ctxs, obs, strict=True)]
+        self._running = [_Item(c, o, None) for c, o in zip(ctxs, obs, strict=True)]
         try:
             actions = self.engine.act(ctxs, obs, True)
         except Exception as e:  # noqa: BLE001 - the whole pass failed: every row gets its error

@@ -13,6 +13,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gmt.model import native as native_kernel
 from gmt.model.checkpoint import (
     META,
     WEIGHTS,
@@ -61,21 +62,21 @@ def engine_for(
     with the native step's `precision` (fp32 for the naive server, whose recompute is the exactness oracle, and for
     models the native step does not serve: image or full-attention models, or off the CPU; logged)."""
     on_cpu = resolve_device(device) == "cpu"
-    cfg = checkpoint.config
-    if precision != "fp32" and not naive and (not on_cpu or cfg.is_image or cfg.attention != "window"):
-        # bf16 lives in the native step, which serves vector-observation window models on the CPU; the others
-        # (image models such as Breakout, full-attention models, a GPU) keep their own exact path.
-        log.warning(
-            "precision does not apply to this model: fp32",
-            extra={"model": checkpoint.name, "precision": precision, "device": device},
-        )
+    if precision != "fp32" and (naive or not on_cpu or not native_kernel.serves(checkpoint.config)):
+        # bf16 lives in the native step; the naive recompute, a GPU and the models the step does not serve
+        # (image models such as Breakout, full-attention models) keep their own exact path.
+        if not naive:
+            log.warning(
+                "precision does not apply to this model: fp32",
+                extra={"model": checkpoint.name, "precision": precision, "device": device},
+            )
         precision = "fp32"
     engine = PolicyEngine(
         checkpoint,
         incremental=False if naive else None,
         device=device,
         n_slots=16 if on_cpu else n_slots,
-        precision="fp32" if naive else precision,
+        precision=precision,
     )
     if not on_cpu:
         engine.warm_up()

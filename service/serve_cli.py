@@ -38,16 +38,15 @@ def serve_command(**flags: Any) -> None:
             for err in e.errors(include_url=False, include_input=False)
         ]
         raise typer.BadParameter("; ".join(problems)) from None
-    if settings.device != "cpu":
-        from gmt.model.engine import resolve_device
+    from gmt.model.engine import resolve_device
 
+    if settings.device != "cpu":
         try:
             resolve_device(settings.device)
         except ValueError as e:  # e.g. cuda on a machine without a GPU: say so before loading anything
             raise typer.BadParameter(str(e), param_hint="--device") from None
     if settings.precision == "bf16" and not settings.naive:
         from gmt.model import native
-        from gmt.model.engine import resolve_device
 
         if resolve_device(settings.device) != "cpu":
             raise typer.BadParameter(

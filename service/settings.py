@@ -91,7 +91,8 @@ class Settings(BaseSettings):
         precision: The arithmetic of the native step's block products: `fp32` (exact: the reference's answers) or
             `bf16` (bfloat16 products on a CPU with AVX-512 BF16: about a third less engine time per act, actions
             within ~2e-3 of fp32's; docs/performance.md). Models the native step does not serve (image or
-            full-attention models), the naive server and a GPU device keep fp32.
+            full-attention models) and the naive server keep fp32; `gmt serve` refuses it with a GPU device or a
+            native step built without AVX-512 BF16.
         naive: Serve by the reference path: full recompute, one request at a time, no batching (the exactness
             oracle and the baseline of every benchmark).
         replica_id: This process's name in a cluster, sent with every answer (REST header `X-Served-By`, gRPC

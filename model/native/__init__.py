@@ -174,6 +174,12 @@ def linear(x: np.ndarray, w: np.ndarray, b: np.ndarray | None = None, bf16: bool
     return y
 
 
+def serves(cfg) -> bool:
+    """Whether the native step computes this model's incremental step (a `GMTConfig`): window attention over
+    vector observations."""
+    return cfg.attention == "window" and not cfg.is_image
+
+
 def has_bf16(lib: ctypes.CDLL | None = None) -> bool:
     """Whether the native library (`load()` by default) was built with bfloat16 products (AVX-512 BF16)."""
     lib = load() if lib is None else lib
@@ -256,7 +262,7 @@ class NativeStep:
                 "bfloat16 products need a CPU with AVX-512 BF16 (and a compiler that targets it); this one has none"
             )
         self.bf16 = bf16
-        if cfg.attention != "window" or cfg.is_image:
+        if not serves(cfg):
             raise ValueError("the native step serves window models with vector observations")
         self.cfg, self._lib = cfg, lib
         self._keep: list = []  # every array the struct points into
