@@ -10,7 +10,7 @@ CHECKPOINT ?= checkpoints/halfcheetah-gmt
 REST_PORT ?= 8000
 GRPC_PORT ?= 50051
 
-.PHONY: venv serve demo cluster cluster-down image compose-up compose-down test lint proto data train eval bench constraints clean
+.PHONY: venv serve demo cluster cluster-down image compose-up compose-down test lint proto cpp-client data train eval bench constraints clean
 
 $(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -92,6 +92,13 @@ test: $(VENV)/.installed-dev lint
 # Regenerate the committed gRPC stubs from proto/gmt/v1/*.proto (tests/test_proto.py checks they are current).
 proto: $(VENV)/.installed-dev
 	cd proto && ../$(BIN)/python -m grpc_tools.protoc -I. --python_out=. --grpc_python_out=. --pyi_out=. gmt/v1/policy.proto gmt/v1/admin.proto
+
+# The C++ Control-stream client (clients/cpp: one session's robot loop in C++, a starting point for a controller
+# and the C++ row of `gmt bench --sections stream`) -> build/cpp/control_loop. Needs g++, pkg-config, protoc with
+# gRPC's C++ plugin and library (apt-get install g++ pkg-config protobuf-compiler protobuf-compiler-grpc
+# libgrpc++-dev); its message code is generated from proto/ at build time.
+cpp-client:
+	clients/cpp/build.sh
 
 data: $(VENV)/.installed-data
 	$(BIN)/gmt data collect --env HalfCheetah-v5

@@ -335,6 +335,56 @@ def grpc_load(target: str, sids: list[str], seconds: float, mode: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+def cpp_toolchain_missing() -> list[str]:
+    """What `clients/cpp/build.sh` needs and this machine lacks (empty: the C++ client can be built)."""
+    import shutil
+
+    missing = [t for t in ("g++", "protoc", "grpc_cpp_plugin", "pkg-config") if shutil.which(t) is None]
+    if "pkg-config" not in missing and subprocess.run(["pkg-config", "--exists", "grpc++"]).returncode != 0:
+        missing.append("libgrpc++-dev")
+    return missing
+
+
+def cpp_control_client() -> Path | None:
+    """The C++ Control-stream client (`clients/cpp`), built into build/cpp by clients/cpp/build.sh (again only when
+    its sources changed); None, with the reason on stderr, where it cannot be built."""
+    root = Path(__file__).resolve().parents[1]
+    build = root / "clients" / "cpp" / "build.sh"
+    if not build.exists():
+        print("[bench] the C++ client needs a checkout (clients/cpp)", file=sys.stderr)
+        return None
+    if missing := cpp_toolchain_missing():
+        print(
+            f"[bench] no C++ client: {', '.join(missing)} not installed (clients/cpp/build.sh)",
+            file=sys.stderr,
+        )
+        return None
+    done = subprocess.run([str(build), str(root / "build" / "cpp")], capture_output=True, text=True)
+    if done.returncode != 0:
+        print(f"[bench] no C++ client: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        return None
+    return Path(done.stdout.strip().splitlines()[-1])
+
+
+def cpp_control_load(binary: Path, target: str, sid: str, seconds: float) -> dict:
+    """One robot loop over the Control stream from the C++ client's process (`cpp_control_client`): acts/s, p50
+    and p99 as `grpc_load` reports them."""
+    obs = ",".join(str(v) for v in json.loads(obs_json()))
+    done = subprocess.run(
+        [str(binary), target, sid, "--obs", obs, "--seconds", str(seconds)], capture_output=True, text=True
+    )
+    out = json.loads(done.stdout)
+    if done.returncode != 0:
+        raise RuntimeError(f"the C++ client failed: {out}")
+    return {
+        "sessions": 1,
+        "acts_per_s": round(out["acts"] / seconds, 1),
+        "p50_ms": out["p50_ms"],
+        "p99_ms": out["p99_ms"],
+        "errors": out["errors"],
+    }
+
+
 def redis_server(unix_socket: str | None = None) -> tuple[subprocess.Popen, str]:
     """A private redis-server on a free loopback port (no persistence): (process, URL).
 

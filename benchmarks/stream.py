@@ -1,7 +1,8 @@
 """`gmt bench --sections stream`: one robot loop over the gRPC Control stream and `ActBatch` at many sessions,
 for this checkout's last commit's server beside a baseline commit's server in the same run.
 
-The load runs in a separate client process (grpc.aio, `harness.grpc_client`), started afresh for every round; both
+The load runs in a separate client process (grpc.aio, `harness.grpc_client`), started afresh for every round, and
+the robot loop also from the C++ client (`clients/cpp`, where gRPC's C++ toolchain is installed): both
 servers run at once from `git archive` trees and take the same loads in alternating rounds (the batching
 section's method), so that the machine's drift falls on both alike.
 """
@@ -12,7 +13,7 @@ import sys
 from pathlib import Path
 
 from gmt.bench.batching import commit_servers, over_commits
-from gmt.bench.harness import close_sessions, grpc_load, open_sessions
+from gmt.bench.harness import close_sessions, cpp_control_client, cpp_control_load, grpc_load, open_sessions
 
 # The commit before the Control stream's and ActBatch's per-act work was cut (issue 58).
 BASELINE = "a30586a"
@@ -29,6 +30,7 @@ def bench_stream(
     """The servers of commits `current` and `baseline`, at once, same loads in alternating rounds of `seconds / 2`:
 
     - `control`: one session, one Control stream, one act at a time (a robot loop), from a separate process;
+    - `control_cpp`: the same loop from the C++ client (`clients/cpp`; left out where it cannot be built);
     - `act_batch`: `sessions` sessions in one `ActBatch` call at a time (p50/p99 per call);
     - `control_all`: `sessions` sessions, one Control stream each, all acting at once.
 
@@ -36,7 +38,8 @@ def bench_stream(
     and the Control stream's p50 and p99 (below 1 is faster).
     """
     per_round = max(seconds / 2, 1.0)
-    loads = ("control", "act_batch", "control_all")
+    cpp = cpp_control_client()
+    loads = ("control", *(("control_cpp",) if cpp else ()), "act_batch", "control_all")
     names = ("baseline", "current")
     rows: dict = {s: {load: [] for load in loads} for s in names}
     with commit_servers(checkpoint, {"baseline": baseline, "current": current}) as procs:
@@ -48,9 +51,15 @@ def bench_stream(
         for r in range(rounds):
             for s, (_, target, _) in servers.items():
                 rows[s]["control"].append(grpc_load(target, ones[s], per_round, "stream"))
+                if cpp:
+                    rows[s]["control_cpp"].append(cpp_control_load(cpp, target, ones[s][0], per_round))
             print(
                 f"[bench] stream round {r + 1}/{rounds}: "
-                + ", ".join(f"{s}: Control p50 {rows[s]['control'][r]['p50_ms']} ms" for s in names),
+                + ", ".join(
+                    f"{s}: Control p50 {rows[s]['control'][r]['p50_ms']} ms"
+                    + (f" (C++ {rows[s]['control_cpp'][r]['p50_ms']} ms)" if cpp else "")
+                    for s in names
+                ),
                 file=sys.stderr,
             )
         many = {s: open_sessions(url, model, sessions - 1) for s, (url, _, model) in servers.items()}
@@ -79,4 +88,8 @@ def bench_stream(
         "control_p50": round(cur["control"]["p50_ms"] / base["control"]["p50_ms"], 3),
         "control_p99": round(cur["control"]["p99_ms"] / base["control"]["p99_ms"], 3),
     }
+    if cpp:
+        out["vs_baseline"]["control_cpp_p50"] = round(
+            cur["control_cpp"]["p50_ms"] / base["control_cpp"]["p50_ms"], 3
+        )
     return out

@@ -11,7 +11,7 @@ from service_harness import RunningServer, ServeProcess, make_settings
 from gmt.bench.cluster import bench_cluster
 from gmt.bench.device import bench_device
 from gmt.bench.engine import bench_engine
-from gmt.bench.harness import rss_bytes
+from gmt.bench.harness import cpp_toolchain_missing, rss_bytes
 from gmt.bench.serving import bench_serving
 from gmt.model.fixtures import tiny_checkpoint
 
@@ -217,6 +217,12 @@ def test_stream_section_loads_control_and_act_batch_on_two_commits(window_ckpt):
     assert res["vs_baseline"]["control_p50"] == round(
         v["current"]["control"]["p50_ms"] / v["baseline"]["control"]["p50_ms"], 3
     )
+    # The robot loop from the C++ client too, wherever it can be built (CI installs gRPC's C++ toolchain).
+    assert ("control_cpp" in v["current"]) == (not cpp_toolchain_missing())
+    if "control_cpp" in v["current"]:
+        for server in ("current", "baseline"):
+            row = v[server]["control_cpp"]
+            assert row["errors"] == 0 and row["acts_per_s"] > 0 and 0 < row["p50_ms"] <= row["p99_ms"], row
 
 
 def test_grpc_client_counts_act_batch_items_that_failed(window_ckpt):
