@@ -96,7 +96,7 @@ proto: $(VENV)/.installed-dev
 # The C++ Control-stream client (clients/cpp: one session's robot loop in C++, a starting point for a controller
 # and the C++ row of `gmt bench --sections stream`) -> build/cpp/control_loop. Needs g++, pkg-config, protoc with
 # gRPC's C++ plugin and library (apt-get install g++ pkg-config protobuf-compiler protobuf-compiler-grpc
-# libgrpc++-dev); its message code is generated from proto/ at build time.
+# libgrpc++-dev libprotobuf-dev); its message code is generated from proto/ at build time.
 cpp-client:
 	clients/cpp/build.sh
 
@@ -131,4 +131,4 @@ constraints:
 	$(BIN)/python tools/lock.py $(CONSTRAINTS)
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache build/cpp

@@ -35,11 +35,12 @@ Schema (top level): `machine` {cpu, cores, torch, platform, native_kernel}, `eng
   {..., rounds}}}, idle_vs_alone: {current, baseline}, vs_baseline: {rest, rest_batch}}: one session's REST p50
   alone and beside `sessions - 1` idle sessions of its model, then `sessions` acting, for this checkout's server
   and a baseline commit's (`git archive`, run from this environment), both up at once, rounds alternated.
-- `stream`: {sessions, baseline, servers: {current | baseline: {control | act_batch | control_all: {..., rounds}}},
-  vs_baseline: {control_acts_per_s, act_batch_acts_per_s, control_all_acts_per_s, control_p50, control_p99}}: one
-  session's Control stream (one act at a time), `sessions` sessions per `ActBatch` call and `sessions` Control
-  streams at once, from a fresh client process per round, for the same two
-  servers as `batching`, both up at once, rounds alternated.
+- `stream`: {sessions, baseline, servers: {current | baseline: {control | control_cpp | act_batch | control_all:
+  {..., rounds}}}, vs_baseline: {control_acts_per_s, control_cpp_acts_per_s, act_batch_acts_per_s,
+  control_all_acts_per_s, control_p50, control_p99, control_cpp_p50}}: one session's Control stream (one act at a
+  time; `control_cpp` the same from the C++ client, `clients/cpp`, present only where it can be built), `sessions`
+  sessions per `ActBatch` call and `sessions` Control streams at once, from a fresh client process per round, for
+  the same two servers as `batching`, both up at once, rounds alternated.
 - `alternatives`: Ray Serve / Hugging Face Decision Transformer entries, or {"skipped": reason}.
 
 One module per section (`engine`, `serving`, `store`, `batching`, `stream`, `device`, `cluster`, `failover`, `training`, `alternatives`), what

@@ -339,15 +339,18 @@ def cpp_toolchain_missing() -> list[str]:
     """What `clients/cpp/build.sh` needs and this machine lacks (empty: the C++ client can be built)."""
     import shutil
 
-    missing = [t for t in ("g++", "protoc", "grpc_cpp_plugin", "pkg-config") if shutil.which(t) is None]
-    if "pkg-config" not in missing and subprocess.run(["pkg-config", "--exists", "grpc++"]).returncode != 0:
-        missing.append("libgrpc++-dev")
+    tools = (os.environ.get("CXX", "g++"), "protoc", "grpc_cpp_plugin", "pkg-config")
+    missing = [t for t in tools if shutil.which(t) is None]
+    if "pkg-config" not in missing:
+        for lib, package in (("protobuf", "libprotobuf-dev"), ("grpc++", "libgrpc++-dev")):
+            if subprocess.run(["pkg-config", "--exists", lib]).returncode != 0:
+                missing.append(package)
     return missing
 
 
 def cpp_control_client() -> Path | None:
     """The C++ Control-stream client (`clients/cpp`), built into build/cpp by clients/cpp/build.sh (again only when
-    its sources changed); None, with the reason on stderr, where it cannot be built."""
+    its inputs changed); None, with the reason on stderr, where it cannot be built."""
     root = Path(__file__).resolve().parents[1]
     build = root / "clients" / "cpp" / "build.sh"
     if not build.exists():
@@ -360,25 +363,40 @@ def cpp_control_client() -> Path | None:
         )
         return None
     done = subprocess.run([str(build), str(root / "build" / "cpp")], capture_output=True, text=True)
-    if done.returncode != 0:
-        print(f"[bench] no C++ client: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+    lines = done.stdout.strip().splitlines()
+    if done.returncode != 0 or not lines:
+        tail = "\n".join(done.stderr.strip().splitlines()[-15:])
+        print(f"[bench] the C++ client did not build:\n{tail}", file=sys.stderr)
         return None
-    return Path(done.stdout.strip().splitlines()[-1])
+    return Path(lines[-1])
 
 
 def cpp_control_load(binary: Path, target: str, sid: str, seconds: float) -> dict:
-    """One robot loop over the Control stream from the C++ client's process (`cpp_control_client`): acts/s, p50
-    and p99 as `grpc_load` reports them."""
+    """One robot loop over the Control stream from the C++ client's process (`cpp_control_client`): acts/s over
+    the seconds it ran, p50 and p99 (numpy's percentiles, the first tenth left out), errors, as `grpc_load` reports.
+
+    Raises:
+        RuntimeError: the client printed no result, its stream failed, or no act was answered.
+    """
     obs = ",".join(str(v) for v in json.loads(obs_json()))
     done = subprocess.run(
-        [str(binary), target, sid, "--obs", obs, "--seconds", str(seconds)], capture_output=True, text=True
+        [str(binary), target, sid, "--obs", obs, "--seconds", str(seconds)],
+        capture_output=True,
+        text=True,
+        errors="replace",
+        timeout=seconds + 60,
     )
-    out = json.loads(done.stdout)
-    if done.returncode != 0:
-        raise RuntimeError(f"the C++ client failed: {out}")
+    try:
+        out = json.loads(done.stdout.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        raise RuntimeError(
+            f"the C++ client printed no result (exit {done.returncode}): {done.stderr[-2000:]}"
+        ) from None
+    if out["status"] != "OK" or out["stream_broken"] or not out["acts"]:
+        raise RuntimeError(f"the C++ client's stream failed: {out}")
     return {
         "sessions": 1,
-        "acts_per_s": round(out["acts"] / seconds, 1),
+        "acts_per_s": round(out["acts"] / out["seconds"], 1),  # as grpc_client counts a stream's answers
         "p50_ms": out["p50_ms"],
         "p99_ms": out["p99_ms"],
         "errors": out["errors"],

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -79,15 +80,41 @@ def test_the_cpp_client_reports_an_unknown_session_and_a_wrong_observation(contr
     assert rc == 0 and out["errors"] == 0, out  # the session stayed usable
 
 
-def test_the_cpp_client_refuses_bad_arguments(control_loop):
-    done = subprocess.run(
-        [str(control_loop), "127.0.0.1:1", "s", "--obs", "1,x", "--acts", "1"], capture_output=True, text=True
-    )
-    assert done.returncode == 2 and "not a number: x" in done.stderr
-    done = subprocess.run(
-        [str(control_loop), "127.0.0.1:1", "s", "--obs", "1"], capture_output=True, text=True
-    )
-    assert done.returncode == 2 and "one of --acts and --seconds" in done.stderr
+def test_the_cpp_client_runs_for_a_time_and_reports_an_unreachable_server(control_loop, live_server):
+    sid = new_session(live_server, seed=2)
+    obs = ",".join(str(v) for v in OBS)
+    rc, out = run(control_loop, live_server.grpc_target, sid, "--obs", obs, "--seconds", "0.5")
+    assert rc == 0 and out["acts"] > 10 and out["errors"] == 0 and not out["stream_broken"], out
+    assert 0.5 <= out["seconds"] < 5 and out["p50_ms"] <= out["p99_ms"]
+    with httpx.Client(base_url=live_server.rest_url, timeout=10) as http:
+        assert http.get(f"/sessions/{sid}").json()["step"] == out["acts"]
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc, out = run(control_loop, f"127.0.0.1:{port}", sid, "--obs", obs, "--acts", "3")
+    assert rc == 1 and out["acts"] == 0 and out["stream_broken"], out
+    assert out["p50_ms"] is None and out["status"].startswith("UNAVAILABLE: "), out
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--obs", "1,x", "--acts", "1"], "not a number: 'x'"),
+        (["--obs", "1,2,", "--acts", "1"], "a comma-separated list of numbers"),
+        (["--obs", "1", "--acts", "10x"], "--acts must be a whole number"),
+        (["--obs", "1", "--acts", "0"], "--acts must be a whole number"),
+        (["--obs", "1", "--seconds", "inf"], "--seconds must be a number"),
+        (["--obs", "1", "--seconds", "5s"], "--seconds must be a number"),
+        (["--obs", "1"], "one of --acts and --seconds"),
+        (["--obs", "1", "--acts", "1", "--seconds", "1"], "one of --acts and --seconds"),
+        (["--acts", "1"], "--obs is required"),
+        (["--obs", "1", "--acts", "1", "--fast"], "unknown or incomplete option --fast"),
+    ],
+)
+def test_the_cpp_client_refuses_bad_arguments(control_loop, args, message):
+    done = subprocess.run([str(control_loop), "127.0.0.1:1", "s", *args], capture_output=True, text=True)
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert done.stdout == ""
 
 
 def test_the_docs_block_runs_as_written(control_loop, live_server):
