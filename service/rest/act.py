@@ -1,8 +1,8 @@
-"""`POST /sessions/{id}/act`, the hot path: one implementation (`answer`), which the documented route in `routes.py`
-and the fast path `FastAct` both call.
+"""`POST /sessions/{id}/act` and `POST /act`, the hot paths: one implementation of each (`answer`, `answer_many`),
+which the documented routes in `routes.py` and the fast path `FastAct` both call.
 
-The fast path answers the act below FastAPI's routing and middleware: measured with py-spy, FastAPI's stack was most
-of the server's time per act (docs/performance.md, "Throughput at 256 sessions").
+The fast path answers them below FastAPI's routing and middleware: measured with py-spy, FastAPI's stack was most
+of the server's time per act (docs/performance.md, "Throughput at 256 sessions"), and most of a small `POST /act`'s.
 """
 
 from __future__ import annotations
@@ -76,6 +76,27 @@ def many_answer(ids: list[str], results: list[ActResult | ServiceError]) -> byte
     )
 
 
+async def acts_answer(core: Core, raw: bytes) -> bytes:
+    """`POST /act`'s JSON answer from the raw body (validated from bytes by pydantic-core): a bad observation,
+    tensor or report fails its item alone.
+
+    Raises:
+        ValidationError: the body does not match `S.ActMany`.
+        ServiceError: the core refused the whole call (too many items, shutting down).
+    """
+    body = S.ActMany.model_validate_json(raw)
+    items = []
+    for r in body.requests:
+        rep = None
+        try:
+            obs, rep = observation(r), report(r)
+        except ServiceError as e:  # an undecodable tensor or a bad report fails its item alone
+            obs = e
+        items.append((r.session_id, obs, r.step, rep))
+    out = await core.act_many(items)
+    return many_answer([r.session_id for r in body.requests], out)
+
+
 async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:
     """(status, JSON body, headers) of one act from its raw body: the content-type rule (`media`), the body checked,
     the core's answer or its error in the one envelope.
@@ -83,30 +104,47 @@ async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> 
     Raises:
         Exception: anything but a refusal (a bug): the caller answers 500.
     """
-    session = session_header(sid)
+    return await _answered(act_answer(core, sid, raw), raw, content_type, session_header(sid))
+
+
+async def answer_many(core: Core, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:
+    """`answer` for `POST /act` (`acts_answer`): 200 with every item's answer or error, or the whole call's error.
+
+    Raises:
+        Exception: anything but a refusal (a bug): the caller answers 500.
+    """
+    return await _answered(acts_answer(core, raw), raw, content_type, {})
+
+
+async def _answered(work, raw: bytes, content_type: str | None, headers: dict) -> tuple[int, bytes, dict]:
+    """Run `work` (a coroutine answering the body) unless the body is empty or not JSON; its answer, or its
+    refusal in the one error envelope."""
     try:
-        if raw:
-            refusal = media.refusal(content_type)
-            if refusal is not None:
-                return refusal.http_status, error_bytes(refusal.code, refusal.message), session
+        if not raw:
+            work.close()
+            return 400, error_bytes("invalid_argument", "request body is required: a JSON object"), headers
+        refusal = media.refusal(content_type)
+        if refusal is not None:
+            work.close()
+            return refusal.http_status, error_bytes(refusal.code, refusal.message), headers
         try:
-            return 200, await act_answer(core, sid, raw), session
+            return 200, await work, headers
         except ValidationError as e:
             return (
                 400,
                 error_bytes("invalid_argument", validation_message(e.errors(include_url=False))),
-                session,
+                headers,
             )
     except ServiceError as e:
-        return e.http_status, error_bytes(e.code, e.message), session
+        return e.http_status, error_bytes(e.code, e.message), headers
 
 
 class FastAct:
-    """`POST /sessions/{id}/act` answered below FastAPI's routing and middleware (`answer`; the body limit and
-    request metrics as every route has them; `AuthFirst` and `ServedBy` still wrap it). Any other request passes
-    through untouched."""
+    """`POST /sessions/{id}/act` and `POST /act` answered below FastAPI's routing and middleware (`answer`,
+    `answer_many`; the body limit and request metrics as every route has them, under the documented routes' names;
+    `AuthFirst` and `ServedBy` still wrap it). Any other request passes through untouched."""
 
-    _PATH = re.compile(r"^/sessions/([^/]+)/act$")
+    _PATH = re.compile(r"^/sessions/([^/]+)/act$|^/act$")
 
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
@@ -118,7 +156,9 @@ class FastAct:
             return await self.app(scope, receive, send)
         core = scope["app"].state.core
         t0 = time.perf_counter()
-        sid = m.group(1)  # `path` is decoded once by the server, as for every route: never decode it again
+        sid = m.group(
+            1
+        )  # `path` is decoded once by the server, as for every route: never decode it again; None: /act
         in_flight = core.metrics.in_flight_rest
         in_flight.inc()
         try:
@@ -129,9 +169,13 @@ class FastAct:
             await send({"type": "http.response.body", "body": body})
         finally:
             in_flight.dec()
-        core.metrics.observe_request("rest", "act", str(status), time.perf_counter() - t0)
+        core.metrics.observe_request(
+            "rest", "act" if sid is not None else "act_many", str(status), time.perf_counter() - t0
+        )
 
-    async def _answer(self, core: Core, scope: Scope, receive: Receive, sid: str) -> tuple[int, bytes, dict]:
+    async def _answer(
+        self, core: Core, scope: Scope, receive: Receive, sid: str | None
+    ) -> tuple[int, bytes, dict]:
         try:
             try:
                 raw = await media.read_body(scope, receive, self.limit)
@@ -141,9 +185,8 @@ class FastAct:
                 e = PayloadTooLarge(f"request body is larger than the limit of {self.limit} bytes")
                 return e.http_status, error_bytes(e.code, e.message), {"Connection": "close"}
             content_type = next((v for k, v in scope["headers"] if k == b"content-type"), None)
-            return await answer(
-                core, sid, raw, None if content_type is None else content_type.decode("latin-1")
-            )
+            ct = None if content_type is None else content_type.decode("latin-1")
+            return await (answer(core, sid, raw, ct) if sid is not None else answer_many(core, raw, ct))
         except Exception as e:  # noqa: BLE001 - the error envelope, never a dropped connection
             log.exception("unhandled error", extra={"path": scope.get("path")})
             return 500, error_bytes("internal", f"internal error: {type(e).__name__}"), {}

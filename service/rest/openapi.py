@@ -156,6 +156,7 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
         },
         "required": ["requests"],
     }
+    _body(doc, "/act", "post")["schema"] = {"$ref": "#/components/schemas/ActMany"}
 
 
 def _act_examples(doc: dict, models: list[ModelView], examples: dict[str, Example]) -> None:

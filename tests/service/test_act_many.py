@@ -289,7 +289,7 @@ def test_rest_repeat_fails_even_when_the_first_item_did_not_decode(http, observa
 # ----- a malformed or oversized call fails as a whole -----------------------------------------------------------
 MALFORMED = [
     ("no requests", {}, "requests: Field required"),
-    ("requests not a list", {"requests": "all"}, "requests: Input should be a valid list"),
+    ("requests not an array", {"requests": "all"}, "requests: Input should be a valid array"),
     ("no session id", {"requests": [{"observation": [0.0]}]}, "requests.0.session_id: Field required"),
     (
         "session id not a string",
@@ -310,6 +310,23 @@ def test_rest_malformed_body_fails_the_call(http, body, message):
     assert r.status_code == 400, r.text
     assert r.json()["error"]["code"] == "invalid_argument"
     assert message in r.json()["error"]["message"]
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "request body is required: a JSON object"),
+        (b'{"requests": [', "request body is not valid JSON"),
+        (b"null", "body: Input should be an object"),
+    ],
+    ids=["empty", "broken JSON", "not an object"],
+)
+def test_rest_unreadable_body_fails_the_call(http, content, message):
+    r = http.post("/act", content=content, headers={"content-type": "application/json"})
+    assert r.status_code == 400, r.text
+    error = r.json()["error"]
+    assert set(error) == {"code", "message"} and error["code"] == "invalid_argument"
+    assert message in error["message"]
 
 
 def test_too_many_items_fail_the_call_on_both_transports(make_server):

@@ -120,6 +120,7 @@ ACT_BODIES = [
         "observation shape has 65 dimensions; at most 8 are accepted",
     ),
     ("deep JSON", '{"observation": ' + "[" * 30_000 + "]" * 30_000 + "}", "request body is not valid JSON"),
+    ("empty body", "", "request body is required: a JSON object"),
 ]
 
 
