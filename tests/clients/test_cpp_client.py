@@ -4,17 +4,16 @@ docs/clients.md's "From C++" block run as written."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import socket
 import subprocess
-import sys
 from pathlib import Path
 
 import grpc
 import httpx
 import numpy as np
 import pytest
+from service_harness import run_doc_block
 
 from gmt.bench.harness import cpp_control_client, cpp_toolchain_missing
 from gmt.v1 import policy_pb2 as pb
@@ -130,15 +129,7 @@ def test_the_docs_block_runs_as_written(control_loop, live_server):
         ("halfcheetah-gmt", "tiny-gmt"),
     ):
         block = block.replace(a, b)
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-    done = subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", block],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    done = run_doc_block(block, root)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["acts"] == 200 and out["errors"] == 0 and out["status"] == "OK" and len(out["actions"]) == 200

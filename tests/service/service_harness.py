@@ -108,6 +108,20 @@ def clean_env(**extra: str) -> dict[str, str]:
     return {**{k: v for k, v in os.environ.items() if not k.startswith("GMT_")}, **extra}
 
 
+def run_doc_block(script: str, cwd: Path) -> subprocess.CompletedProcess:
+    """A doc's bash block run as a user would (`bash -euo pipefail`), this environment's `gmt` and `python` first on
+    PATH, no GMT_ setting inherited; its output captured."""
+    env = clean_env(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    return subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", script],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+
+
 # What a test cluster's replicas run with: a short shutdown grace, quiet logs.
 CLUSTER_ENV = {"GMT_SHUTDOWN_GRACE_S": "1", "GMT_LOG_LEVEL": "WARNING"}
 

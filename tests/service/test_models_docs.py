@@ -4,14 +4,11 @@ checkpoint folder), and after a restart `gmt models list` shows the promoted def
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
-from service_harness import ServeProcess, clean_env
+from service_harness import ServeProcess, run_doc_block
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS_MD = ROOT / "docs" / "models.md"
@@ -24,23 +21,11 @@ def section_block(title: str) -> str:
     return re.findall(r"```bash\n(.*?)```", section, flags=re.S)[0]
 
 
-def bash(script: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = clean_env(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    return subprocess.run(
-        ["bash", "-euo", "pipefail", "-c", script],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-
-
 def test_models_md_rollout_survives_a_restart(tmp_path):
     (tmp_path / "checkpoints" / "halfcheetah-gmt").mkdir(parents=True)
     for f in ("gmt.json", "model.safetensors"):
         shutil.copyfile(SHIPPED / f, tmp_path / "checkpoints" / "halfcheetah-gmt" / f)
-    copy = bash(section_block("A second version to roll out"), tmp_path)
+    copy = run_doc_block(section_block("A second version to roll out"), tmp_path)
     assert (
         copy.returncode == 0 and "wrote checkpoints/releases/halfcheetah-gmt-v2 (version v2" in copy.stdout
     ), copy
@@ -52,7 +37,7 @@ def test_models_md_rollout_survives_a_restart(tmp_path):
             "recording"
         ].startswith("off")
         script = section_block("With `gmt models`").replace("http://127.0.0.1:8000", first.url)
-        out = bash(script, tmp_path)
+        out = run_doc_block(script, tmp_path)
         assert out.returncode == 0, out.stdout + out.stderr
         assert f"server {first.url} (--server or GMT_SERVER)" in out.stderr
         assert (
@@ -67,7 +52,7 @@ def test_models_md_rollout_survives_a_restart(tmp_path):
     again = ServeProcess(cwd=tmp_path)
     try:
         again.wait_serving()
-        out = bash(f"gmt models list --server {again.url}", tmp_path)
+        out = run_doc_block(f"gmt models list --server {again.url}", tmp_path)
         rows = [line.split() for line in out.stdout.splitlines()[1:-1]]
         assert ["halfcheetah-gmt", "v2", "serving", "0", "default"] in rows, out.stdout
         assert out.stdout.splitlines()[-1].startswith("defaults and canaries are kept across restarts")
