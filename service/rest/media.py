@@ -6,9 +6,9 @@ so does a body without a Content-Type: curl's `-d` sends `application/x-www-form
 a missing header would help no curl user, while a web page can make a browser send a body without a Content-Type,
 and without a CORS preflight, to a server on localhost (FastAPI refuses to parse such bodies for that reason). A
 request without a body is not concerned. `FastAct` applies the rule to `POST /sessions/{id}/act` and `POST /act`,
-`require_json` (a dependency of every API route) to the others; `openapi` documents the 415. A compressed body (a Content-Encoding
-other than identity) answers 415 too (`encoding_refusal`, applied to every route by `app.PlainBodies`). A body is
-read whole, up to the request-size limit, by `read_body` (`app.BodyLimit` and `app.FastAct`).
+`require_json` (a dependency of every API route) to the others; `openapi` documents the 415. A compressed body (a
+Content-Encoding other than identity) answers 415 too (`encoding_refusal`, applied to every route by `app.PlainBodies`). A body is
+read whole, up to the request-size limit, by `read_body` (`app.BodyLimit` and `act.FastAct`).
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ from gmt.service.examples import Example
 from gmt.service.ids import SESSION_ID_PATTERN
 from gmt.service.observations import MAX_ABS_VALUE
 from gmt.service.records import INFO_KEY, MAX_INFO_KEYS, MAX_REPORTED
+from gmt.service.rest import schemas as S
 from gmt.service.views import MAX_ACT_ITEMS, ModelView
 
 BEARER = "bearerAuth"
@@ -68,6 +69,13 @@ def build(app: FastAPI, core: Core | None) -> dict:
                     "description": "The body's Content-Type is not application/json (or absent)",
                     "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
                 }
+    # The act routes read raw bytes and declare their bodies in `openapi_extra`, from which FastAPI collects no
+    # components: the models those bodies refer to are added here (`_exact_bodies` narrows them to the loaded models).
+    for model in (S.Act, S.ActMany):
+        schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, d in schema.pop("$defs", {}).items():
+            schemas.setdefault(name, d)
+        schemas.setdefault(model.__name__, schema)
     if models:
         _exact_bodies(doc, schemas, models)
         _act_examples(doc, models, getattr(app.state, "examples", {}))

@@ -114,7 +114,7 @@ async def get_session(session_id: str, core: CoreDep, response: Response) -> S.S
 
 def _act_body_schema() -> dict:
     schema = S.Act.model_json_schema(ref_template="#/components/schemas/{model}")
-    schema.pop("$defs", None)  # Tensor is a component already (POST /act uses it)
+    schema.pop("$defs", None)  # Tensor: a component (`openapi.build`)
     return {"requestBody": {"required": True, "content": {"application/json": {"schema": schema}}}}
 
 
@@ -137,7 +137,7 @@ async def act(session_id: str, request: Request, core: CoreDep) -> Response:
 
 def _act_many_body_schema() -> dict:
     schema = S.ActMany.model_json_schema(ref_template="#/components/schemas/{model}")
-    schema.pop("$defs", None)  # its item and Tensor are components already
+    schema.pop("$defs", None)  # its item and Tensor: components (`openapi.build`)
     return {"requestBody": {"required": True, "content": {"application/json": {"schema": schema}}}}
 
 

@@ -1,5 +1,6 @@
-"""`POST /sessions/{id}/act` has one implementation (`gmt.service.rest.act.answer`): the documented route, reached
-when the fast path `FastAct` is taken out of the stack, answers every case as the fast path does."""
+"""`POST /sessions/{id}/act` and `POST /act` have one implementation each (`gmt.service.rest.act.answer`,
+`answer_many`): the documented routes, reached when the fast path `FastAct` is taken out of the stack, answer every
+case as the fast path does."""
 
 from __future__ import annotations
 
@@ -30,14 +31,46 @@ def _answers(ckpt_root, monkeypatch, fast: bool) -> list[tuple[int, dict, str | 
         (SID, json.dumps({"observation": "x"}), "application/json"),  # 400: not a list
         (SID, json.dumps({"observation": obs}), "text/plain"),  # 415
         ("no-such-session", json.dumps({"observation": obs}), "application/json"),  # 404
+        (SID, "", "application/json"),  # 400: no body
     ]
-    settings = make_settings(checkpoints=[ckpt_root], max_request_bytes=64 * 1024)
+    many = [  # POST /act
+        (json.dumps({"requests": [{"session_id": SID, "observation": obs, "step": 1}]}), "application/json"),
+        (
+            json.dumps(  # mixed: an answer, a wrong size, an unknown session, a repeat
+                {
+                    "requests": [
+                        {"session_id": SID, "observation": obs},
+                        {"session_id": "twin-2", "observation": obs[:2]},
+                        {"session_id": "no-such-session", "observation": obs},
+                        {"session_id": SID, "observation": obs},
+                    ]
+                }
+            ),
+            "application/json",
+        ),
+        ('{"requests": [', "application/json"),  # 400: broken JSON
+        ("null", "application/json"),  # 400: not an object
+        ("", "application/json"),  # 400: no body
+        (json.dumps({"requests": []}), "text/plain"),  # 415
+        (
+            json.dumps({"requests": [{"session_id": SID, "observation": [0]}] * 4097}),
+            "application/json",
+        ),  # 400
+    ]
+    settings = make_settings(checkpoints=[ckpt_root], max_request_bytes=512 * 1024)
     out = []
     with TestClient(app_module.create_app(settings)) as c:
         created = c.post("/sessions", json={"model": "tiny-gmt", "session_id": SID, "seed": 1, "goal": 1})
         assert created.status_code == 201, created.text
+        assert (
+            c.post("/sessions", json={"model": "tiny-gmt", "session_id": "twin-2", "goal": 0}).status_code
+            == 201
+        )
         for sid, body, content_type in requests:
             r = c.post(f"/sessions/{sid}/act", content=body, headers={"content-type": content_type})
+            out.append((r.status_code, r.json(), r.headers.get("x-session-id")))
+        for body, content_type in many:
+            r = c.post("/act", content=body, headers={"content-type": content_type})
             out.append((r.status_code, r.json(), r.headers.get("x-session-id")))
     monkeypatch.undo()
     return out
@@ -46,6 +79,20 @@ def _answers(ckpt_root, monkeypatch, fast: bool) -> list[tuple[int, dict, str | 
 def test_the_documented_route_answers_as_the_fast_path(ckpt_root, monkeypatch) -> None:
     fast = _answers(ckpt_root, monkeypatch, fast=True)
     route = _answers(ckpt_root, monkeypatch, fast=False)
-    assert [s for s, _, _ in fast] == [200, 200, 409, 400, 400, 400, 415, 404]
+    assert [s for s, _, _ in fast] == [200, 200, 409, 400, 400, 400, 415, 404, 400] + [
+        200,
+        200,
+        400,
+        400,
+        400,
+        415,
+        400,
+    ]
     assert fast[0] == fast[1] and fast[0][2] == SID
+    mixed = fast[10][1]["results"]
+    assert "action" in mixed[0] and [r["error"]["code"] for r in mixed[1:]] == [
+        "invalid_argument",
+        "not_found",
+        "invalid_argument",
+    ], mixed
     assert route == fast
