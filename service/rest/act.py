@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Awaitable, Callable
 
 import orjson
 from pydantic import ValidationError
@@ -105,7 +106,7 @@ async def answer(core: Core, sid: str, raw: bytes, content_type: str | None) -> 
     Raises:
         Exception: anything but a refusal (a bug): the caller answers 500.
     """
-    return await _answered(act_answer(core, sid, raw), raw, content_type, session_header(sid))
+    return await _answered(lambda: act_answer(core, sid, raw), raw, content_type, session_header(sid))
 
 
 async def answer_many(core: Core, raw: bytes, content_type: str | None) -> tuple[int, bytes, dict]:
@@ -114,22 +115,22 @@ async def answer_many(core: Core, raw: bytes, content_type: str | None) -> tuple
     Raises:
         Exception: anything but a refusal (a bug): the caller answers 500.
     """
-    return await _answered(acts_answer(core, raw), raw, content_type, {})
+    return await _answered(lambda: acts_answer(core, raw), raw, content_type, {})
 
 
-async def _answered(work, raw: bytes, content_type: str | None, headers: dict) -> tuple[int, bytes, dict]:
-    """Run `work` (a coroutine answering the body) unless the body is empty or not JSON; its answer, or its
-    refusal in the one error envelope."""
+async def _answered(
+    work: Callable[[], Awaitable[bytes]], raw: bytes, content_type: str | None, headers: dict
+) -> tuple[int, bytes, dict]:
+    """`work()`'s answer to the body unless the body is empty or not JSON, or its refusal, in the one error
+    envelope."""
     try:
         if not raw:
-            work.close()
             return 400, error_bytes("invalid_argument", "request body is required: a JSON object"), headers
         refusal = media.refusal(content_type)
         if refusal is not None:
-            work.close()
             return refusal.http_status, error_bytes(refusal.code, refusal.message), headers
         try:
-            return 200, await work, headers
+            return 200, await work(), headers
         except ValidationError as e:
             return (
                 400,

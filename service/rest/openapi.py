@@ -69,8 +69,8 @@ def build(app: FastAPI, core: Core | None) -> dict:
                     "description": "The body's Content-Type is not application/json (or absent)",
                     "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
                 }
-    # The act routes read raw bytes and declare their bodies in `openapi_extra`, from which FastAPI collects no
-    # components: the models those bodies refer to are added here (`_exact_bodies` narrows them to the loaded models).
+    # The act routes read raw bytes and refer to their bodies' components in `openapi_extra`, from which FastAPI
+    # collects none: they are added here (`_exact_bodies` narrows them to the loaded models).
     for model in (S.Act, S.ActMany):
         schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
         for name, d in schema.pop("$defs", {}).items():
@@ -124,7 +124,6 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
         },
         "required": ["observation"],
     }
-    _body(doc, "/sessions/{session_id}/act", "post")["schema"] = {"$ref": "#/components/schemas/Act"}
     # POST /act: a bad observation, tensor or session fails its item alone (in the answer), so the schema of an
     # item's observation is the envelope the whole call is refused without.
     schemas["Tensor"] = {
@@ -164,7 +163,6 @@ def _exact_bodies(doc: dict, schemas: dict, models: list[ModelView]) -> None:
         },
         "required": ["requests"],
     }
-    _body(doc, "/act", "post")["schema"] = {"$ref": "#/components/schemas/ActMany"}
 
 
 def _act_examples(doc: dict, models: list[ModelView], examples: dict[str, Example]) -> None:

@@ -112,9 +112,10 @@ async def get_session(session_id: str, core: CoreDep, response: Response) -> S.S
     return S.SessionOut.of(await core.get_session(session_id))
 
 
-def _act_body_schema() -> dict:
-    schema = S.Act.model_json_schema(ref_template="#/components/schemas/{model}")
-    schema.pop("$defs", None)  # Tensor: a component (`openapi.build`)
+def _raw_body(model: type) -> dict:
+    """The documented request body of a route that reads its raw bytes (`act_path.FastAct`'s): the model's
+    component, which `openapi.build` adds (FastAPI collects none from `openapi_extra`)."""
+    schema = {"$ref": f"#/components/schemas/{model.__name__}"}
     return {"requestBody": {"required": True, "content": {"application/json": {"schema": schema}}}}
 
 
@@ -122,7 +123,7 @@ def _act_body_schema() -> dict:
     "/sessions/{session_id}/act",
     response_model=S.ActOut,
     tags=["sessions"],
-    openapi_extra=_act_body_schema(),
+    openapi_extra=_raw_body(S.Act),
     responses=errors(400, 404, 409, 413, 503),
 )
 async def act(session_id: str, request: Request, core: CoreDep) -> Response:
@@ -135,18 +136,12 @@ async def act(session_id: str, request: Request, core: CoreDep) -> Response:
     return Response(answer, status, headers, media_type="application/json")
 
 
-def _act_many_body_schema() -> dict:
-    schema = S.ActMany.model_json_schema(ref_template="#/components/schemas/{model}")
-    schema.pop("$defs", None)  # its item and Tensor: components (`openapi.build`)
-    return {"requestBody": {"required": True, "content": {"application/json": {"schema": schema}}}}
-
-
 @api.post(
     "/act",
     response_model=S.ActManyOut,
     response_model_exclude_none=True,
     tags=["sessions"],
-    openapi_extra=_act_many_body_schema(),
+    openapi_extra=_raw_body(S.ActMany),
     responses=errors(400, 413, 503),
 )
 async def act_many(request: Request, core: CoreDep) -> Response:
