@@ -210,7 +210,8 @@ class Acts(CoreState):
 
         A call of many rows goes in two parts (`MicroBatcher.call_cut`), each in a pass of its own: the first part
         is answered and written while the engine runs the second (the event loop and the store wait on the engine
-        no more than one part's time).
+        no more than one part's time), and the second's write follows as soon as its pass is done, whether or not
+        the first's is acknowledged yet.
         """
         batcher = self._batcher(rows[0][2])
         steps = [(r[3].step, r[3].goal, r[3].version) for r in rows]  # before the engine advances them
@@ -220,22 +221,33 @@ class Acts(CoreState):
             asyncio.ensure_future(batcher.act_many([r[3] for r in p], [r[4] for r in p], solo=len(parts) > 1))
             for p, _ in parts
         ]
-        failed: Exception | None = None
+        # (part, its answers and write) for each part whose pass ran
+        answers: list[tuple[int, asyncio.Future]] = []
+        failed: list[BaseException | None] = [None] * len(parts)
         try:
-            for (part, part_steps), forward in zip(parts, passes, strict=True):
+            for k, ((part, part_steps), forward) in enumerate(zip(parts, passes, strict=True)):
                 try:
-                    await self._answer_rows(part, part_steps, await forward, out, t0)
+                    actions = await forward
                 except Exception as e:  # noqa: BLE001 - its pass failed as a whole
                     # The other part (which may have run already) is still answered and written; then the call fails.
-                    failed = failed or e
+                    failed[k] = e
+                    continue
+                # Its write goes while the next part's pass runs, not after the write before it is acknowledged.
+                answers.append(
+                    (k, asyncio.ensure_future(self._answer_rows(part, part_steps, actions, out, t0)))
+                )
         except BaseException:  # cancelled: only while no pass has started (`units`), so neither may run later
             for forward in passes:
                 forward.cancel()
             raise
-        finally:  # no pass may outlive the call (its sessions' locks)
-            await asyncio.gather(*passes, return_exceptions=True)
-        if failed is not None:
-            raise failed
+        finally:  # no pass, no write may outlive the call (its sessions' locks)
+            done = await asyncio.gather(*passes, *(a for _, a in answers), return_exceptions=True)
+        for (k, _), e in zip(answers, done[len(passes) :], strict=True):
+            if isinstance(e, BaseException):
+                failed[k] = e
+        first = next((e for e in failed if e is not None), None)
+        if first is not None:
+            raise first
 
     async def _answer_rows(
         self, rows: list[tuple], steps: list[tuple], actions: list, out: list, t0: float

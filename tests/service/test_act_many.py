@@ -470,3 +470,49 @@ def test_a_split_call_cancelled_before_its_passes_start_runs_neither_part(ckpt_r
 
     passes, steps = asyncio.run(main())
     assert passes == 1 and steps == [1] + [0] * SPLIT_FROM
+
+
+class _HeldFirstWrite:
+    """A session store whose first `save_many` waits at a gate (a write not yet acknowledged); counts the calls."""
+
+    def __init__(self, store) -> None:
+        self._store, self.sizes = store, []
+        self.gate, self.second = asyncio.Event(), asyncio.Event()
+
+    def __getattr__(self, name):
+        return getattr(self._store, name)
+
+    async def save_many(self, items):
+        self.sizes.append(len(items))
+        if len(self.sizes) == 1:
+            await self.gate.wait()
+        else:
+            self.second.set()
+        return await self._store.save_many(items)
+
+
+def test_a_split_calls_second_write_goes_while_the_first_is_unacknowledged(ckpt_root):
+    """The second part of a call in two is written as soon as its pass is done, not after the first part's write
+    is acknowledged (a replicated store's WAIT would otherwise stand between them); the call answers once both
+    are, every session stepped once."""
+
+    async def main():
+        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"])
+        core = Core(settings, store=store_for(settings, time.time), clock=time.time)
+        await core.start()
+        try:
+            n = SPLIT_FROM + 1
+            sids = [(await core.create_session("tiny-gmt", goal=0, seed=i)).session_id for i in range(n)]
+            core.store = held = _HeldFirstWrite(core.store)
+            call = asyncio.ensure_future(core.act_many([(sid, np.zeros(17, np.float32)) for sid in sids]))
+            await asyncio.wait_for(held.second.wait(), 30)  # the first write is still held
+            assert not call.done()
+            held.gate.set()
+            results = await call
+            return held.sizes, [r.step for r in results], [(await core.get_session(s)).step for s in sids]
+        finally:
+            await core.close()
+
+    sizes, answered, steps = asyncio.run(main())
+    assert sizes == [(SPLIT_FROM + 2) // 2, (SPLIT_FROM + 1) // 2]
+    assert answered == [0] * (SPLIT_FROM + 1) and steps == [1] * (SPLIT_FROM + 1)
