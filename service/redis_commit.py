@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
+from typing import Any
 
 from gmt.service import resp
 from gmt.service.errors import Internal, ServiceError, Unavailable
@@ -30,6 +31,8 @@ class GroupCommit:
         ttl_ms: The session keys' TTL (the save script's first argument).
         spin_s: How long a lone session's write polls for its reply (0: never).
         lone: Whether this replica serves one session at most (the only case where a write polls).
+        encode: The save script's entries (keys, encoded arguments, their count) of a turn's changes, in order
+            (`RedisSessionStore._encode`): called once per write, with every change queued for it.
     """
 
     def __init__(
@@ -43,6 +46,7 @@ class GroupCommit:
         ttl_ms: int,
         spin_s: float,
         lone: Callable[[], bool],
+        encode: Callable[[list[Any]], list[tuple[list, bytes, int]]],
     ) -> None:
         self._client = client
         self._errors = errors
@@ -52,6 +56,7 @@ class GroupCommit:
         self._ttl_ms = ttl_ms
         self.spin_s = spin_s
         self._lone = lone
+        self._encode = encode
         self.fast: resp.RespConnection | None = None  # the hot path's own connection (`send`)
         self._fast_lock = asyncio.Lock()
         self._queue: list[
@@ -73,10 +78,10 @@ class GroupCommit:
             "answered without stepping twice)"
         )
 
-    def enqueue(self, entries: list[tuple[list, bytes, int]]) -> asyncio.Future:
-        """Queue changes (save script entries: keys, encoded arguments, their count, `RedisSessionStore._entry`)
-        for this turn's write; the future answers, per change, the script's result for it or the error that failed
-        it (one future per caller, not per session)."""
+    def enqueue(self, entries: list[Any]) -> asyncio.Future:
+        """Queue changes (`RedisSessionStore._change`, encoded when the write is sent) for this turn's write; the
+        future answers, per change, the script's result for it or the error that failed it (one future per caller,
+        not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         first = not self._queue
@@ -96,7 +101,15 @@ class GroupCommit:
         once on the open fast connection (polling for the reply up to `spin_s`, `RespConnection.send`), else from
         a task that connects first."""
         queue, self._queue = self._queue, []
-        commands = [save_command([e for entries, _ in queue for e in entries], self._ttl_ms)]
+        try:
+            commands = [
+                save_command(self._encode([e for entries, _ in queue for e in entries]), self._ttl_ms)
+            ]
+        except Exception as e:  # noqa: BLE001 - a change that cannot be encoded fails its turn, never hangs it
+            self._resolve(
+                queue, Internal(f"the session store could not encode a write: {type(e).__name__}: {e}")
+            )
+            return
         conn = self.fast
         if conn is not None and not conn.closed:
             if not self.min_replicas:

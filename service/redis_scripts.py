@@ -95,7 +95,7 @@ def save_entry(expect: bytes, fields: dict[str, bytes], lists: list[list[bytes]]
 
 
 def save_command(entries: list[tuple[list, bytes, int]], ttl_ms: int) -> resp.Encoded:
-    """One `SAVE` call writing every (keys, encoded arguments, their count) entry (`RedisSessionStore._entry`)."""
+    """One `SAVE` call writing every (keys, encoded arguments, their count) entry (`RedisSessionStore._encode`)."""
     keys = [k for ks, _, _ in entries for k in ks]
     head = resp.bulk(["EVAL", SAVE, len(keys), *keys, ttl_ms])
     return resp.command(len(keys) + 4 + sum(n for _, _, n in entries), head, *(a for _, a, _ in entries))

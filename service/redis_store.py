@@ -100,6 +100,7 @@ class RedisSessionStore(SessionStore):
             ttl_ms=self.layout.ttl_ms,
             spin_s=spin_s,
             lone=lambda: len(self.local.held) <= 1,
+            encode=self._encode,
         )
         # Sessions whose last write here may not have reached `min_replicas` replicas: confirmed before use.
         self._unconfirmed: set[str] = set()
@@ -226,7 +227,7 @@ class RedisSessionStore(SessionStore):
 
     async def save(self, session: Session, read_version: int | None = None) -> None:
         try:
-            (outcome,) = await self.commit.enqueue([self._entry(session, read_version)])
+            (outcome,) = await self.commit.enqueue([self._change(session, read_version)])
         except ServiceError as e:  # the whole write failed: unknown whether it was applied
             raise self._failed(session, e) from None
         if isinstance(outcome, ServiceError):
@@ -234,11 +235,16 @@ class RedisSessionStore(SessionStore):
         self._saved(session, outcome)
 
     async def save_many(self, items: list[tuple[Session, int | None]]) -> list[ServiceError | None]:
-        entries, refused = self._entries(items)  # all in this turn: one script call writes them all
-        try:
-            outcomes = iter(await self.commit.enqueue(entries) if entries else ())
+        changes, refused = [], {}
+        for i, (session, read_version) in enumerate(items):
+            try:
+                changes.append(self._change(session, read_version))
+            except ServiceError as e:
+                refused[i] = e
+        try:  # all in this turn: one script call writes them all
+            outcomes = iter(await self.commit.enqueue(changes) if changes else ())
         except ServiceError as e:  # the whole write failed: unknown whether any of it was applied
-            outcomes = iter([e] * len(entries))
+            outcomes = iter([e] * len(changes))
         out: list[ServiceError | None] = []
         for i, (session, _) in enumerate(items):
             if i in refused:
@@ -254,33 +260,25 @@ class RedisSessionStore(SessionStore):
                 out.append(e)
         return out
 
-    def _entry(self, session: Session, read_version: int | None) -> tuple[list, bytes, int]:
-        """The session's change as a save script entry (`_script_entry`).
+    def _change(self, session: Session, read_version: int | None) -> tuple[Session, int, int, int | None]:
+        """A change to write (`_encode` turns it into the save script's entry when its turn's write goes): the
+        session, the version and step this replica last wrote of it, and the version the request read.
 
         Raises:
             Aborted: this replica's copy is not the version read (another request changed it meanwhile).
         """
         held = self._held(session, read_version)
-        return self._script_entry(
-            session, held.version, read_version, session_codec.change_fields(session, held.step)
-        )
+        return session, held.version, held.step, read_version
 
-    def _entries(self, items: list[tuple[Session, int | None]]) -> tuple[list, dict[int, ServiceError]]:
-        """`_entry` of each (session, read version), their fields built together (`change_fields_many`): the
-        entries of those that can be written, and the error of each that cannot, by index."""
-        ok, held, refused = [], [], {}
-        for i, (session, read_version) in enumerate(items):
-            try:
-                held.append(self._held(session, read_version))
-                ok.append(i)
-            except ServiceError as e:
-                refused[i] = e
-        changes = session_codec.change_fields_many([items[i][0] for i in ok], [h.step for h in held])
-        entries = [
-            self._script_entry(items[i][0], h.version, items[i][1], fields)
-            for i, h, fields in zip(ok, held, changes, strict=True)
+    def _encode(self, changes: list[tuple[Session, int, int, int | None]]) -> list[tuple[list, bytes, int]]:
+        """The save script's entries (`_script_entry`) of a turn's changes (`_change`), their fields built together
+        (`session_codec.change_fields_many`). Called as the turn's write is sent: every change of the turn, from
+        whichever request, is built in one go."""
+        fields = session_codec.change_fields_many([c[0] for c in changes], [c[2] for c in changes])
+        return [
+            self._script_entry(session, version, read_version, f)
+            for (session, version, _, read_version), f in zip(changes, fields, strict=True)
         ]
-        return entries, refused
 
     def _held(self, session: Session, read_version: int | None) -> Held:
         """This replica's record of the session as last written.
