@@ -1,5 +1,6 @@
 """The server process's heap: handing freed memory back to the OS soon after a burst of frees (glibc's
-`malloc_trim`), and keeping the objects of startup out of the garbage collector's passes."""
+`malloc_trim`), keeping the objects of startup out of the garbage collector's passes, and running its youngest
+pass less often."""
 
 from __future__ import annotations
 
@@ -7,6 +8,14 @@ import asyncio
 import ctypes
 import ctypes.util
 import gc
+
+# Allocations (less frees) between two passes over the youngest objects (Python's default: 700). Under load every
+# request in flight holds young objects (its coroutines, futures, scope); at 700 each pass walks them all again and
+# moves them on to the next generation, whose passes walk them once more: the collector took ~12% of the event
+# loop's time with 256 REST sessions acting. Most of that garbage is freed by reference counting; this only bounds
+# how long cyclic garbage waits. 10,000: REST at 256 sessions +14% in memory, +15% over the replicated store (one
+# run each here); 50,000 measured no better (docs/performance.md).
+YOUNG_THRESHOLD = 10_000
 
 
 def return_freed_memory() -> None:
@@ -20,7 +29,8 @@ def return_freed_memory() -> None:
 
 def freeze_startup_heap() -> int:
     """Collect once, then move every object alive now (torch, the models, the apps: ~250,000 objects) into the
-    collector's permanent generation (`gc.freeze`); returns how many objects it holds.
+    collector's permanent generation (`gc.freeze`), and collect the youngest objects every `YOUNG_THRESHOLD`
+    allocations from then on; returns how many objects the permanent generation holds.
 
     Every full collection otherwise walks them all: ~80 ms each on the event loop, timed with `gc.callbacks`
     (POST /act with 256 sessions: p99 144 ms -> 33 ms, acts/s +14%, in one run here; docs/performance.md).
@@ -28,6 +38,8 @@ def freeze_startup_heap() -> int:
     """
     gc.collect()
     gc.freeze()
+    _, older, oldest = gc.get_threshold()
+    gc.set_threshold(YOUNG_THRESHOLD, older, oldest)
     return gc.get_freeze_count()
 
 

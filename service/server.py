@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import errno
 import functools
+import gc
 import logging
 import signal
 import socket
@@ -121,8 +122,9 @@ class Server:
         and `grpc_port`.
 
         Args:
-            freeze_heap: Once the models are loaded, hide every object alive then from the garbage collector
-                (`memory.freeze_startup_heap`): for a process that only serves, as `gmt serve` is.
+            freeze_heap: Once the models are loaded, hide every object alive then from the garbage collector and
+                collect young objects less often (`memory.freeze_startup_heap`): for a process that only serves,
+                as `gmt serve` is.
         """
         s = self.settings
         store = self.core.store
@@ -210,6 +212,7 @@ class Server:
                 "rest_max_connections": caps.rest,
                 "grpc_max_connections": caps.grpc,
                 "gc_frozen_objects": frozen,
+                "gc_young_threshold": gc.get_threshold()[0],
             },
         )
 

@@ -13,6 +13,7 @@ from service_harness import ServeProcess, clean_env, make_settings
 
 from gmt.service.core import Core
 from gmt.service.grpc.server import GrpcServer
+from gmt.service.memory import YOUNG_THRESHOLD
 from gmt.service.settings import Settings
 
 
@@ -40,8 +41,10 @@ def test_serve_without_checkpoints_says_so_and_stops_gracefully(tmp_path):
     try:
         info = p.wait_serving()
         assert info["models"] == [] and info["ready"] is False
-        # `gmt serve` hides its startup objects from the garbage collector (in-process test servers do not).
+        # `gmt serve` hides its startup objects from the garbage collector and collects young objects less often
+        # (in-process test servers do neither).
         assert info["gc_frozen_objects"] > 10_000, info["gc_frozen_objects"]
+        assert info["gc_young_threshold"] == YOUNG_THRESHOLD
         warning = next(r for r in p.lines if r.get("msg", "").startswith("no model loaded"))
         assert warning["level"] == "warning" and warning["checkpoints"] == [str(tmp_path / "checkpoints")]
         r = httpx.get(f"{p.url}/readyz")
