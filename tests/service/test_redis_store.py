@@ -207,6 +207,59 @@ def test_redis_store_semantics(redis_clean_any, engine, clock):
     asyncio.run(scenario())
 
 
+def test_a_turns_changes_are_encoded_together_and_a_failed_encoding_fails_only_that_turn(
+    redis_clean, engine, clock
+):
+    """Writes queued in one turn of the loop, by different requests, are encoded in one go as their script call is
+    sent (`RedisSessionStore._encode`); if that fails, each of the turn's writers hears `internal` (none hangs) and
+    the next turn writes."""
+    from gmt.service.errors import Internal
+    from gmt.service.redis_store import RedisSessionStore
+
+    async def scenario():
+        store = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=8, clock=clock)
+        encoded: list[list[str]] = []
+        encode = store.commit._encode
+
+        def watched(changes):
+            encoded.append([c[0].id for c in changes])
+            if len(encoded) == 2:
+                raise ValueError("an unencodable change")
+            return encode(changes)
+
+        store.commit._encode = watched
+        try:
+            for sid in ("a", "b"):
+                await store.create(Session(sid, "tiny-gmt", engine.new_context(0, key=sid), clock(), clock()))
+            got = [await store.get(sid) for sid in ("a", "b")]
+
+            async def act(s):
+                read = s.ctx.version
+                if not isinstance(s.ctx, type(engine.new_context(0))):
+                    s.ctx = engine.from_stored(s.ctx, key=s.id)
+                engine.act([s.ctx], [np.zeros(17, np.float32)])
+                await store.save(s, read)
+
+            await asyncio.gather(*(act(s) for s in got))  # two requests, one turn: one encoding, one call
+            assert encoded == [["a", "b"]]
+            outcomes = await asyncio.gather(*(act(s) for s in got), return_exceptions=True)
+            assert [type(e) for e in outcomes] == [Internal, Internal]
+            assert "could not encode a write: ValueError: an unencodable change" in str(outcomes[0])
+            # Read back: the failed turn never reached Redis.
+            again = [await store.get(sid) for sid in ("a", "b")]
+            assert [s.ctx.step for s in again] == [1, 1]
+            await asyncio.gather(*(act(s) for s in again))
+            fresh = RedisSessionStore(redis_clean, idle_timeout_s=10, max_sessions=8, clock=clock)
+            try:
+                assert [(await fresh.get(sid)).ctx.step for sid in ("a", "b")] == [2, 2]
+            finally:
+                await fresh.close()
+        finally:
+            await store.close()
+
+    asyncio.run(scenario())
+
+
 def test_replica_dies_and_another_answers_exactly_as_it_would_have(redis_clean, ckpt_root, engine, cartpole):
     rng = np.random.default_rng(5)
     obs = rng.normal(size=(10, 17)).astype(np.float32)
