@@ -10,6 +10,7 @@ hold it (docs/reliability.md).
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -17,6 +18,8 @@ from gmt.service import resp
 from gmt.service.errors import Internal, ServiceError, Unavailable
 from gmt.service.redis_connect import RedisClient
 from gmt.service.redis_scripts import save_command
+
+log = logging.getLogger("gmt.store")
 
 
 class GroupCommit:
@@ -78,14 +81,14 @@ class GroupCommit:
             "answered without stepping twice)"
         )
 
-    def enqueue(self, entries: list[Any]) -> asyncio.Future:
+    def enqueue(self, changes: list[Any]) -> asyncio.Future:
         """Queue changes (`RedisSessionStore._change`, encoded when the write is sent) for this turn's write; the
         future answers, per change, the script's result for it or the error that failed it (one future per caller,
         not per session)."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         first = not self._queue
-        self._queue.append((entries, fut))
+        self._queue.append((changes, fut))
         if first:
             if self.spin_s > 0 and self._lone() and self.fast is not None and not self.fast.closed:
                 # A lone session's write (the only session served here): sent now, its reply polled for, so the
@@ -96,20 +99,15 @@ class GroupCommit:
         return fut
 
     def _flush(self, spin_s: float = 0.0) -> None:
-        """Send the turn's writes as one script call (then WAIT on the same connection when replicas must hold
-        them, one WAIT in flight at a time: the writes sent while one is in flight share the next, `_waited`): at
-        once on the open fast connection (polling for the reply up to `spin_s`, `RespConnection.send`), else from
-        a task that connects first."""
+        """Encode the turn's changes (`_encoded`) and send them as one script call (then WAIT on the same
+        connection when replicas must hold them, one WAIT in flight at a time: the writes sent while one is in
+        flight share the next, `_waited`): at once on the open fast connection (polling for the reply up to
+        `spin_s`, `RespConnection.send`), else from a task that connects first."""
         queue, self._queue = self._queue, []
-        try:
-            commands = [
-                save_command(self._encode([e for entries, _ in queue for e in entries]), self._ttl_ms)
-            ]
-        except Exception as e:  # noqa: BLE001 - a change that cannot be encoded fails its turn, never hangs it
-            self._resolve(
-                queue, Internal(f"the session store could not encode a write: {type(e).__name__}: {e}")
-            )
+        queue, entries = self._encoded(queue)
+        if not queue:
             return
+        commands = [save_command(entries, self._ttl_ms)]
         conn = self.fast
         if conn is not None and not conn.closed:
             if not self.min_replicas:
@@ -136,6 +134,30 @@ class GroupCommit:
         task = asyncio.get_running_loop().create_task(self._flush_slowly(queue, commands))
         self._flushes.add(task)  # the loop holds tasks weakly
         task.add_done_callback(self._flushes.discard)
+
+    def _encoded(
+        self, queue: list[tuple[list, asyncio.Future]]
+    ) -> tuple[list, list[tuple[list, bytes, int]]]:
+        """The turn's writers that can be written and their changes' script entries, encoded together; if that
+        fails, each writer's changes are encoded alone and only a writer whose changes cannot be is failed
+        (`internal`, the cause logged), never left waiting."""
+        try:
+            return queue, self._encode([c for changes, _ in queue for c in changes])
+        except Exception:  # noqa: BLE001 - found below, writer by writer
+            pass
+        ok: list[tuple[list, asyncio.Future]] = []
+        entries: list[tuple[list, bytes, int]] = []
+        for changes, fut in queue:
+            try:
+                mine = self._encode(changes)
+            except Exception:  # noqa: BLE001 - a change that cannot be encoded fails its writer alone
+                log.exception("a session change could not be encoded for the store")
+                if not fut.done():
+                    fut.set_exception(Internal("the session store could not encode this request's write"))
+                continue
+            ok.append((changes, fut))
+            entries += mine
+        return ok, entries
 
     def _waited(self, conn: resp.RespConnection, group: list[tuple[list, list | None]], replies) -> None:
         """Answer the writes a WAIT covered, from their script's replies and the WAIT's (`replies`: [script, WAIT]
