@@ -68,7 +68,7 @@ def train_command(
             resume=resume,
             extra_meta={"goal_labels": ds.goal_labels, "command": command},
         )
-        _trained(ckpt, out)
+        _finished(ckpt, out)
         return
     if labels is not None:
         rel = GoalTable.load(labels)
@@ -104,7 +104,7 @@ def train_command(
             "command": command,
         },
     )
-    _trained(ckpt, out)
+    _finished(ckpt, out)
 
 
 def _check_train_flags(flags: dict[str, Any], out: Path) -> None:
@@ -130,6 +130,16 @@ def _check_train_flags(flags: dict[str, Any], out: Path) -> None:
         raise typer.BadParameter("--device cuda, but torch sees no CUDA GPU here (use auto or cpu)")
     if out.exists() and not out.is_dir():
         raise typer.BadParameter(f"{out} is a file, not a checkpoint directory", param_hint="--out")
+
+
+def _finished(ckpt, out: Path) -> None:
+    """Report the run (`_trained`); a `torchrun` worker then ends at once (`exit_worker`: its gloo threads must not
+    outlive the interpreter's shutdown)."""
+    from gmt.model.distributed import exit_worker, launched_by_torchrun
+
+    _trained(ckpt, out)
+    if launched_by_torchrun():
+        exit_worker()
 
 
 def _trained(ckpt, out: Path) -> None:
