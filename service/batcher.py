@@ -6,7 +6,8 @@ on its way). An idle session, one that never acted or stopped acting, is never w
 an acting session nothing; with none acting beside it, a request runs as soon as the engine is free, with what
 arrived while it was busy. A batch closes when it holds `max_batch` requests, when every acting session has a
 request queued, or at the deadline. When many sessions act one at a time (`SPLIT_FROM` or more), a pass takes at
-most half of them: the event loop then parses and answers one half while the engine runs the other.
+most half of them (a quarter with a remote store, `parts`): the event loop then parses and answers one part while
+the engine runs another.
 The forward runs in a worker thread so that the event loop keeps serving (a lone session's may run on the loop,
 see `inline_alone`).
 """
@@ -35,6 +36,12 @@ ACTIVE_S = 1.0  # a session answered within this long (or twice the batch wait, 
 # work for one half overlaps the engine's for the other. On 2 cores, 256 sessions over REST at max_batch 256:
 # 4,476-4,890 acts/s in whole passes, 6,080-6,353 in halves (docs/performance.md).
 SPLIT_FROM = 64
+# With a store whose writes wait for another process (Redis, `SessionStore.remote`), a pass takes at most a quarter:
+# while one pass's write waits for its acknowledgement (and the replica's, with WAIT), the loop works on the others
+# instead of running dry. 256 sessions over REST with the store as `make cluster` deploys it, against memory in the
+# same runs (4 rounds each): 0.752-0.782x in quarters, 0.670-0.699x in halves (three runs); thirds 0.71x, fifths,
+# sixths and eighths 0.72-0.75x; in memory, quarters and halves are the same (0.987x; docs/performance.md).
+REMOTE_STORE_PARTS = 4
 # A many-session call of at most this many rows runs right on the event loop when `inline_alone` would run a lone
 # act there (nothing queued or running, no session acting one at a time): ~0.5 ms of the loop at most.
 INLINE_ROWS = 8
@@ -71,6 +78,8 @@ class MicroBatcher:
         clock: Monotonic seconds, for the acting window.
         call_threads: Threads the engine may split a pass of a many-session call between (`PolicyEngine.act`'s
             `threads`); passes of single acts get one.
+        parts: From `SPLIT_FROM` sessions acting one at a time, a pass takes at most this share of them (2: half;
+            `REMOTE_STORE_PARTS` when the session store's writes wait for another process).
 
     Attributes:
         active_window_s: How long after its last answer a session counts as acting: `ACTIVE_S`, or twice
@@ -90,6 +99,7 @@ class MicroBatcher:
         inline_alone: bool = False,
         clock: Callable[[], float] = time.monotonic,
         call_threads: int = 1,
+        parts: int = 2,
     ) -> None:
         self.engine = engine
         self.executor = executor
@@ -99,6 +109,9 @@ class MicroBatcher:
         self.inline_alone = inline_alone
         self.clock = clock
         self.call_threads = call_threads
+        if parts < 1:
+            raise ValueError(f"parts must be >= 1, got {parts}")
+        self.parts = parts
         self._pending: collections.deque[_Item] = collections.deque()
         self._wake = asyncio.Event()
         self._task: asyncio.Task | None = None
@@ -268,11 +281,12 @@ class MicroBatcher:
         return (rows + 1) // 2 if self.split and rows >= SPLIT_FROM else rows
 
     def _cap(self) -> int:
-        """Most single-session requests in the next pass: `max_batch`, or half the acting sessions if fewer."""
+        """Most single-session requests in the next pass: `max_batch`, or the acting sessions' share (`parts`) if
+        fewer."""
         acting = len(self._active)
         if not self.split or acting < SPLIT_FROM:
             return self.max_batch
-        return min(self.max_batch, -(-acting // 2))
+        return min(self.max_batch, -(-acting // self.parts))
 
     async def _gather(self, cap: int) -> None:
         """Wait (up to `max_wait_s`) for the acting sessions that have no request queued, until `cap` are queued;

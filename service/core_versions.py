@@ -11,7 +11,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from gmt.model.checkpoint import CheckpointError, model_info
-from gmt.service.batcher import MicroBatcher
+from gmt.service.batcher import REMOTE_STORE_PARTS, MicroBatcher
 from gmt.service.core_state import CoreState
 from gmt.service.errors import FailedPrecondition, InvalidArgument, PermissionDenied, ServiceError
 from gmt.service.ids import DOT_SEGMENTS, MAX_PATH_LENGTH, check_version
@@ -110,6 +110,7 @@ class Versions(CoreState):
             observe=lambda size, sec, n=m.name, v=m.version: self.metrics.observe_batch(n, v, size, sec),
             inline_alone=m.engine.describe().kernel == "native",
             call_threads=s.call_threads,
+            parts=REMOTE_STORE_PARTS if self.store.remote else 2,
         )
         b.start()
         self.metrics.track_queue(m.name, m.version, lambda b=b: b.queued)

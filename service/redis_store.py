@@ -61,6 +61,8 @@ class RedisSessionStore(SessionStore):
         spin_s: How long a lone session's write polls for its reply (`Settings.store_spin_us`; 0: never).
     """
 
+    remote = True
+
     def __init__(
         self,
         url: str,

@@ -102,7 +102,13 @@ class SessionStore(abc.ABC):
         idle_timeout_s: Sessions unused for longer expire.
         max_sessions: Live sessions allowed at once.
         clock: Wall-clock seconds (injectable for tests).
+
+    Attributes:
+        remote: Whether a write waits for another process (Redis): an act is answered only once its write is
+            acknowledged, so the micro-batcher keeps more, smaller passes in flight (`MicroBatcher(parts=...)`).
     """
+
+    remote = False
 
     def __init__(self, idle_timeout_s: float, max_sessions: int, clock: Clock) -> None:
         self.idle_timeout_s = idle_timeout_s

@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from service_harness import FakeClock
 
-from gmt.service.batcher import INLINE_ROWS, SPLIT_FROM, MicroBatcher
+from gmt.service.batcher import INLINE_ROWS, REMOTE_STORE_PARTS, SPLIT_FROM, MicroBatcher
 
 
 class RecordingEngine:
@@ -140,11 +140,11 @@ def test_cancelled_request_is_dropped_before_the_forward(pool):
     assert eng.batches[-1] == ["kept", "last"]
 
 
-def three_rounds(eng: RecordingEngine, executor, names: list[str], max_wait_s: float) -> None:
+def three_rounds(eng: RecordingEngine, executor, names: list[str], max_wait_s: float, parts: int = 2) -> None:
     """Every named session acts at once, three rounds, through a batcher with room for all of them."""
 
     async def main():
-        b = MicroBatcher(eng, executor, max_batch=1024, max_wait_s=max_wait_s)
+        b = MicroBatcher(eng, executor, max_batch=1024, max_wait_s=max_wait_s, parts=parts)
         b.start()
         await asyncio.wait_for(in_step(b, names, rounds=3), 10)
         await b.close()
@@ -152,17 +152,18 @@ def three_rounds(eng: RecordingEngine, executor, names: list[str], max_wait_s: f
     run(main())
 
 
+@pytest.mark.parametrize("parts", [2, REMOTE_STORE_PARTS])
 @pytest.mark.parametrize("acting", [SPLIT_FROM - 1, SPLIT_FROM, 2 * SPLIT_FROM + 1])
-def test_many_acting_sessions_are_taken_half_per_pass(pool, acting):
-    """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most half of them even below `max_batch`
-    (the loop answers one half while the engine runs the other); fewer acting sessions go in one pass. No wait
-    here: a round's sessions are all queued before its first pass."""
+def test_many_acting_sessions_are_taken_a_part_per_pass(pool, acting, parts):
+    """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most their share (half; a quarter with a
+    remote store) even below `max_batch` (the loop answers one part while the engine runs another); fewer acting
+    sessions go in one pass. No wait here: a round's sessions are all queued before its first pass."""
     eng = RecordingEngine()
-    three_rounds(eng, pool, [f"s{i}" for i in range(acting)], max_wait_s=0)
+    three_rounds(eng, pool, [f"s{i}" for i in range(acting)], max_wait_s=0, parts=parts)
     assert len(eng.batches[0]) == acting  # nobody had acted yet: one pass
     later = [len(x) for x in eng.batches[1:]]
-    half = -(-acting // 2) if acting >= SPLIT_FROM else acting
-    assert sum(later) == 2 * acting and max(later) == half, later
+    share = -(-acting // parts) if acting >= SPLIT_FROM else acting
+    assert sum(later) == 2 * acting and max(later) == share, later
 
 
 def test_without_an_executor_passes_are_not_split():
