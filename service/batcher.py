@@ -36,11 +36,13 @@ ACTIVE_S = 1.0  # a session answered within this long (or twice the batch wait, 
 # work for one half overlaps the engine's for the other. On 2 cores, 256 sessions over REST at max_batch 256:
 # 4,476-4,890 acts/s in whole passes, 6,080-6,353 in halves (docs/performance.md).
 SPLIT_FROM = 64
-# With a store whose writes wait for another process (Redis, `SessionStore.remote`), a pass takes at most a quarter:
-# while one pass's write waits for its acknowledgement (and the replica's, with WAIT), the loop works on the others
-# instead of running dry. 256 sessions over REST with the store as `make cluster` deploys it, against memory in the
-# same runs (4 rounds each): 0.752-0.782x in quarters, 0.670-0.699x in halves (three runs); thirds 0.71x, fifths,
-# sixths and eighths 0.72-0.75x; in memory, quarters and halves are the same (0.987x; docs/performance.md).
+# With a store whose writes wait for another process (Redis, `SessionStore.remote`), a pass takes at most a quarter,
+# but no fewer than SPLIT_FROM (nor more than half): while one pass's write waits for its acknowledgement (and the
+# replica's, with WAIT), the loop works on the others instead of running dry. Over REST with the store as `make
+# cluster` deploys it, against memory in the same runs (4 rounds each): at 256 sessions 0.752-0.782x in quarters
+# (64 a pass), 0.670-0.699x in halves (three runs), thirds 0.71x, fifths, sixths and eighths 0.72-0.75x; at 128
+# sessions halves (64) 0.718x, quarters (32) 0.676x; at 64 halves (32) 0.652x, quarters (16) 0.624x. In memory,
+# quarters and halves are the same at 256 (0.987x; docs/performance.md).
 REMOTE_STORE_PARTS = 4
 # A many-session call of at most this many rows runs right on the event loop when `inline_alone` would run a lone
 # act there (nothing queued or running, no session acting one at a time): ~0.5 ms of the loop at most.
@@ -78,8 +80,9 @@ class MicroBatcher:
         clock: Monotonic seconds, for the acting window.
         call_threads: Threads the engine may split a pass of a many-session call between (`PolicyEngine.act`'s
             `threads`); passes of single acts get one.
-        parts: From `SPLIT_FROM` sessions acting one at a time, a pass takes at most this share of them (2: half;
-            `REMOTE_STORE_PARTS` when the session store's writes wait for another process).
+        parts: From `SPLIT_FROM` sessions acting one at a time, a pass takes at most this share of them, but no
+            fewer than `SPLIT_FROM` nor more than half (2: half; `REMOTE_STORE_PARTS` when the session store's
+            writes wait for another process).
 
     Attributes:
         active_window_s: How long after its last answer a session counts as acting: `ACTIVE_S`, or twice
@@ -281,12 +284,13 @@ class MicroBatcher:
         return (rows + 1) // 2 if self.split and rows >= SPLIT_FROM else rows
 
     def _cap(self) -> int:
-        """Most single-session requests in the next pass: `max_batch`, or the acting sessions' share (`parts`) if
-        fewer."""
+        """Most single-session requests in the next pass: `max_batch`, or the acting sessions' share if fewer:
+        half of them, or with `parts` > 2 that part of them but no fewer than `SPLIT_FROM` (nor more than half)."""
         acting = len(self._active)
         if not self.split or acting < SPLIT_FROM:
             return self.max_batch
-        return min(self.max_batch, -(-acting // self.parts))
+        half = -(-acting // 2)
+        return min(self.max_batch, half, max(SPLIT_FROM, -(-acting // self.parts)))
 
     async def _gather(self, cap: int) -> None:
         """Wait (up to `max_wait_s`) for the acting sessions that have no request queued, until `cap` are queued;

@@ -153,17 +153,28 @@ def three_rounds(eng: RecordingEngine, executor, names: list[str], max_wait_s: f
 
 
 @pytest.mark.parametrize("parts", [2, REMOTE_STORE_PARTS])
-@pytest.mark.parametrize("acting", [SPLIT_FROM - 1, SPLIT_FROM, 2 * SPLIT_FROM + 1])
+@pytest.mark.parametrize("acting", [SPLIT_FROM - 1, SPLIT_FROM, 2 * SPLIT_FROM + 1, 4 * SPLIT_FROM + 1])
 def test_many_acting_sessions_are_taken_a_part_per_pass(pool, acting, parts):
-    """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most their share (half; a quarter with a
-    remote store) even below `max_batch` (the loop answers one part while the engine runs another); fewer acting
-    sessions go in one pass. No wait here: a round's sessions are all queued before its first pass."""
+    """From `SPLIT_FROM` sessions acting one at a time, a pass takes at most their share even below `max_batch`
+    (the loop answers one part while the engine runs another): half, or with a remote store a quarter but no fewer
+    than `SPLIT_FROM` nor more than half; fewer acting sessions go in one pass. No wait here: a round's sessions are
+    all queued before its first pass."""
     eng = RecordingEngine()
     three_rounds(eng, pool, [f"s{i}" for i in range(acting)], max_wait_s=0, parts=parts)
     assert len(eng.batches[0]) == acting  # nobody had acted yet: one pass
     later = [len(x) for x in eng.batches[1:]]
-    share = -(-acting // parts) if acting >= SPLIT_FROM else acting
-    assert sum(later) == 2 * acting and max(later) == share, later
+    half = -(-acting // 2)
+    want = {  # (acting, parts) -> the most a pass takes
+        (SPLIT_FROM - 1, 2): acting,
+        (SPLIT_FROM - 1, 4): acting,
+        (SPLIT_FROM, 2): half,
+        (SPLIT_FROM, 4): half,  # a quarter would be under SPLIT_FROM: half, the most it may take
+        (2 * SPLIT_FROM + 1, 2): half,
+        (2 * SPLIT_FROM + 1, 4): SPLIT_FROM,  # a quarter would be under SPLIT_FROM
+        (4 * SPLIT_FROM + 1, 2): half,
+        (4 * SPLIT_FROM + 1, 4): SPLIT_FROM + 1,  # a quarter, rounded up
+    }[(acting, parts)]
+    assert sum(later) == 2 * acting and max(later) == want, later
 
 
 def test_without_an_executor_passes_are_not_split():
