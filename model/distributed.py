@@ -44,7 +44,7 @@ class Parallel:
     @classmethod
     def from_env(cls, device: str) -> Parallel:
         """Join the `torchrun` process group when WORLD_SIZE > 1, else a single process on `device`."""
-        world = int(os.environ.get("WORLD_SIZE", "1"))
+        world = world_size()
         if world <= 1:
             return cls(0, 1, resolve_device(device))
         rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
@@ -92,9 +92,14 @@ class Parallel:
             dist.destroy_process_group()
 
 
+def world_size() -> int:
+    """How many processes `torchrun` started for this run (its WORLD_SIZE; 1 without it)."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
 def launched_by_torchrun() -> bool:
     """Whether this process is one of several that `torchrun` started (WORLD_SIZE > 1)."""
-    return int(os.environ.get("WORLD_SIZE", "1")) > 1
+    return world_size() > 1
 
 
 def exit_worker() -> None:
