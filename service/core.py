@@ -69,6 +69,7 @@ class Core(Versions, Sessions, Acts, Recordings, Feeds):
                 self.store = MemorySessionStore(s.idle_timeout_s, s.max_sessions, self.clock)
         self.store.on_remove = self._dropped
         self.store.on_expire = self._expiring
+        self.store.locks = self._lock
         if from_roots:
             await self._restore_model_state()
         # The naive server is the reference: one request at a time, computed on the event loop.

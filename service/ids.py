@@ -96,3 +96,8 @@ class SessionLocks:
         if lock is None:
             lock = self._locks[sid] = asyncio.Lock()
         return lock
+
+    def busy(self, sid: str) -> bool:
+        """Whether someone holds the lock of session `sid` now (a change of it is under way)."""
+        lock = self._locks.get(sid)
+        return lock is not None and lock.locked()

@@ -62,9 +62,9 @@ class LocalView:
         if held is not None:
             self._on_remove(sid, held.session.key)
 
-    def let_go(self, low: float) -> None:
-        """Forget the sessions unused since clock time `low`."""
-        for sid in [sid for sid, h in self.held.items() if h.session.last_used < low]:
+    def let_go(self, low: float, busy: Callable[[str], bool] = lambda sid: False) -> None:
+        """Forget the sessions unused since clock time `low`, but none held that is `busy` (in use now)."""
+        for sid in [sid for sid, h in self.held.items() if h.session.last_used < low and not busy(sid)]:
             self.forget(sid)
         for sid in [sid for sid, (_, t) in self.seen.items() if t < low and sid not in self.held]:
             self.unsee(sid)

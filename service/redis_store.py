@@ -410,22 +410,32 @@ class RedisSessionStore(SessionStore):
         ]
         gone = []
         for sid in stale:
-            raw = await self._call(self.redis.hget(self.layout.session(sid), "st"))
-            if raw is None:  # collected by its key TTL, or lost
-                await self._call(self.redis.zrem(live, sid))
+            if self.locks.busy(sid):  # in use here: its act renews it
                 continue
-            fields = await self._call(self.redis.hgetall(self.layout.session(sid)))
-            try:
-                s = session_codec.decode(fields)
-            except session_codec.CodecError:
-                continue
-            if not self.is_idle(s):  # used on a replica that has not refreshed its score yet
-                await self._call(self.redis.zadd(live, {sid: s.last_used}, xx=True, gt=True))
-                continue
-            gone.append(s)
-            await self._expire(sid, s)
-        self.local.let_go(low)
+            async with self.locks(sid):  # no act of it starts here before it is expired or kept
+                if (s := await self._stale(sid)) is not None:
+                    gone.append(s)
+                    await self._expire(sid, s)
+        self.local.let_go(low, self.locks.busy)
         return gone
+
+    async def _stale(self, sid: str) -> Session | None:
+        """The stored session `sid` if it is idle (then it is to expire); None when it is gone, unreadable or was used
+        on a replica that has not refreshed its score in `live` yet (the score is set again)."""
+        live = self.layout.live
+        raw = await self._call(self.redis.hget(self.layout.session(sid), "st"))
+        if raw is None:  # collected by its key TTL, or lost
+            await self._call(self.redis.zrem(live, sid))
+            return None
+        fields = await self._call(self.redis.hgetall(self.layout.session(sid)))
+        try:
+            s = session_codec.decode(fields)
+        except session_codec.CodecError:
+            return None
+        if not self.is_idle(s):
+            await self._call(self.redis.zadd(live, {sid: s.last_used}, xx=True, gt=True))
+            return None
+        return s
 
     def local_count(self, key: str) -> int:
         return self.local.per_model[key]  # every held session was seen

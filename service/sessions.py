@@ -22,6 +22,7 @@ from gmt.service.errors import (
     ServiceError,
     SessionExpired,
 )
+from gmt.service.ids import SessionLocks
 from gmt.service.records import Ledger
 
 Clock = Callable[[], float]
@@ -118,6 +119,9 @@ class SessionStore(abc.ABC):
         self.on_remove: Callable[[str, str], None] = lambda sid, key: None
         # Told of every session that expires (see `Archive`), when set.
         self.on_expire: Archive | None = None
+        # The sessions' locks (the core's, `gmt.service.core_state`): a sweep expires no session whose lock is held
+        # (an act under way renews it) and holds a session's lock while it expires it.
+        self.locks = SessionLocks()
 
     def is_idle(self, session: Session) -> bool:
         """Whether `session` has been unused for longer than the idle timeout."""
@@ -213,7 +217,7 @@ class SessionStore(abc.ABC):
 
     @abc.abstractmethod
     async def sweep(self) -> list[Session]:
-        """Remove expired sessions and return them."""
+        """Remove expired sessions and return them; none that is in use (`locks.busy`): its act renews it."""
 
     @abc.abstractmethod
     def local_count(self, key: str) -> int:
@@ -316,7 +320,7 @@ class MemorySessionStore(SessionStore):
         return len(self._sessions)
 
     async def sweep(self) -> list[Session]:
-        gone = [s for s in self._sessions.values() if self.is_idle(s)]
+        gone = [s for s in self._sessions.values() if self.is_idle(s) and not self.locks.busy(s.id)]
         for s in gone:
             self._remove(s, expired=True)
         return gone

@@ -1,6 +1,7 @@
 """Idle timeout, the session limit, micro-batching, deadlines and bearer auth, against real servers."""
 
 import asyncio
+import threading
 
 import grpc
 import httpx
@@ -8,8 +9,11 @@ import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
+from service_harness import make_settings
 
 from gmt.model.checkpoint import load_checkpoint
+from gmt.service.core import Core
+from gmt.service.redis_store import store_for
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
 
@@ -84,6 +88,56 @@ def test_sweeper_removes_idle_sessions(make_server, clock):
         assert server.run(server.core.sweep()) == 3
         assert metric_samples(http, "gmt_live_sessions")[("gmt_live_sessions", ())] == 0
         assert all("expired" in http.get(f"/sessions/{s}").json()["error"]["message"] for s in sids)
+
+
+class _GatedEngine:
+    """An engine whose passes wait at a gate (an act under way for as long as the test likes)."""
+
+    def __init__(self, engine) -> None:
+        self._engine = engine
+        self.gate, self.entered = threading.Event(), threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self._engine, name)
+
+    def act(self, *args, **kw):
+        self.entered.set()
+        self.gate.wait(30)
+        return self._engine.act(*args, **kw)
+
+
+@pytest.mark.parametrize("where", ["memory", "redis"])
+def test_the_sweep_expires_no_session_with_an_act_under_way(where, ckpt_root, clock, request):
+    """A session whose act started just before its idle timeout ran out is in use, not idle: a sweep meanwhile
+    leaves it (and its engine slot) alone, the act is answered and stored, and the session acts on."""
+    url = request.getfixturevalue("redis_clean") if where == "redis" else None
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+
+    async def main():
+        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"], idle_timeout_s=10, redis_url=url)
+        core = Core(settings, store=store_for(settings, clock), clock=clock)
+        await core.start()
+        try:
+            sid = (await core.create_session("tiny-gmt", goal=0)).session_id
+            assert (await core.act(sid, obs)).step == 0
+            (batcher,) = core._batchers.values()
+            batcher.inline_alone = False  # through the batcher, to be held in its pass
+            batcher.engine = gated = _GatedEngine(batcher.engine)
+            clock.advance(9.9)
+            acting = asyncio.ensure_future(core.act(sid, obs))
+            assert await asyncio.to_thread(gated.entered.wait, 10)
+            clock.advance(0.2)  # its last answer is now older than the idle timeout
+            expired = await core.sweep()
+            other = (await core.create_session("tiny-gmt", goal=1)).session_id  # would take a freed slot
+            gated.gate.set()
+            answered = (await acting).step
+            batcher.engine = gated._engine
+            clock.advance(5)
+            return expired, answered, (await core.act(sid, obs)).step, (await core.get_session(other)).step
+        finally:
+            await core.close()
+
+    assert asyncio.run(main()) == (0, 1, 2, 0)
 
 
 # ----- session limit ------------------------------------------------------------------------------------------
