@@ -140,9 +140,9 @@ class Core(Versions, Sessions, Acts, Recordings, Feeds):
 
     async def sweep(self) -> int:
         """Remove idle sessions now; returns how many expired."""
+        # Each expired session's engine slot was freed by the store (`on_remove`) while its lock was free.
         gone = await self.store.sweep()
         for s in gone:
-            self._dropped(s.id, s.key)
             self._ended(s.id, "expired")
             log.info("session expired", extra={"session": short_id(s.id), "model": s.key})
         for m in self.registry.loaded():  # a shared store lets go of sessions it stopped seeing

@@ -98,6 +98,10 @@ class SessionLocks:
         return lock
 
     def busy(self, sid: str) -> bool:
-        """Whether someone holds the lock of session `sid` now (a change of it is under way)."""
+        """Whether taking the lock of session `sid` now would wait: a call holds it, or is about to (a released
+        lock is handed to its first waiter, which has not run yet). A free lock that is not busy is taken without
+        waiting (asyncio.Lock.acquire's fast path, whose condition this mirrors)."""
         lock = self._locks.get(sid)
-        return lock is not None and lock.locked()
+        if lock is None:
+            return False
+        return lock.locked() or any(not w.cancelled() for w in lock._waiters or ())

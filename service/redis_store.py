@@ -410,9 +410,10 @@ class RedisSessionStore(SessionStore):
         ]
         gone = []
         for sid in stale:
-            if self.locks.busy(sid):  # in use here: its act renews it
+            if self.locks.busy(sid):  # a call on it is under way here (an act renews it): not now
                 continue
-            async with self.locks(sid):  # no act of it starts here before it is expired or kept
+            # Taken without waiting; no call on it starts here until it is expired or kept.
+            async with self.locks(sid):
                 if (s := await self._stale(sid)) is not None:
                     gone.append(s)
                     await self._expire(sid, s)

@@ -1,7 +1,8 @@
 """Sessions and where they live: the `SessionStore` interface and its in-memory default.
 
 A store enforces the idle timeout (an expired session answers `SessionExpired`, a `NotFound`) and the maximum
-number of live sessions (`ResourceExhausted`). It does not order calls: the core holds one lock per session.
+number of live sessions (`ResourceExhausted`). It does not order calls: the core holds one lock per session, which
+the store's sweep respects (`SessionStore.locks`).
 """
 
 from __future__ import annotations
@@ -119,8 +120,9 @@ class SessionStore(abc.ABC):
         self.on_remove: Callable[[str, str], None] = lambda sid, key: None
         # Told of every session that expires (see `Archive`), when set.
         self.on_expire: Archive | None = None
-        # The sessions' locks (the core's, `gmt.service.core_state`): a sweep expires no session whose lock is held
-        # (an act under way renews it) and holds a session's lock while it expires it.
+        # The sessions' locks (the core's, `gmt.service.core_state`): a sweep expires no session whose lock is busy
+        # (a call on it is under way: an act renews it), and a sweep that awaits (Redis) holds a session's lock while
+        # it checks and expires it.
         self.locks = SessionLocks()
 
     def is_idle(self, session: Session) -> bool:

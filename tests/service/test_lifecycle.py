@@ -140,6 +140,34 @@ def test_the_sweep_expires_no_session_with_an_act_under_way(where, ckpt_root, cl
     assert asyncio.run(main()) == (0, 1, 2, 0)
 
 
+@pytest.mark.parametrize("where", ["memory", "redis"])
+def test_the_sweep_frees_an_expired_sessions_engine_slot(where, ckpt_root, clock, request):
+    """An idle session the sweep expires gives its engine slot back (the store's `on_remove`, while nothing uses it);
+    a session in use keeps its own."""
+    url = request.getfixturevalue("redis_clean") if where == "redis" else None
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+
+    async def main():
+        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"], idle_timeout_s=10, redis_url=url)
+        core = Core(settings, store=store_for(settings, clock), clock=clock)
+        await core.start()
+        try:
+            idle, used = [(await core.create_session("tiny-gmt", goal=0)).session_id for _ in range(2)]
+            for sid in (idle, used):
+                await core.act(sid, obs)
+            (batcher,) = core._batchers.values()
+            held = set(batcher.engine.pool.keys)
+            clock.advance(6)
+            await core.act(used, obs)
+            clock.advance(6)
+            return (idle, used), held, await core.sweep(), set(batcher.engine.pool.keys)
+        finally:
+            await core.close()
+
+    (idle, used), held, expired, after = asyncio.run(main())
+    assert (held, expired, after) == ({idle, used}, 1, {used})
+
+
 # ----- session limit ------------------------------------------------------------------------------------------
 def test_full_server_answers_429_and_resource_exhausted(make_server, clock, observations):
     server = make_server(clock=clock, max_sessions=3, idle_timeout_s=10)
