@@ -11,8 +11,10 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from prometheus_client.parser import text_string_to_metric_families
 from service_harness import make_settings
 
+from gmt.common.recording import read_recording
 from gmt.model.checkpoint import load_checkpoint
 from gmt.service.core import Core
+from gmt.service.errors import SessionExpired
 from gmt.service.redis_store import store_for
 from gmt.v1 import policy_pb2 as pb
 from gmt.v1 import policy_pb2_grpc
@@ -166,6 +168,59 @@ def test_the_sweep_frees_an_expired_sessions_engine_slot(where, ckpt_root, clock
 
     (idle, used), held, expired, after = asyncio.run(main())
     assert (held, expired, after) == ({idle, used}, 1, {used})
+
+
+def test_no_act_starts_on_a_session_the_redis_sweep_is_expiring(ckpt_root, clock, redis_clean, tmp_path):
+    """Over Redis the sweep holds a session's lock while it expires it: an act that arrives meanwhile waits, then
+    finds the session expired; the session is expired (and its recording written) once, not again by the act."""
+    obs = np.zeros(OBS_DIM, dtype=np.float32)
+
+    async def main():
+        settings = make_settings(
+            checkpoints=[ckpt_root / "tiny-gmt"],
+            idle_timeout_s=10,
+            redis_url=redis_clean,
+            record_dir=tmp_path,
+        )
+        core = Core(settings, store=store_for(settings, clock), clock=clock)
+        await core.start()
+        try:
+            sid = (await core.create_session("tiny-gmt", goal=0, record=True)).session_id
+            for _ in range(2):
+                await core.act(sid, obs)
+            store, calls, gate, entered = core.store, [], asyncio.Event(), asyncio.Event()
+            expire = store._expire
+
+            async def held_first(s_id, s):  # the sweep's expiry waits at the gate
+                calls.append(s_id)
+                if len(calls) == 1:
+                    entered.set()
+                    await gate.wait()
+                await expire(s_id, s)
+
+            store._expire = held_first
+            clock.advance(11)
+            sweep = asyncio.ensure_future(core.sweep())
+            await entered.wait()
+            act = asyncio.ensure_future(core.act(sid, obs))
+            lock = core._lock(sid)
+            async with asyncio.timeout(
+                10
+            ):  # until the act waits on the lock, or (unlocked) has run to its end
+                while not act.done() and not lock._waiters:
+                    await asyncio.sleep(0)
+            gate.set()
+            expired = await sweep
+            with pytest.raises(SessionExpired):
+                await act
+            return expired, calls
+        finally:
+            await core.close()
+
+    expired, calls = asyncio.run(main())
+    assert expired == 1 and len(calls) == 1
+    rec = read_recording(tmp_path / f"{calls[0]}.json")
+    assert rec.meta["ended_by"] == "expiry" and rec.steps == 2
 
 
 # ----- session limit ------------------------------------------------------------------------------------------
