@@ -1,6 +1,7 @@
 """Idle timeout, the session limit, micro-batching, deadlines and bearer auth, against real servers."""
 
 import asyncio
+import contextlib
 import threading
 
 import grpc
@@ -108,18 +109,31 @@ class _GatedEngine:
         return self._engine.act(*args, **kw)
 
 
-@pytest.mark.parametrize("where", ["memory", "redis"])
-def test_the_sweep_expires_no_session_with_an_act_under_way(where, ckpt_root, clock, request):
+@pytest.fixture(params=["memory", "redis"])
+def store_url(request):
+    """Sessions in memory (None), or a real Redis's URL (skipped where redis-server is missing)."""
+    return None if request.param == "memory" else request.getfixturevalue("redis_clean")
+
+
+@contextlib.asynccontextmanager
+async def _started_core(ckpt_root, clock, **settings):
+    """A started `Core` over tiny-gmt with a 10 s idle timeout on the fake clock; closed after."""
+    s = make_settings(checkpoints=[ckpt_root / "tiny-gmt"], idle_timeout_s=10, **settings)
+    core = Core(s, store=store_for(s, clock), clock=clock)
+    await core.start()
+    try:
+        yield core
+    finally:
+        await core.close()
+
+
+def test_the_sweep_expires_no_session_with_an_act_under_way(store_url, ckpt_root, clock):
     """A session whose act started just before its idle timeout ran out is in use, not idle: a sweep meanwhile
     leaves it (and its engine slot) alone, the act is answered and stored, and the session acts on."""
-    url = request.getfixturevalue("redis_clean") if where == "redis" else None
     obs = np.zeros(OBS_DIM, dtype=np.float32)
 
     async def main():
-        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"], idle_timeout_s=10, redis_url=url)
-        core = Core(settings, store=store_for(settings, clock), clock=clock)
-        await core.start()
-        try:
+        async with _started_core(ckpt_root, clock, redis_url=store_url) as core:
             sid = (await core.create_session("tiny-gmt", goal=0)).session_id
             assert (await core.act(sid, obs)).step == 0
             (batcher,) = core._batchers.values()
@@ -136,24 +150,17 @@ def test_the_sweep_expires_no_session_with_an_act_under_way(where, ckpt_root, cl
             batcher.engine = gated._engine
             clock.advance(5)
             return expired, answered, (await core.act(sid, obs)).step, (await core.get_session(other)).step
-        finally:
-            await core.close()
 
     assert asyncio.run(main()) == (0, 1, 2, 0)
 
 
-@pytest.mark.parametrize("where", ["memory", "redis"])
-def test_the_sweep_frees_an_expired_sessions_engine_slot(where, ckpt_root, clock, request):
+def test_the_sweep_frees_an_expired_sessions_engine_slot(store_url, ckpt_root, clock):
     """An idle session the sweep expires gives its engine slot back (the store's `on_remove`, while nothing uses it);
     a session in use keeps its own."""
-    url = request.getfixturevalue("redis_clean") if where == "redis" else None
     obs = np.zeros(OBS_DIM, dtype=np.float32)
 
     async def main():
-        settings = make_settings(checkpoints=[ckpt_root / "tiny-gmt"], idle_timeout_s=10, redis_url=url)
-        core = Core(settings, store=store_for(settings, clock), clock=clock)
-        await core.start()
-        try:
+        async with _started_core(ckpt_root, clock, redis_url=store_url) as core:
             idle, used = [(await core.create_session("tiny-gmt", goal=0)).session_id for _ in range(2)]
             for sid in (idle, used):
                 await core.act(sid, obs)
@@ -163,8 +170,6 @@ def test_the_sweep_frees_an_expired_sessions_engine_slot(where, ckpt_root, clock
             await core.act(used, obs)
             clock.advance(6)
             return (idle, used), held, await core.sweep(), set(batcher.engine.pool.keys)
-        finally:
-            await core.close()
 
     (idle, used), held, expired, after = asyncio.run(main())
     assert (held, expired, after) == ({idle, used}, 1, {used})
@@ -176,15 +181,7 @@ def test_no_act_starts_on_a_session_the_redis_sweep_is_expiring(ckpt_root, clock
     obs = np.zeros(OBS_DIM, dtype=np.float32)
 
     async def main():
-        settings = make_settings(
-            checkpoints=[ckpt_root / "tiny-gmt"],
-            idle_timeout_s=10,
-            redis_url=redis_clean,
-            record_dir=tmp_path,
-        )
-        core = Core(settings, store=store_for(settings, clock), clock=clock)
-        await core.start()
-        try:
+        async with _started_core(ckpt_root, clock, redis_url=redis_clean, record_dir=tmp_path) as core:
             sid = (await core.create_session("tiny-gmt", goal=0, record=True)).session_id
             for _ in range(2):
                 await core.act(sid, obs)
@@ -214,8 +211,6 @@ def test_no_act_starts_on_a_session_the_redis_sweep_is_expiring(ckpt_root, clock
             with pytest.raises(SessionExpired):
                 await act
             return expired, calls
-        finally:
-            await core.close()
 
     expired, calls = asyncio.run(main())
     assert expired == 1 and len(calls) == 1
