@@ -68,9 +68,13 @@ class Sessions(CoreState):
 
     @staticmethod
     def _live(m: LoadedModel, s: Session) -> Context:
-        """The session's live context in the model's engine (adopting a stored one, cache rebuilt if needed)."""
+        """The session's live context in the model's engine (adopting a stored one, cache rebuilt if needed; a live
+        one of an engine that is gone, as after its version was unloaded with force and loaded again, is carried
+        over the same way: never read through another pool's slot)."""
         if isinstance(s.ctx, Context):
-            return s.ctx
+            if s.ctx.pool is m.engine.pool:
+                return s.ctx
+            s.ctx = s.ctx.to_stored()
         try:
             s.ctx = m.engine.from_stored(s.ctx, key=s.id)
         except ValueError as e:

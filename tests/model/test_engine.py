@@ -127,6 +127,26 @@ def test_contexts_roll_and_report_their_history():
     assert list(b.goals) == [2, 2, 2, 2]
 
 
+def test_a_context_of_another_engines_pool_is_refused_and_carried_over_exactly():
+    """A context acts only in the pool it lives in (another engine of the same checkpoint would read its own slot
+    of that index); carried over by `to_stored` / `from_stored` it continues exactly."""
+    ckpt = tiny_checkpoint(context_length=4)
+    first, second = PolicyEngine(ckpt), PolicyEngine(ckpt)
+    obs = list(np.random.default_rng(2).normal(size=(6, 17)))
+    ctx, ref = first.new_context(1, seed=3), first.new_context(1, seed=3)
+    other = second.new_context(0)  # the same slot index in the second pool
+    for o in obs[:3]:
+        first.act([ctx], [o])
+        first.act([ref], [o])
+    with pytest.raises(ValueError, match="another engine's pool"):
+        second.act([ctx], [obs[3]])
+    assert other.step == 0 and ctx.step == 3
+    moved = second.from_stored(ctx.to_stored())
+    for o in obs[3:]:
+        np.testing.assert_array_equal(second.act([moved], [o])[0], first.act([ref], [o])[0])
+    assert moved.step == 6 and other.step == 0
+
+
 def test_set_goal_changes_the_next_token_and_the_action():
     engine = PolicyEngine(tiny_checkpoint(context_length=5))
     rng = np.random.default_rng(2)

@@ -349,6 +349,39 @@ def test_management_over_grpc_and_unload_rules(make_server, roots, versions):
         )
 
 
+def test_a_version_unloaded_with_force_and_loaded_again_continues_its_sessions_exactly(
+    make_server, roots, versions
+):
+    """A session whose version was unloaded with force fails meanwhile (409); once the version is loaded again it
+    continues exactly where it stopped, on its own history, beside a session created on the reloaded engine (which
+    may hold the same slot index in its new pool)."""
+    server = make_server(checkpoints=[roots])
+    engine = PolicyEngine(load_checkpoint(roots / "releases" / "v3"))
+    obs = np.random.default_rng(13).normal(size=(2, 6, OBS_DIM)).astype(np.float32)
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        assert http.post(f"/models/{MODEL}/versions", json={"path": "releases/v3"}).status_code == 201
+        old, ref_old = (
+            create(http, seed=1, version=versions["v3"])["session_id"],
+            engine.new_context(1, seed=1),
+        )
+        for t in range(3):
+            want = engine.act([ref_old], [obs[0, t]])[0]
+            np.testing.assert_array_equal(np.float32(act(http, old, obs[0, t], t)), want)
+        r = http.delete(f"/models/{MODEL}/versions/{versions['v3']}", params={"force": "true"})
+        assert r.status_code == 200, r.text
+        r = http.post(f"/sessions/{old}/act", json={"observation": obs[0, 3].tolist(), "step": 3})
+        assert r.status_code == 409 and "unloaded from this server" in r.json()["error"]["message"]
+        assert http.post(f"/models/{MODEL}/versions", json={"path": "releases/v3"}).status_code == 201
+        new, ref_new = (
+            create(http, seed=2, version=versions["v3"])["session_id"],
+            engine.new_context(2, seed=2),
+        )
+        for t in range(3):
+            for sid, ref, o, step in ((new, ref_new, obs[1, t], t), (old, ref_old, obs[0, 3 + t], 3 + t)):
+                want = engine.act([ref], [o])[0]
+                np.testing.assert_array_equal(np.float32(act(http, sid, o, step)), want)
+
+
 def test_management_is_authorised(make_server, roots):
     body = {"path": "releases/v2"}
     open_server = make_server(checkpoints=[roots])
