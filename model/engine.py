@@ -476,7 +476,9 @@ class PolicyEngine:
             contexts = [contexts[i] for i in rows]
         pool = self.pool
         if any(c.pool is not pool for c in contexts):
-            raise ValueError("a context of another engine's pool (adopt it with from_stored(ctx.to_stored()))")
+            raise ValueError(
+                "a context of another engine's pool (adopt it with from_stored(ctx.to_stored()))"
+            )
         slots = np.fromiter((c.slot for c in contexts), dtype=np.int64, count=len(contexts))
         if len(slots) > 1 and len(np.unique(slots)) != len(slots):
             raise ValueError("a context may appear once per batch")

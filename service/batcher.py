@@ -160,16 +160,19 @@ class MicroBatcher:
         return not self._running and not self._live()
 
     async def close(self, wait_s: float = 0.0) -> None:
-        """Stop batching, after the queued requests are answered if that takes at most `wait_s`; requests still
-        queued then are cancelled."""
+        """Stop batching, after the queued requests are answered if that takes at most `wait_s`. A pass already
+        running is finished and answered (its callers are past their point of no return); requests still queued
+        then fail as unavailable (they never ran: a retry is safe)."""
         deadline = time.monotonic() + wait_s
         while not self.idle and time.monotonic() < deadline and self.healthy:
             await asyncio.sleep(0.005)
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
+        gone = Unavailable("this model version stopped serving here before the request ran; retry it")
         for item in [*self._pending, *self._running]:
-            item.future.cancel()
+            if not item.future.done():
+                item.future.set_exception(gone)
         self._pending.clear()
 
     async def act(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
@@ -348,18 +351,26 @@ class MicroBatcher:
             t0 = time.perf_counter()
             self._running = batch
             ctxs, obs = [it.ctx for it in batch], [it.obs for it in batch]
+            closing: asyncio.CancelledError | None = None
             try:
                 if self.executor is None:
                     actions = self.engine.act(ctxs, obs, True)
                 else:
                     threads = self.call_threads if batch[0].group else 1
-                    actions = await loop.run_in_executor(
-                        self.executor, self.engine.act, ctxs, obs, True, threads
-                    )
+                    work = loop.run_in_executor(self.executor, self.engine.act, ctxs, obs, True, threads)
+                    try:
+                        actions = await asyncio.shield(work)
+                    except asyncio.CancelledError as e:
+                        # Closed while the pass runs in its thread: its callers are past their point of no return,
+                        # so it is finished and answered first; the batcher stops after.
+                        closing = e
+                        actions = await work
             except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
                 for it in batch:
                     if not it.future.done():
                         it.future.set_exception(e)
+                if closing is not None:
+                    raise closing from None
                 continue
             finally:
                 self._running = []
@@ -375,3 +386,5 @@ class MicroBatcher:
                     it.future.set_exception(a)
                 else:
                     it.future.set_result(a)
+            if closing is not None:
+                raise closing

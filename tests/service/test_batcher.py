@@ -341,3 +341,33 @@ def test_a_solo_group_runs_in_a_pass_of_its_own_without_waiting_for_acting_sessi
     assert run(main()) == ([["a0", "b0"], ["c0", "d0"]], [["e0"], ["f0"]], 0)
     assert eng.batches == [["e0", "f0"], ["x0", "y0"], ["a0", "b0"], ["c0", "d0"]]
     assert eng.split == [3, 1, 3, 3]  # a call's pass may use call_threads; single acts' passes one
+
+
+def test_closing_finishes_the_running_pass_and_fails_the_queued_requests_as_unavailable(pool):
+    """A batcher closed while a pass runs in its thread answers that pass's callers (past their point of no return)
+    before it stops; requests queued behind it never run and fail as unavailable (a retry is safe)."""
+    from gmt.service.errors import Unavailable
+
+    eng = RecordingEngine()
+    eng.gate.clear()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
+        b.start()
+        running = asyncio.ensure_future(b.act(None, 0))
+        assert await asyncio.to_thread(eng.entered.wait, 5)  # its pass is held at the gate
+        queued = asyncio.ensure_future(b.act(None, 1))
+        while b._live() < 1:
+            await asyncio.sleep(0)
+        closing = asyncio.ensure_future(b.close())
+        while not b._task.cancelling():  # close() has cancelled the batching task; the pass is still held
+            await asyncio.sleep(0)
+        eng.gate.set()
+        await asyncio.wait_for(closing, 5)
+        first = await asyncio.wait_for(running, 5)
+        with pytest.raises(Unavailable, match="before the request ran"):
+            await asyncio.wait_for(queued, 5)
+        return first
+
+    assert run(main()) == 0
+    assert eng.batches == [[0]]
