@@ -341,11 +341,13 @@ class MicroBatcher:
                     ):
                         break
                 self._pending.popleft()
-                if not item.future.done():
-                    units.point_of_no_return(
-                        item.unit
-                    )  # its forward runs now: its caller can no longer cancel
-                    batch.append(item)
+                if item.future.done():
+                    continue
+                if item.unit is not None and item.unit.dropped:  # its caller gave up: it never runs
+                    item.future.cancel()
+                    continue
+                units.point_of_no_return(item.unit)  # its forward runs now: its caller can no longer cancel
+                batch.append(item)
             if not batch:
                 continue
             t0 = time.perf_counter()

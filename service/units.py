@@ -20,12 +20,15 @@ log = logging.getLogger("gmt.units")
 
 
 class Unit:
-    """One change in flight. `cancellable` turns False at its point of no return and never back."""
+    """One change in flight. `cancellable` turns False at its point of no return and never back; `dropped` turns True
+    when its caller gave up before that point (the change is being cancelled: nothing queued for it may start, even
+    in the turns of the loop before the cancellation reaches every part of it)."""
 
-    __slots__ = ("cancellable",)
+    __slots__ = ("cancellable", "dropped")
 
     def __init__(self) -> None:
         self.cancellable = True
+        self.dropped = False
 
 
 _CURRENT: contextvars.ContextVar[Unit | None] = contextvars.ContextVar("gmt_unit", default=None)
@@ -74,6 +77,7 @@ async def run_whole(work: Awaitable[T], undo: Callable[[T], Awaitable[object]] |
         return await asyncio.shield(task)
     except asyncio.CancelledError:
         if unit.cancellable:
+            unit.dropped = True
             task.cancel()  # nothing applied yet: it never happened
         elif undo is not None:
             _orphan(asyncio.ensure_future(_undone(task, undo)))

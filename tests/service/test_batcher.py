@@ -371,3 +371,36 @@ def test_closing_finishes_the_running_pass_and_fails_the_queued_requests_as_unav
 
     assert run(main()) == 0
     assert eng.batches == [[0]]
+
+
+def test_nothing_queued_for_a_dropped_change_starts(pool):
+    """A call whose caller gave up before its point of no return (`units.Unit.dropped`) has nothing started by the
+    batcher, even while the cancellation has not yet reached the requests it queued (a two-part call's second
+    part)."""
+    from gmt.service import units
+
+    eng = RecordingEngine()
+    eng.gate.clear()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
+        b.start()
+        first = asyncio.ensure_future(b.act(None, 0))
+        assert await asyncio.to_thread(
+            eng.entered.wait, 5
+        )  # a pass held at the gate: the call queues behind it
+        unit = units.Unit()
+        token = units._CURRENT.set(unit)
+        call = asyncio.ensure_future(b.act_many([None, None], [1, 2], solo=True))  # runs with `unit` current
+        units._CURRENT.reset(token)
+        while b._live() < 2:
+            await asyncio.sleep(0)
+        unit.dropped = True  # as run_whole marks it before cancelling the call
+        eng.gate.set()
+        assert await asyncio.wait_for(first, 5) == 0
+        got = await asyncio.wait_for(call, 5)  # its requests cancelled, not run
+        await b.close()
+        return got
+
+    assert [type(x) for x in run(main())] == [asyncio.CancelledError] * 2
+    assert eng.batches == [[0]]

@@ -98,3 +98,24 @@ def test_a_caller_that_gives_up_past_the_point_of_no_return_leaves_the_change_to
         return done.is_set()
 
     assert asyncio.run(scenario())
+
+
+def test_a_dropped_change_is_marked_dropped_and_one_past_its_point_of_no_return_is_not():
+    """`Unit.dropped` tells the batcher not to start anything still queued for a change whose caller gave up (the
+    cancellation reaches the change's parts only over the next turns of the loop)."""
+
+    async def scenario(past: bool):
+        gate, reached, units_seen = asyncio.Event(), asyncio.Event(), []
+
+        async def change():
+            units_seen.append(units.current())
+            if past:
+                units.point_of_no_return()
+            reached.set()
+            await gate.wait()
+
+        await _start_then_give_up(change, reached, gate)
+        return units_seen[0].dropped
+
+    assert asyncio.run(scenario(past=False)) is True
+    assert asyncio.run(scenario(past=True)) is False
