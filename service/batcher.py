@@ -368,14 +368,14 @@ class MicroBatcher:
                         closing = e
                         actions = await work
             except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
+                self._running = []
                 for it in batch:
                     if not it.future.done():
                         it.future.set_exception(e)
                 if closing is not None:
                     raise closing from None
                 continue
-            finally:
-                self._running = []
+            # The batch stays `_running` until it is answered: should answering fail, the supervisor fails its callers.
             if self.observe is not None:
                 self.observe(len(batch), time.perf_counter() - t0)
             now = self.clock()
@@ -388,5 +388,6 @@ class MicroBatcher:
                     it.future.set_exception(a)
                 else:
                     it.future.set_result(a)
+            self._running = []
             if closing is not None:
                 raise closing

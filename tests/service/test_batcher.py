@@ -404,3 +404,26 @@ def test_nothing_queued_for_a_dropped_change_starts(pool):
 
     assert [type(x) for x in run(main())] == [asyncio.CancelledError] * 2
     assert eng.batches == [[0]]
+
+
+def test_a_crash_after_the_pass_fails_that_batchs_calls_as_unavailable(pool):
+    """Should the loop fail after a pass ran but before it was answered (here its `observe` hook), the batch's
+    callers are failed as unavailable by the supervisor, not left waiting; the restarted loop serves on."""
+    from gmt.service.errors import Unavailable
+
+    broken = [RuntimeError("bug in the metrics hook")]
+
+    def observe(n, seconds):
+        if broken:
+            raise broken.pop()
+
+    async def main():
+        b = MicroBatcher(RecordingEngine(), pool, max_batch=4, max_wait_s=0.0, observe=observe)
+        b.start()
+        with pytest.raises(Unavailable, match="the batcher failed \\(RuntimeError\\); retry"):
+            await asyncio.wait_for(b.act(None, 1), 5)
+        answer = await b.act(None, 2)
+        await b.close()
+        return answer, b.restarts
+
+    assert run(main()) == (2, 1)
