@@ -44,6 +44,9 @@ SPLIT_FROM = 64
 # sessions halves (64) 0.718x, quarters (32) 0.676x; at 64 halves (32) 0.652x, quarters (16) 0.624x. In memory,
 # quarters and halves are the same at 256 (0.987x; docs/performance.md).
 REMOTE_STORE_PARTS = 4
+# How long a closing batcher waits for a pass already running in its thread to end (then answers it); a pass still
+# running after that is given up: its callers fail as unavailable (a device that hangs must not hang an unload).
+CLOSE_PASS_S = 30.0
 # A many-session call of at most this many rows runs right on the event loop when `inline_alone` would run a lone
 # act there (nothing queued or running, no session acting one at a time): ~0.5 ms of the loop at most.
 INLINE_ROWS = 8
@@ -126,6 +129,7 @@ class MicroBatcher:
         self._missing: set = set()  # acting sessions the batch being gathered still waits for
         self.waits = 0
         self.split = executor is not None
+        self._closing = False  # close() has begun: a crash then ends the loop instead of restarting it
 
     def start(self) -> None:
         """Start the (supervised) batching task on the running loop."""
@@ -145,7 +149,9 @@ class MicroBatcher:
             except asyncio.CancelledError:
                 raise
             except Exception as e:  # noqa: BLE001 - a bug in the loop must not strand its callers
-                log.exception("batcher crashed; restarting")
+                log.exception(
+                    "batcher crashed; restarting" if not self._closing else "batcher crashed while closing"
+                )
                 self.restarts += 1
                 gone = Unavailable(f"the batcher failed ({type(e).__name__}); retry the request")
                 for item in [*self._running, *self._pending]:
@@ -153,6 +159,8 @@ class MicroBatcher:
                         item.future.set_exception(gone)
                 self._running = []
                 self._pending.clear()
+                if self._closing:  # its cancellation was spent finishing the last pass: stop, do not restart
+                    return
 
     @property
     def idle(self) -> bool:
@@ -161,14 +169,16 @@ class MicroBatcher:
 
     async def close(self, wait_s: float = 0.0) -> None:
         """Stop batching, after the queued requests are answered if that takes at most `wait_s`. A pass already
-        running is finished and answered (its callers are past their point of no return); requests still queued
-        then fail as unavailable (they never ran: a retry is safe)."""
+        running is finished and answered (its callers are past their point of no return), if it ends within
+        `CLOSE_PASS_S`; requests still queued then (and those of a pass that did not end) fail as unavailable."""
+        self._closing = True
         deadline = time.monotonic() + wait_s
         while not self.idle and time.monotonic() < deadline and self.healthy:
             await asyncio.sleep(0.005)
         if self._task is not None:
             self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+            # Not `gather`: a caller of close() that is cancelled itself must not cancel the task again.
+            await asyncio.wait({self._task}, timeout=CLOSE_PASS_S)
         gone = Unavailable("this model version stopped serving here before the request ran; retry it")
         for item in [*self._pending, *self._running]:
             if not item.future.done():
@@ -360,13 +370,17 @@ class MicroBatcher:
                 else:
                     threads = self.call_threads if batch[0].group else 1
                     work = loop.run_in_executor(self.executor, self.engine.act, ctxs, obs, True, threads)
-                    try:
-                        actions = await asyncio.shield(work)
-                    except asyncio.CancelledError as e:
-                        # Closed while the pass runs in its thread: its callers are past their point of no return,
-                        # so it is finished and answered first; the batcher stops after.
-                        closing = e
-                        actions = await work
+                    while True:
+                        try:
+                            actions = await asyncio.shield(work)
+                            break
+                        except asyncio.CancelledError as e:
+                            # Closed while the pass runs in its thread: its callers are past their point of no
+                            # return, so it is finished and answered first (however often the batcher is
+                            # cancelled meanwhile); the batcher stops after.
+                            if work.cancelled():
+                                raise
+                            closing = closing or e
             except Exception as e:  # noqa: BLE001 - handed to every caller of the batch
                 self._running = []
                 for it in batch:

@@ -198,9 +198,9 @@ class Acts(CoreState):
                     ready.append((i, s, m, ctx, x, observation, report))
                 except ServiceError as e:
                     out[i] = e
-            by_model: dict[str, list] = {}
+            by_model: dict[int, list] = {}  # by the loaded version itself (one engine a pass), not its key
             for r in ready:
-                by_model.setdefault(r[2].key, []).append(r)
+                by_model.setdefault(id(r[2]), []).append(r)
             for rows in by_model.values():
                 await self._act_rows(rows, out, t0)
         return out

@@ -123,7 +123,7 @@ class Versions(CoreState):
 
     def _batcher(self, m: LoadedModel) -> MicroBatcher:
         b = self._batchers.get(m.key)
-        if b is None:
+        if b is None or b.engine.pool is not m.engine.pool:  # gone, or loaded again since `m` was looked up
             raise FailedPrecondition(
                 f"version {m.version!r} of model {m.name!r} was unloaded from this server"
             )

@@ -427,3 +427,63 @@ def test_a_crash_after_the_pass_fails_that_batchs_calls_as_unavailable(pool):
         return answer, b.restarts
 
     assert run(main()) == (2, 1)
+
+
+def test_a_closing_batcher_cancelled_again_still_answers_its_running_pass(pool):
+    """However often the batching task is cancelled while the pass it is finishing runs (close() called again, or
+    its own caller cancelled), that pass's caller is answered and the task ends."""
+    eng = RecordingEngine()
+    eng.gate.clear()
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
+        b.start()
+        running = asyncio.ensure_future(b.act(None, 7))
+        assert await asyncio.to_thread(eng.entered.wait, 5)
+        loop_coro = b._task.get_coro().cr_await  # the batching loop, which the supervising task awaits
+        held = loop_coro.cr_await  # what it waits on: the running pass
+        closing = asyncio.ensure_future(b.close())
+        while loop_coro.cr_await is held:  # until the first cancellation is delivered and it waits again
+            await asyncio.sleep(0)
+        closing.cancel()  # close()'s caller gives up: the task is not cancelled through it
+        again = loop_coro.cr_await
+        b._task.cancel()  # and a second close() cancels the task once more
+        while loop_coro.cr_await is again:
+            await asyncio.sleep(0)
+        eng.gate.set()
+        answer = await asyncio.wait_for(running, 5)
+        await asyncio.wait_for(b.close(), 5)
+        return answer, b._task.done()
+
+    assert run(main()) == (7, True)
+
+
+def test_a_crash_while_answering_the_last_pass_does_not_hang_close(pool):
+    """A batcher whose loop fails while it answers the pass it finished on closing fails that pass's callers as
+    unavailable and stops (no restart that would wait for requests forever): close() returns."""
+    from gmt.service.errors import Unavailable
+
+    eng = RecordingEngine()
+    eng.gate.clear()
+    state = {"closing": False}
+
+    def observe(n, seconds):
+        if state["closing"]:
+            raise RuntimeError("bug in the metrics hook")
+
+    async def main():
+        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0, observe=observe)
+        b.start()
+        running = asyncio.ensure_future(b.act(None, 3))
+        assert await asyncio.to_thread(eng.entered.wait, 5)
+        state["closing"] = True
+        closing = asyncio.ensure_future(b.close())
+        while not b._task.cancelling():
+            await asyncio.sleep(0)
+        eng.gate.set()
+        await asyncio.wait_for(closing, 5)
+        with pytest.raises(Unavailable, match="the batcher failed"):
+            await asyncio.wait_for(running, 5)
+        return b.healthy
+
+    assert run(main()) is False
