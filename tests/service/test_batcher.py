@@ -38,6 +38,17 @@ def run(coro):
     return asyncio.run(coro)
 
 
+async def held_pass(eng: RecordingEngine, executor, value, **kw) -> tuple[MicroBatcher, asyncio.Future]:
+    """A started batcher (no batch wait) whose first pass, acting `value`, is held at the engine's gate (closed
+    here): the batcher and that pass's caller."""
+    eng.gate.clear()
+    b = MicroBatcher(eng, executor, max_batch=64, max_wait_s=0, **kw)
+    b.start()
+    first = asyncio.ensure_future(b.act(None, value))
+    assert await asyncio.to_thread(eng.entered.wait, 5)
+    return b, first
+
+
 @pytest.fixture
 def pool():
     with ThreadPoolExecutor(1) as p:
@@ -186,13 +197,9 @@ def test_without_an_executor_passes_are_not_split():
 
 def test_requests_arriving_during_a_forward_form_the_next_batch(pool):
     eng = RecordingEngine()
-    eng.gate.clear()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
-        b.start()
-        first = asyncio.ensure_future(b.act(None, 0))
-        assert await asyncio.to_thread(eng.entered.wait, 5)  # the forward of [0] is running, held at the gate
+        b, first = await held_pass(eng, pool, 0)  # the forward of [0] is running, held at the gate
         more = [asyncio.ensure_future(b.act(None, i)) for i in (1, 2, 3)]
         while b._live() < 3:
             await asyncio.sleep(0)
@@ -349,13 +356,9 @@ def test_closing_finishes_the_running_pass_and_fails_the_queued_requests_as_unav
     from gmt.service.errors import Unavailable
 
     eng = RecordingEngine()
-    eng.gate.clear()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
-        b.start()
-        running = asyncio.ensure_future(b.act(None, 0))
-        assert await asyncio.to_thread(eng.entered.wait, 5)  # its pass is held at the gate
+        b, running = await held_pass(eng, pool, 0)  # its pass is held at the gate
         queued = asyncio.ensure_future(b.act(None, 1))
         while b._live() < 1:
             await asyncio.sleep(0)
@@ -380,15 +383,9 @@ def test_nothing_queued_for_a_dropped_change_starts(pool):
     from gmt.service import units
 
     eng = RecordingEngine()
-    eng.gate.clear()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
-        b.start()
-        first = asyncio.ensure_future(b.act(None, 0))
-        assert await asyncio.to_thread(
-            eng.entered.wait, 5
-        )  # a pass held at the gate: the call queues behind it
+        b, first = await held_pass(eng, pool, 0)  # a pass held at the gate: the call queues behind it
         unit = units.Unit()
         token = units._CURRENT.set(unit)
         call = asyncio.ensure_future(b.act_many([None, None], [1, 2], solo=True))  # runs with `unit` current
@@ -433,13 +430,9 @@ def test_a_closing_batcher_cancelled_again_still_answers_its_running_pass(pool):
     """However often the batching task is cancelled while the pass it is finishing runs (close() called again, or
     its own caller cancelled), that pass's caller is answered and the task ends."""
     eng = RecordingEngine()
-    eng.gate.clear()
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0)
-        b.start()
-        running = asyncio.ensure_future(b.act(None, 7))
-        assert await asyncio.to_thread(eng.entered.wait, 5)
+        b, running = await held_pass(eng, pool, 7)
         loop_coro = b._task.get_coro().cr_await  # the batching loop, which the supervising task awaits
         held = loop_coro.cr_await  # what it waits on: the running pass
         closing = asyncio.ensure_future(b.close())
@@ -464,7 +457,6 @@ def test_a_crash_while_answering_the_last_pass_does_not_hang_close(pool):
     from gmt.service.errors import Unavailable
 
     eng = RecordingEngine()
-    eng.gate.clear()
     state = {"closing": False}
 
     def observe(n, seconds):
@@ -472,10 +464,7 @@ def test_a_crash_while_answering_the_last_pass_does_not_hang_close(pool):
             raise RuntimeError("bug in the metrics hook")
 
     async def main():
-        b = MicroBatcher(eng, pool, max_batch=64, max_wait_s=0, observe=observe)
-        b.start()
-        running = asyncio.ensure_future(b.act(None, 3))
-        assert await asyncio.to_thread(eng.entered.wait, 5)
+        b, running = await held_pass(eng, pool, 3, observe=observe)
         state["closing"] = True
         closing = asyncio.ensure_future(b.close())
         while not b._task.cancelling():
