@@ -153,12 +153,7 @@ class MicroBatcher:
                     "batcher crashed; restarting" if not self._closing else "batcher crashed while closing"
                 )
                 self.restarts += 1
-                gone = Unavailable(f"the batcher failed ({type(e).__name__}); retry the request")
-                for item in [*self._running, *self._pending]:
-                    if not item.future.done():
-                        item.future.set_exception(gone)
-                self._running = []
-                self._pending.clear()
+                self._fail_held(Unavailable(f"the batcher failed ({type(e).__name__}); retry the request"))
                 if self._closing:  # its cancellation was spent finishing the last pass: stop, do not restart
                     return
 
@@ -179,10 +174,16 @@ class MicroBatcher:
             self._task.cancel()
             # Not `gather`: a caller of close() that is cancelled itself must not cancel the task again.
             await asyncio.wait({self._task}, timeout=CLOSE_PASS_S)
-        gone = Unavailable("this model version stopped serving here before the request ran; retry it")
-        for item in [*self._pending, *self._running]:
+        self._fail_held(
+            Unavailable("this model version stopped serving here before the request ran; retry it")
+        )
+
+    def _fail_held(self, error: Unavailable) -> None:
+        """Fail every request held here, running or queued, that is not answered yet; hold none after."""
+        for item in [*self._running, *self._pending]:
             if not item.future.done():
-                item.future.set_exception(gone)
+                item.future.set_exception(error)
+        self._running = []
         self._pending.clear()
 
     async def act(self, ctx: Context, obs: np.ndarray) -> np.ndarray | int:
